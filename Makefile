@@ -1,0 +1,49 @@
+# image2sim: `make demo` and `make test` do all set-up on a fresh machine (see README).
+SHELL := /bin/bash
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.image2sim-installed
+# open3d needs libusb; CPU rendering needs OSMesa; ffmpeg decodes and encodes video.
+APT_PACKAGES := libusb-1.0-0 libosmesa6 libgl1 libegl1 libgomp1 ffmpeg
+export MUJOCO_GL ?= osmesa
+export PYOPENGL_PLATFORM ?= osmesa
+
+.PHONY: install demo test lint typecheck pytest samples benchmarks clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	@bash .ci/system-packages.sh $(APT_PACKAGES)
+	@test -x $(PY) || python3 -m venv $(VENV)
+	@# torch first, pinned: the CPU build on this machine; a plain `torch` would pull a multi-GB CUDA build.
+	@$(PY) -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '2.13.0')" 2>/dev/null \
+		|| $(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+demo: install
+	$(VENV)/bin/image2sim reconstruct samples/tabletop/video.mp4 -o out/demo/reconstruction --aruco-size 0.12 --overwrite
+	@echo "Cameras in the marker frame: out/demo/reconstruction/transforms.json (COLMAP model in out/demo/reconstruction/sparse)"
+
+lint: install
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+typecheck: install
+	$(VENV)/bin/mypy
+
+pytest: install
+	$(PY) -m pytest
+
+test: lint typecheck pytest
+
+samples: install
+	$(PY) samples/make_tabletop.py
+	$(PY) samples/make_toss.py
+
+benchmarks: install
+	$(PY) benchmarks/reconstruct.py
+
+clean:
+	rm -rf out .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,149 @@
+"""The `image2sim` command line. It builds each stage's options and calls the library; no logic lives only here.
+
+Bad input of any kind ends with one line on stderr, naming the problem and the fix, and exit code 2.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+app = typer.Typer(
+    name="image2sim",
+    help="Turn a video of a real tabletop into a calibrated MuJoCo simulation.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+EXIT_BAD_INPUT = 2
+
+
+@app.callback()
+def _group() -> None:
+    """Turn a video of a real tabletop into a calibrated MuJoCo simulation."""
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from grounder.errors import GrounderError
+    from reconstruction.errors import ReconstructionError
+    from scene_export.errors import SceneExportError
+
+    return (GrounderError, ReconstructionError, SceneExportError)
+
+
+def fail(message: str) -> None:
+    """Prints one line and exits with code 2 (bad input)."""
+    typer.echo(f"image2sim: error: {message}", err=True)
+    raise typer.Exit(EXIT_BAD_INPUT)
+
+
+@contextmanager
+def user_errors_exit_2() -> Iterator[None]:
+    try:
+        yield
+    except _user_errors() as exc:
+        fail(str(exc))
+
+
+@contextmanager
+def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
+    """A rich progress line per stage, on stderr so stdout stays machine-readable."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=console,
+        transient=False,
+        disable=not console.is_terminal and "CI" in os.environ,
+    ) as progress:
+        tasks: dict[str, Any] = {}
+
+        def report(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                for other in tasks.values():
+                    task = progress.tasks[other]
+                    progress.update(other, completed=task.total)
+                tasks[stage] = progress.add_task(stage, total=max(total, 1))
+            progress.update(tasks[stage], completed=done, total=max(total, 1))
+
+        yield report
+
+
+def _setup_logging(verbose: bool) -> None:
+    from rich.logging import RichHandler
+
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(message)s",
+        handlers=[RichHandler(show_time=False, show_path=False, markup=False)],
+    )
+
+
+@app.command()
+def reconstruct(
+    source: Annotated[Path, typer.Argument(help="A video file or a folder of images.")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (created; must be new or empty).")],
+    aruco_size: Annotated[
+        float | None,
+        typer.Option(help="Side of the ArUco marker's black square in metres (DICT_4X4_50, id 0, on the table)."),
+    ] = None,
+    known_extent: Annotated[
+        float | None,
+        typer.Option(help="Longest extent in metres of the largest object on the table (no marker)."),
+    ] = None,
+    max_frames: Annotated[int, typer.Option(help="Use at most this many frames.")] = 150,
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace a non-empty output folder once the result is ready.")
+    ] = False,
+    seed: Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")] = 0,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+) -> None:
+    """Cameras in a metric, gravity-aligned world frame: COLMAP model, transforms.json, reconstruct.json."""
+    _setup_logging(verbose)
+    with user_errors_exit_2():
+        from reconstruction import ReconstructOptions
+        from reconstruction import reconstruct as run_reconstruct
+
+        defaults = ReconstructOptions()
+        options = ReconstructOptions(
+            aruco_size_m=aruco_size,
+            known_extent_m=known_extent,
+            frames=replace(defaults.frames, max_frames=max_frames),
+            sfm=replace(defaults.sfm, seed=seed),
+        )
+        with stage_progress() as progress:
+            result = run_reconstruct(source, out, options, overwrite=overwrite, progress=progress)
+    scale = result.world.scale_source
+    typer.echo(
+        f"registered {len(result.frames)}/{len(result.selected_frame_indices)} frames "
+        f"(reprojection {result.mean_reprojection_error_px:.2f} px, scale from {scale}); wrote {out}"
+    )
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point."""
+    try:
+        app(args=argv, prog_name="image2sim", standalone_mode=True)
+    except SystemExit as exc:
+        # click reports usage errors with exit code 2 already; keep every other code as it is.
+        sys.exit(exc.code)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,319 @@
+"""`reconstruct`: frames -> pycolmap SfM -> metric, gravity-aligned world frame -> files other tools can read."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from reconstruction import _frames, _sfm, _world
+from reconstruction._outdir import staged_output_dir
+from reconstruction._preview import write_preview
+from reconstruction._types import (
+    CameraIntrinsics,
+    ReconstructionResult,
+    ReconstructOptions,
+    RegisteredFrame,
+    ScaleSource,
+    WorldFrame,
+)
+from reconstruction.errors import InputError, RegistrationError, WorldFrameError
+
+log = logging.getLogger(__name__)
+
+MIN_REGISTRATION_RATE = 0.5
+OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+ProgressFn = Callable[[str, int, int], None]  # (stage, done, total)
+
+
+def _validate(options: ReconstructOptions) -> None:
+    if options.aruco_size_m is not None and options.known_extent_m is not None:
+        raise InputError("give either --aruco-size or --known-extent, not both")
+    for name, value in (("--aruco-size", options.aruco_size_m), ("--known-extent", options.known_extent_m)):
+        if value is not None and not (0.005 <= value <= 5.0):
+            raise InputError(f"{name} is {value} m but must be between 0.005 and 5 m (metres, not millimetres)")
+    if options.frames.max_frames < _frames.MIN_FRAMES:
+        raise InputError(f"--max-frames is {options.frames.max_frames} but must be at least {_frames.MIN_FRAMES}")
+
+
+def intrinsics_of(camera: pycolmap.Camera) -> CameraIntrinsics:
+    """Pinhole part and radial terms of a COLMAP camera, whatever its model."""
+    model = camera.model.name
+    params = np.asarray(camera.params, float)
+    k1 = k2 = 0.0
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+        f, cx, cy = params[:3]
+        fx = fy = f
+        k1 = float(params[3]) if len(params) > 3 else 0.0
+        k2 = float(params[4]) if len(params) > 4 else 0.0
+    else:  # PINHOLE, OPENCV, FULL_OPENCV, ...: fx, fy, cx, cy first
+        fx, fy, cx, cy = params[:4]
+        if len(params) > 4:
+            k1, k2 = float(params[4]), float(params[5])
+    return CameraIntrinsics(
+        width_px=int(camera.width),
+        height_px=int(camera.height),
+        fx_px=float(fx),
+        fy_px=float(fy),
+        cx_px=float(cx),
+        cy_px=float(cy),
+        k1=k1,
+        k2=k2,
+        colmap_model=model,
+    )
+
+
+def _apply_world(rec: pycolmap.Reconstruction, world_from_sfm: np.ndarray) -> None:
+    scale = float(np.cbrt(np.linalg.det(world_from_sfm[:3, :3])))
+    rotation = pycolmap.Rotation3d(world_from_sfm[:3, :3] / scale)
+    rec.transform(pycolmap.Sim3d(scale, rotation, world_from_sfm[:3, 3]))
+
+
+def reconstruct(
+    source: Path,
+    out_dir: Path,
+    options: ReconstructOptions | None = None,
+    *,
+    overwrite: bool = False,
+    progress: ProgressFn | None = None,
+) -> ReconstructionResult:
+    """Cameras in a metric, gravity-aligned world frame from a video or an image folder.
+
+    Writes to `out_dir` (atomically): `sparse/` (COLMAP model in the world frame), `images/` (the frames used),
+    `transforms.json` (nerfstudio convention: camera-to-world, OpenGL camera axes), `reconstruct.json` and
+    `preview.png` (points and cameras from above and from the side).
+
+    Args:
+        source: a video file or a folder of images.
+        out_dir: output folder; must not exist or be empty unless `overwrite`.
+        options: settings; the world frame comes from `aruco_size_m`, else `known_extent_m`, else unknown scale.
+        overwrite: replace a non-empty `out_dir` once the new result is complete.
+        progress: called as progress(stage, done, total) while work goes on.
+
+    Raises:
+        InputError, RegistrationError, WorldFrameError: with a message that says what to change.
+    """
+    options = options or ReconstructOptions()
+    _validate(options)
+    source = Path(source)
+    report = progress or (lambda stage, done, total: None)
+    seconds: dict[str, float] = {}
+    _sfm._quiet_colmap()
+
+    with staged_output_dir(Path(out_dir), overwrite=overwrite) as stage_dir:
+        tick = time.perf_counter()
+        report("reading frames", 0, 1)
+        frames = _frames.read_frames(source)
+        selection = _frames.select_frames(frames, options.frames)
+        del frames
+        image_dir = stage_dir / "images"
+        image_dir.mkdir()
+        names = []
+        for frame in selection.kept:
+            name = f"frame_{frame.index:05d}.jpg"
+            cv2.imwrite(str(image_dir / name), frame.image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            names.append(name)
+        index_of = {n: f.index for n, f in zip(names, selection.kept, strict=True)}
+        # Find the marker before the expensive work, so a missing marker fails in seconds.
+        observations = _detect_marker(selection.kept, names, options) if options.aruco_size_m is not None else []
+        seconds["frames"] = time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        work = stage_dir / "colmap"
+        work.mkdir()
+        database = work / "database.db"
+        report("extracting SIFT features", 0, len(names))
+        _sfm.extract_features(database, image_dir, names, options.sfm)
+        seconds["features"] = time.perf_counter() - tick
+        tick = time.perf_counter()
+        report("matching", 0, len(names))
+        sequential = _frames.is_video(source) or len(names) > options.sfm.exhaustive_max_images
+        _sfm.match_features(database, len(names), sequential=sequential, options=options.sfm, work_dir=work)
+        seconds["matching"] = time.perf_counter() - tick
+        tick = time.perf_counter()
+        registered = [0]
+
+        def on_image() -> None:
+            registered[0] += 1
+            report("registering frames", registered[0], len(names))
+
+        rec = _sfm.map_incremental(database, image_dir, work / "mapper", options.sfm, on_image)
+        rate = rec.num_reg_images() / len(names)
+        if rate < MIN_REGISTRATION_RATE:
+            raise RegistrationError(
+                f"structure from motion registered {rec.num_reg_images()} of {len(names)} frames "
+                f"({rate:.0%}, need {MIN_REGISTRATION_RATE:.0%}); film more slowly, with more overlap and texture"
+            )
+        seconds["mapping"] = time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        report("world frame", 0, 1)
+        world = _establish_world(rec, observations, options)
+        marker_names = {o.image_name for o in observations}
+        _apply_world(rec, world.world_from_sfm)
+        seconds["world_frame"] = time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        sparse_dir = stage_dir / "sparse"
+        sparse_dir.mkdir()
+        rec.write(sparse_dir)
+        # Keep the database (features and matches, for dense stereo later) but not the mapper's scratch copy.
+        shutil.rmtree(work / "mapper", ignore_errors=True)
+        (work / "vocab_tree.bin").unlink(missing_ok=True)
+        camera = next(iter(rec.cameras.values()))
+        intrinsics = intrinsics_of(camera)
+        registered_frames = tuple(
+            RegisteredFrame(
+                frame_index=index_of[image.name],
+                image_name=image.name,
+                world_from_cam=_world_from_cam(image),
+                sees_marker=image.name in marker_names,
+            )
+            for image in sorted(rec.images.values(), key=lambda im: im.name)
+            if image.has_pose
+        )
+        points = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+        colors = np.array([p.color for p in rec.points3D.values()], np.uint8).reshape(-1, 3)
+        result = ReconstructionResult(
+            out_dir=Path(out_dir),
+            source=source,
+            num_source_frames=selection.num_source_frames,
+            selected_frame_indices=tuple(f.index for f in selection.kept),
+            dropped_blurred=selection.blurred,
+            dropped_duplicate=selection.duplicate,
+            intrinsics=intrinsics,
+            frames=registered_frames,
+            world=world,
+            points_world_m=points,
+            points_rgb=colors,
+            mean_reprojection_error_px=float(rec.compute_mean_reprojection_error()),
+            stage_seconds=seconds,
+        )
+        write_transforms_json(stage_dir / "transforms.json", result)
+        write_preview(stage_dir / "preview.png", result)
+        seconds["write"] = time.perf_counter() - tick
+        write_report(stage_dir / "reconstruct.json", result)
+    return result
+
+
+def _world_from_cam(image: pycolmap.Image) -> np.ndarray:
+    pose = np.eye(4)
+    pose[:3, :] = image.cam_from_world().inverse().matrix()
+    return pose
+
+
+def _detect_marker(
+    kept: tuple[_frames.Frame, ...], names: list[str], options: ReconstructOptions
+) -> list[_world.MarkerObservation]:
+    detector = _world.aruco_detector(options.aruco_dictionary)
+    observations = []
+    for frame, name in zip(kept, names, strict=True):
+        corners = _world.detect_marker_corners_px(frame.image_bgr, detector, options.aruco_id)
+        if corners is not None:
+            observations.append(_world.MarkerObservation(image_name=name, corners_px=corners))
+    if not observations:
+        raise WorldFrameError(
+            f"--aruco-size was given but no ArUco marker {options.aruco_dictionary} id {options.aruco_id} "
+            "was found in any frame; check the marker is in view with its white margin, or use --known-extent"
+        )
+    return observations
+
+
+def _establish_world(
+    rec: pycolmap.Reconstruction, observations: list[_world.MarkerObservation], options: ReconstructOptions
+) -> WorldFrame:
+    registered = [im for im in rec.images.values() if im.has_pose]
+    cam_centres = np.array([im.projection_center() for im in registered])
+    points = np.array([p.xyz for p in rec.points3D.values()]).reshape(-1, 3)
+    plane = _world.fit_support_plane(points, cam_centres, seed=options.sfm.seed)
+    if options.aruco_size_m is not None:
+        return _world.world_from_marker(rec, plane, observations, options.aruco_size_m)
+    if options.known_extent_m is not None:
+        return _world.world_from_extent(rec, plane, points, cam_centres, options.known_extent_m)
+    log.warning(
+        "SCALE UNKNOWN: no --aruco-size or --known-extent given; the world frame is gravity-aligned with the "
+        "table at z = 0, but its units are arbitrary, not metres"
+    )
+    return _world.world_unknown_scale(rec, plane, points)
+
+
+def write_transforms_json(path: Path, result: ReconstructionResult) -> None:
+    """nerfstudio's transforms.json: camera-to-world `transform_matrix` with OpenGL camera axes."""
+    k = result.intrinsics
+    payload = {
+        "camera_model": "OPENCV",
+        "w": k.width_px,
+        "h": k.height_px,
+        "fl_x": k.fx_px,
+        "fl_y": k.fy_px,
+        "cx": k.cx_px,
+        "cy": k.cy_px,
+        "k1": k.k1,
+        "k2": k.k2,
+        "p1": 0.0,
+        "p2": 0.0,
+        "scale_source": str(result.world.scale_source),
+        "frames": [
+            {
+                "file_path": f"images/{frame.image_name}",
+                "transform_matrix": (frame.world_from_cam @ OPENGL_FROM_OPENCV).tolist(),
+                "frame_index": frame.frame_index,
+            }
+            for frame in result.frames
+        ],
+    }
+    path.write_text(json.dumps(payload, indent=1) + "\n")
+
+
+def write_report(path: Path, result: ReconstructionResult) -> None:
+    import importlib.metadata as md
+
+    def version(pkg: str) -> str:
+        try:
+            return md.version(pkg)
+        except md.PackageNotFoundError:
+            return "unknown"
+
+    world = result.world
+    payload = {
+        "source": str(result.source),
+        "frames_in_source": result.num_source_frames,
+        "frames_selected": len(result.selected_frame_indices),
+        "frames_registered": len(result.frames),
+        "registration_rate": result.registration_rate,
+        "dropped_blurred": list(result.dropped_blurred),
+        "dropped_duplicate": list(result.dropped_duplicate),
+        "mean_reprojection_error_px": result.mean_reprojection_error_px,
+        "num_points3d": len(result.points_world_m),
+        "scale": {
+            "source": str(world.scale_source),
+            "metres_per_sfm_unit": world.scale if world.scale_source != ScaleSource.UNKNOWN else None,
+            "marker_views": world.marker_views,
+            "marker_corner_rms_px": None if np.isnan(world.marker_corner_rms_px) else world.marker_corner_rms_px,
+        },
+        "support_plane_inlier_ratio": world.plane_inlier_ratio,
+        "world_from_sfm": world.world_from_sfm.tolist(),
+        "intrinsics": {
+            "model": result.intrinsics.colmap_model,
+            "width_px": result.intrinsics.width_px,
+            "height_px": result.intrinsics.height_px,
+            "fx_px": result.intrinsics.fx_px,
+            "fy_px": result.intrinsics.fy_px,
+            "cx_px": result.intrinsics.cx_px,
+            "cy_px": result.intrinsics.cy_px,
+            "k1": result.intrinsics.k1,
+            "k2": result.intrinsics.k2,
+        },
+        "notes": list(world.notes),
+        "stage_seconds": {k: round(v, 3) for k, v in result.stage_seconds.items()},
+        "versions": {p: version(p) for p in ("image2sim", "pycolmap", "opencv-contrib-python-headless", "numpy")},
+    }
+    path.write_text(json.dumps(payload, indent=1) + "\n")

@@ -1,0 +1,136 @@
+"""Structure from motion with pycolmap: SIFT, sequential or exhaustive matching, incremental mapping.
+
+Loop detection needs a vocabulary tree. Rather than downloading COLMAP's, we build a small one from this video's
+own SIFT descriptors (`pycolmap.VisualIndex.build`), which is enough to recognise revisited viewpoints within one
+orbit and needs nothing from the network.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from reconstruction._types import SfmOptions
+from reconstruction.errors import RegistrationError
+
+log = logging.getLogger(__name__)
+
+VOCAB_TREE_WORDS = 256
+
+
+def _quiet_colmap() -> None:
+    """COLMAP logs every step at INFO through glog; keep warnings and errors only."""
+    logging_mod = getattr(pycolmap, "logging", None)
+    if logging_mod is not None and hasattr(logging_mod, "minloglevel"):
+        logging_mod.minloglevel = 1  # 0 INFO, 1 WARNING
+
+
+def extract_features(database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions) -> None:
+    """SIFT features for every image into a new COLMAP database, all images sharing one camera."""
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.sift.max_num_features = options.max_num_features
+    extraction.max_image_size = options.max_image_size_px
+    extraction.num_threads = options.num_threads
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = options.camera_model
+    pycolmap.extract_features(
+        database_path,
+        image_dir,
+        image_names=image_names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+
+
+def build_vocab_tree(database_path: Path, out_path: Path, num_threads: int) -> Path:
+    """A small visual-word index from this database's own descriptors, written where COLMAP can load it."""
+    with pycolmap.Database.open(database_path) as db:
+        descriptors = [db.read_descriptors(image.image_id).to_float().data for image in db.read_all_images()]
+    stacked = np.concatenate([d for d in descriptors if len(d)]).astype(np.float32)
+    # k-means on up to 60k descriptors: ample for a few hundred words and keeps the build to a few seconds.
+    rng = np.random.default_rng(0)
+    if len(stacked) > 60_000:
+        stacked = stacked[rng.choice(len(stacked), 60_000, replace=False)]
+    index = pycolmap.VisualIndex.create(128, 64)
+    build = pycolmap.VisualIndex.BuildOptions()
+    build.num_visual_words = int(min(VOCAB_TREE_WORDS, max(64, len(stacked) // 50)))
+    build.num_iterations = 20
+    build.num_rounds = 1
+    build.num_threads = num_threads
+    index.build(build, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, stacked))
+    index.write(out_path)
+    return out_path
+
+
+def match_features(
+    database_path: Path, num_images: int, *, sequential: bool, options: SfmOptions, work_dir: Path
+) -> None:
+    """Sequential matching with loop detection for videos; exhaustive for small unordered image sets."""
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = options.num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = options.seed
+    if not sequential:
+        pycolmap.match_exhaustive(
+            database_path,
+            matching_options=matching,
+            verification_options=verification,
+            device=pycolmap.Device.cpu,
+        )
+        return
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = options.sequential_overlap
+    pairing.quadratic_overlap = True
+    pairing.num_threads = options.num_threads
+    if options.loop_detection and num_images > 2 * options.sequential_overlap:
+        pairing.loop_detection = True
+        pairing.vocab_tree_path = build_vocab_tree(database_path, work_dir / "vocab_tree.bin", options.num_threads)
+        # Every 5th frame asks the index for 5 look-alikes at least 2 overlaps away: enough to close an orbit's
+        # loop, at a tenth of the cost of querying every frame.
+        pairing.loop_detection_period = 5
+        pairing.loop_detection_num_images = 5
+        pairing.loop_detection_min_index_distance = 2 * options.sequential_overlap
+    pycolmap.match_sequential(
+        database_path,
+        matching_options=matching,
+        pairing_options=pairing,
+        verification_options=verification,
+        device=pycolmap.Device.cpu,
+    )
+
+
+def map_incremental(
+    database_path: Path,
+    image_dir: Path,
+    out_dir: Path,
+    options: SfmOptions,
+    on_image: Callable[[], None] | None = None,
+) -> pycolmap.Reconstruction:
+    """Incremental mapping; returns the model with the most registered images.
+
+    Raises:
+        RegistrationError: no model could be initialised from the matches.
+    """
+    pipeline = pycolmap.IncrementalPipelineOptions()
+    pipeline.num_threads = options.num_threads
+    pipeline.random_seed = options.seed
+    pipeline.mapper.random_seed = options.seed
+    pipeline.triangulation.random_seed = options.seed
+    pipeline.extract_colors = True
+    out_dir.mkdir(parents=True, exist_ok=True)
+    models = pycolmap.incremental_mapping(
+        database_path, image_dir, out_dir, options=pipeline, next_image_callback=on_image or (lambda: None)
+    )
+    if not models:
+        raise RegistrationError(
+            "structure from motion could not start a model: too few frames share features. "
+            "Film more slowly with more overlap between frames, and a textured scene"
+        )
+    best = max(models.values(), key=lambda rec: rec.num_reg_images())
+    return best

@@ -1,0 +1,165 @@
+"""Typed stage boundaries of the reconstruction stage.
+
+Conventions (stated once, here):
+- `world_from_cam` is a 4x4 rigid transform taking OpenCV/COLMAP camera coordinates (x right, y down, z forward)
+  to world coordinates, in metres when the scale is known.
+- The world frame is metric and gravity-aligned: z up along the support plane's normal, table top at z = 0.
+  With an ArUco marker, world = marker frame (origin at its centre, x to the marker's right, y to its top).
+- Pixel coordinates follow COLMAP: the centre of the upper-left pixel is (0.5, 0.5).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+
+import numpy as np
+
+
+class ScaleSource(StrEnum):
+    """Where the metric scale of the world frame came from."""
+
+    ARUCO = "aruco"
+    KNOWN_EXTENT = "known_extent"
+    UNKNOWN = "unknown"
+
+
+@dataclass(frozen=True, kw_only=True)
+class FrameSelectionOptions:
+    """Which video frames go into structure from motion.
+
+    Attributes:
+        max_frames: keep at most this many frames (evenly spread over the video) after dropping bad ones.
+        blur_ratio: a frame is blurred when its sharpness (variance of the Laplacian) is below this fraction of
+            the median sharpness of its neighbourhood.
+        min_motion_px: a frame is a near-duplicate when the median feature motion since the last kept frame is
+            below this many pixels (at the working resolution).
+        work_size_px: longest image side used for the selection measures.
+    """
+
+    max_frames: int = 150
+    blur_ratio: float = 0.45
+    min_motion_px: float = 2.0
+    work_size_px: int = 480
+
+
+@dataclass(frozen=True, kw_only=True)
+class SfmOptions:
+    """pycolmap structure-from-motion settings tuned for short tabletop videos on a CPU.
+
+    Attributes:
+        camera_model: COLMAP camera model shared by every frame.
+        max_image_size_px: longest side at which SIFT runs (COLMAP rescales keypoints to full resolution).
+        max_num_features: SIFT features per image.
+        sequential_overlap: each frame is matched to this many following frames (video input).
+        exhaustive_max_images: image folders with at most this many images are matched exhaustively.
+        loop_detection: match frames that look alike far apart in time through a vocabulary tree built from
+            this video's own descriptors (no download).
+        num_threads: CPU threads for COLMAP (-1: all).
+        seed: random seed for RANSAC and the mapper (deterministic results).
+    """
+
+    camera_model: str = "SIMPLE_RADIAL"
+    max_image_size_px: int = 1024
+    max_num_features: int = 4096
+    sequential_overlap: int = 8
+    exhaustive_max_images: int = 40
+    loop_detection: bool = True
+    num_threads: int = -1
+    seed: int = 0
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconstructOptions:
+    """Everything `reconstruct` needs besides its input and output paths; doubles as the CLI section.
+
+    Attributes:
+        aruco_size_m: side of the ArUco marker's black square (DICT_4X4_50, id 0) lying on the table.
+        known_extent_m: longest extent of the largest object on the table, for videos without a marker.
+        frames: frame selection settings; `frames.max_frames` is the CLI's `--max-frames`.
+        sfm: structure-from-motion settings.
+        aruco_dictionary: OpenCV ArUco dictionary name.
+        aruco_id: id of the marker that defines the world frame.
+    """
+
+    aruco_size_m: float | None = None
+    known_extent_m: float | None = None
+    frames: FrameSelectionOptions = field(default_factory=FrameSelectionOptions)
+    sfm: SfmOptions = field(default_factory=SfmOptions)
+    aruco_dictionary: str = "DICT_4X4_50"
+    aruco_id: int = 0
+
+
+@dataclass(frozen=True, kw_only=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics in pixels (COLMAP pixel convention) plus the radial distortion COLMAP estimated."""
+
+    width_px: int
+    height_px: int
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    k1: float = 0.0
+    k2: float = 0.0
+    colmap_model: str = "PINHOLE"
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(3, 3) calibration matrix K for COLMAP pixel coordinates."""
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @property
+    def fovy_deg(self) -> float:
+        return float(np.rad2deg(2 * np.arctan(0.5 * self.height_px / self.fy_px)))
+
+
+@dataclass(frozen=True, kw_only=True)
+class RegisteredFrame:
+    """One video frame that structure from motion registered, with its pose in the world frame."""
+
+    frame_index: int  # index in the source video (or sorted image folder)
+    image_name: str
+    world_from_cam: np.ndarray  # (4, 4), OpenCV camera axes
+    sees_marker: bool = False
+
+    @property
+    def centre_world_m(self) -> np.ndarray:
+        return self.world_from_cam[:3, 3]
+
+
+@dataclass(frozen=True, kw_only=True)
+class WorldFrame:
+    """How SfM coordinates became the metric gravity-aligned world: world = scale * R @ sfm + t."""
+
+    world_from_sfm: np.ndarray  # (4, 4) similarity transform (the scale is inside the rotation block)
+    scale_source: ScaleSource
+    scale: float  # metres per SfM unit (1.0 when unknown)
+    plane_inlier_ratio: float  # fraction of sparse points on the support plane
+    marker_views: int = 0  # frames in which the marker was detected and used
+    marker_corner_rms_px: float = float("nan")  # reprojection RMS of the triangulated marker corners
+    notes: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconstructionResult:
+    """What `reconstruct` returns and writes to its output folder."""
+
+    out_dir: Path
+    source: Path
+    num_source_frames: int
+    selected_frame_indices: tuple[int, ...]
+    dropped_blurred: tuple[int, ...]
+    dropped_duplicate: tuple[int, ...]
+    intrinsics: CameraIntrinsics
+    frames: tuple[RegisteredFrame, ...]
+    world: WorldFrame
+    points_world_m: np.ndarray  # (N, 3) sparse points in the world frame
+    points_rgb: np.ndarray  # (N, 3) uint8
+    mean_reprojection_error_px: float
+    stage_seconds: dict[str, float]
+
+    @property
+    def registration_rate(self) -> float:
+        return len(self.frames) / max(1, len(self.selected_frame_indices))

@@ -1,0 +1,150 @@
+"""The command line: every README example runs (at least --help); bad input gives one line and exit code 2,
+leaving nothing half-written and nothing the user had lost."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "grounder.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=REPO,
+    )
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str) -> None:
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("image2sim: error:")]
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+@pytest.mark.parametrize("args", [["--help"], ["reconstruct", "--help"]])
+def test_help(args: list[str]) -> None:
+    proc = run_cli(*args)
+    assert proc.returncode == 0 and "Usage" in proc.stdout
+
+
+def test_console_script_installed() -> None:
+    exe = Path(sys.executable).parent / "image2sim"
+    if not exe.exists():
+        pytest.skip("package not installed as a console script in this environment")
+    assert subprocess.run([str(exe), "--help"], capture_output=True, timeout=60).returncode == 0
+
+
+def _write_images(folder: Path, images: list[np.ndarray]) -> Path:
+    folder.mkdir(parents=True)
+    for i, image in enumerate(images):
+        cv2.imwrite(str(folder / f"img_{i:03d}.png"), image)
+    return folder
+
+
+def _tabletop_frames(tabletop_dir: Path, indices: list[int]) -> list[np.ndarray]:
+    capture = cv2.VideoCapture(str(tabletop_dir / "video.mp4"))
+    frames = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            break
+        frames.append(frame)
+    return [frames[i] for i in indices]
+
+
+def test_missing_source(tmp_path: Path) -> None:
+    proc = run_cli("reconstruct", str(tmp_path / "nope.mp4"), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, "does not exist")
+    assert not (tmp_path / "out").exists()
+
+
+def test_unreadable_video(tmp_path: Path) -> None:
+    fake = tmp_path / "clip.mp4"
+    fake.write_text("this is not a video")
+    proc = run_cli("reconstruct", str(fake), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, "clip.mp4")
+    assert not (tmp_path / "out").exists()
+
+
+def test_too_few_frames(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    folder = _write_images(tmp_path / "imgs", [rng.integers(0, 255, (120, 160, 3), np.uint8) for _ in range(2)])
+    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, "2 frame(s)", "at least 3")
+
+
+def test_featureless_frames(tmp_path: Path) -> None:
+    folder = _write_images(tmp_path / "imgs", [np.full((120, 160, 3), 128, np.uint8) for _ in range(6)])
+    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, "featureless")
+    assert not (tmp_path / "out").exists()
+
+
+def test_unmatchable_frames_fail_registration(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    noise = [cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3), np.uint8), (0, 0), 1.5) for _ in range(6)]
+    folder = _write_images(tmp_path / "imgs", noise)
+    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, "structure from motion")
+    assert not (tmp_path / "out").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.partial")]
+
+
+def test_marker_size_given_but_no_marker(tmp_path: Path, tabletop_dir: Path) -> None:
+    frames = _tabletop_frames(tabletop_dir, [5, 10, 15, 20])
+    for frame in frames:  # paint the marker out
+        detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+        corners, ids, _ = detector.detectMarkers(frame)
+        if ids is not None:
+            for quad in corners:
+                centre = quad[0].mean(axis=0)
+                big = (quad[0] - centre) * 1.6 + centre
+                cv2.fillPoly(frame, [big.astype(np.int32)], (60, 110, 170))
+    folder = _write_images(tmp_path / "imgs", frames)
+    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"), "--aruco-size", "0.12", timeout=60)
+    assert_one_line_error(proc, "no ArUco marker", "--known-extent")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "needle"),
+    [
+        (["--aruco-size", "0.12", "--known-extent", "0.1"], "not both"),
+        (["--aruco-size", "120"], "metres"),
+        (["--max-frames", "1"], "--max-frames"),
+    ],
+)
+def test_bad_options(tmp_path: Path, tabletop_dir: Path, flags: list[str], needle: str) -> None:
+    proc = run_cli("reconstruct", str(tabletop_dir / "video.mp4"), "-o", str(tmp_path / "out"), *flags)
+    assert_one_line_error(proc, needle)
+
+
+def test_existing_output_is_kept(tmp_path: Path, tabletop_dir: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "precious.txt").write_text("mine")
+    proc = run_cli("reconstruct", str(tabletop_dir / "video.mp4"), "-o", str(out))
+    assert_one_line_error(proc, "--overwrite")
+    assert (out / "precious.txt").read_text() == "mine"
+
+
+def test_failed_overwrite_keeps_previous_output(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "reconstruct.json").write_text("{}")
+    folder = _write_images(tmp_path / "imgs", [np.full((120, 160, 3), 128, np.uint8) for _ in range(6)])
+    proc = run_cli("reconstruct", str(folder), "-o", str(out), "--overwrite")
+    assert_one_line_error(proc, "featureless")
+    assert (out / "reconstruct.json").read_text() == "{}"
