@@ -136,6 +136,59 @@ def reconstruct(
     )
 
 
+@app.command()
+def ground(
+    source: Annotated[Path, typer.Argument(help="A video file or a folder of images of the tabletop.")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output scene folder (created; must be new or empty).")],
+    aruco_size: Annotated[
+        float | None,
+        typer.Option(help="Side of the ArUco marker's black square in metres (DICT_4X4_50, id 0, on the table)."),
+    ] = None,
+    known_extent: Annotated[
+        float | None,
+        typer.Option(help="Longest extent in metres of the largest object on the table (no marker)."),
+    ] = None,
+    max_frames: Annotated[int, typer.Option(help="Use at most this many frames.")] = 150,
+    face_budget: Annotated[int, typer.Option(help="Faces per object mesh after decimation.")] = 4000,
+    max_hulls: Annotated[int, typer.Option(help="Convex hulls per object (CoACD).")] = 16,
+    density: Annotated[float, typer.Option(help="Density (kg/m^3) given to every object.")] = 600.0,
+    overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once the scene is ready.")] = False,
+    seed: Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")] = 0,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+) -> None:
+    """Film a tabletop, get a MuJoCo scene: scene.xml, assets/, scene.json, preview.png."""
+    _setup_logging(verbose)
+    if density <= 0 or face_budget < 100 or max_hulls < 1:
+        fail("--density must be > 0, --face-budget >= 100 and --max-hulls >= 1")
+    with user_errors_exit_2():
+        from grounder._ground import GroundOptions
+        from grounder._ground import ground as run_ground
+        from reconstruction import ReconstructOptions
+
+        defaults = GroundOptions()
+        recon = ReconstructOptions(
+            aruco_size_m=aruco_size,
+            known_extent_m=known_extent,
+            frames=replace(defaults.reconstruct.frames, max_frames=max_frames),
+            sfm=replace(defaults.reconstruct.sfm, seed=seed),
+        )
+        options = replace(
+            defaults,
+            reconstruct=recon,
+            objects=replace(defaults.objects, mesh=replace(defaults.objects.mesh, face_budget=face_budget)),
+            collision=replace(defaults.collision, max_hulls=max_hulls),
+            default_density_kg_m3=density,
+        )
+        with stage_progress() as progress:
+            result = run_ground(source, out, options, overwrite=overwrite, progress=progress)
+    worst = max((d for d, _ in result.settle.values()), default=0.0)
+    typer.echo(
+        f"{len(result.object_names)} object(s), scale from {result.scale_source}, "
+        f"max drift after {defaults.settle_seconds:.0f} s: {worst * 1000:.1f} mm"
+    )
+    typer.echo(f"MJCF: {result.scene_xml}")
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     try:

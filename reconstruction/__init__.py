@@ -3,14 +3,18 @@
 from reconstruction._frames import Frame, FrameSelection, read_frames, select_frames
 from reconstruction._outdir import staged_output_dir
 from reconstruction._reconstruct import reconstruct
+from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
+from reconstruction._texture import TextureOptions, TextureView, bake_texture, bake_texture_report, texture_coverage
 from reconstruction._types import (
     CameraIntrinsics,
     FrameSelectionOptions,
+    ObjectInstance,
     ReconstructionResult,
     ReconstructOptions,
     RegisteredFrame,
     ScaleSource,
     SfmOptions,
+    TexturedMesh,
     WorldFrame,
 )
 from reconstruction.errors import InputError, ReconstructionError, RegistrationError, WorldFrameError
@@ -21,17 +25,27 @@ __all__ = [
     "FrameSelection",
     "FrameSelectionOptions",
     "InputError",
+    "ObjectInstance",
+    "ObjectsOptions",
     "ReconstructOptions",
     "ReconstructionError",
     "ReconstructionResult",
     "RegisteredFrame",
     "RegistrationError",
     "ScaleSource",
+    "SceneObjects",
     "SfmOptions",
+    "TextureOptions",
+    "TextureView",
+    "TexturedMesh",
     "WorldFrame",
     "WorldFrameError",
+    "bake_texture",
+    "bake_texture_report",
+    "find_objects",
     "read_frames",
     "reconstruct",
     "select_frames",
     "staged_output_dir",
+    "texture_coverage",
 ]

@@ -163,3 +163,52 @@ class ReconstructionResult:
     @property
     def registration_rate(self) -> float:
         return len(self.frames) / max(1, len(self.selected_frame_indices))
+
+
+@dataclass(frozen=True, kw_only=True)
+class TexturedMesh:
+    """A triangle mesh with an optional colour texture (MuJoCo shows textures, not vertex colours).
+
+    Attributes:
+        vertices_m: (V, 3) float64 vertex positions, metres, in the frame stated by the owner.
+        faces: (F, 3) int64 vertex indices, counter-clockwise seen from outside.
+        uv: (V, 2) float64 texture coordinates in [0, 1], OBJ convention (v = 0 is the image's bottom row),
+            or None when untextured. Vertices on a UV seam are duplicated, so uv is per vertex.
+        texture_rgb: (H, W, 3) uint8 texture image (row 0 is the top), or None.
+    """
+
+    vertices_m: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray | None = None
+    texture_rgb: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.vertices_m.ndim != 2 or self.vertices_m.shape[1] != 3:
+            raise ValueError(f"{self.vertices_m.shape=} but expected (V, 3)")
+        if self.faces.ndim != 2 or self.faces.shape[1] != 3:
+            raise ValueError(f"{self.faces.shape=} but expected (F, 3)")
+        if self.uv is not None and self.uv.shape != (len(self.vertices_m), 2):
+            raise ValueError(f"{self.uv.shape=} but expected ({len(self.vertices_m)}, 2)")
+        if (self.uv is None) != (self.texture_rgb is None):
+            raise ValueError("uv and texture_rgb must be given together")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ObjectInstance:
+    """One segmented object of the scene, meshed in its own frame.
+
+    Attributes:
+        name: unique, a valid MJCF/file name (`object_0`, ...).
+        mesh: watertight mesh in the object frame (origin at its bounding-box centre, axes parallel to world).
+        world_from_object: (4, 4) pose of the object frame in the world frame, metres.
+        num_views: frames in which the object is visible.
+        closed_bottom: the unseen underside was closed with a flat cap on the table plane (an assumption).
+        warnings: problems noticed (partly out of view, possibly several touching objects, ...).
+    """
+
+    name: str
+    mesh: TexturedMesh
+    world_from_object: np.ndarray
+    num_views: int = 0
+    closed_bottom: bool = True
+    warnings: tuple[str, ...] = ()

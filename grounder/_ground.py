@@ -1,0 +1,275 @@
+"""`ground`: film a tabletop, get a MuJoCo scene folder. Reconstruct -> dense -> objects -> meshes -> hulls -> MJCF."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from grounder.errors import GrounderError
+from reconstruction import ReconstructOptions, ScaleSource, reconstruct, staged_output_dir
+from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
+from reconstruction._texture import TextureOptions, TextureView, bake_texture_report
+from reconstruction._types import ObjectInstance, ReconstructionResult, TexturedMesh
+from scene_export import (
+    CameraSpec,
+    CollisionOptions,
+    SceneObjectSpec,
+    TableSpec,
+    convex_decomposition,
+    export_scene,
+    render_view,
+    settle_test,
+    write_preview,
+)
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True, kw_only=True)
+class GroundOptions:
+    """Every stage of film-a-scene; each field is one stage's options.
+
+    Attributes:
+        default_density_kg_m3: density given to every object until the property model assigns one.
+        default_friction: (sliding, torsional, rolling) friction until the property model assigns one.
+        settle_seconds: simulated time of the stability check written to scene.json.
+    """
+
+    reconstruct: ReconstructOptions = field(default_factory=ReconstructOptions)
+    objects: ObjectsOptions = field(default_factory=ObjectsOptions)
+    texture: TextureOptions = field(default_factory=TextureOptions)
+    collision: CollisionOptions = field(default_factory=CollisionOptions)
+    default_density_kg_m3: float = 600.0
+    default_friction: tuple[float, float, float] = (0.6, 0.005, 0.0001)
+    settle_seconds: float = 2.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class GroundResult:
+    """What `ground` wrote."""
+
+    out_dir: Path
+    scene_xml: Path
+    object_names: tuple[str, ...]
+    settle: dict[str, tuple[float, float]]  # name -> (displacement_m, rotation_deg) after settle_seconds
+    scale_source: str
+    warnings: tuple[str, ...]
+    stage_seconds: dict[str, float]
+
+
+def _read_image(path: Path) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise GrounderError(f"{path} could not be read back; check the disk and re-run")
+    return np.asarray(image)
+
+
+def _rescale(
+    scene: SceneObjects, result: ReconstructionResult, factor: float
+) -> tuple[SceneObjects, ReconstructionResult]:
+    """Scales the whole world (objects, cameras, points) about its origin by `factor`."""
+    objects = []
+    for obj in scene.objects:
+        pose = obj.world_from_object.copy()
+        pose[:3, 3] *= factor
+        objects.append(
+            replace(obj, mesh=replace(obj.mesh, vertices_m=obj.mesh.vertices_m * factor), world_from_object=pose)
+        )
+    frames = []
+    for frame in result.frames:
+        pose = frame.world_from_cam.copy()
+        pose[:3, 3] *= factor
+        frames.append(replace(frame, world_from_cam=pose))
+    half = (scene.table_half_extents[0] * factor, scene.table_half_extents[1] * factor)
+    return (
+        replace(scene, objects=tuple(objects), table_half_extents=half),
+        replace(result, frames=tuple(frames), points_world_m=result.points_world_m * factor),
+    )
+
+
+def ground(
+    source: Path,
+    out_dir: Path,
+    options: GroundOptions | None = None,
+    *,
+    overwrite: bool = False,
+    progress: ProgressFn | None = None,
+) -> GroundResult:
+    """A MuJoCo scene folder from a video of a tabletop.
+
+    Writes atomically to `out_dir`: `scene.xml`, `assets/`, `scene.json`, `preview.png` (an input frame beside
+    MuJoCo's render from the same pose) and `reconstruction/` (cameras, as `image2sim reconstruct` writes them).
+
+    Args:
+        source: video file or image folder.
+        out_dir: output folder; must be new or empty unless `overwrite`.
+        options: settings of every stage.
+        overwrite: replace a non-empty `out_dir` once the new scene is complete.
+        progress: called as progress(stage, done, total).
+
+    Raises:
+        GrounderError, ReconstructionError, SceneExportError: bad input or nothing usable, with what to do.
+    """
+    options = options or GroundOptions()
+    report = progress or (lambda stage, done, total: None)
+    seconds: dict[str, float] = {}
+    warnings: list[str] = []
+    with staged_output_dir(Path(out_dir), overwrite=overwrite) as stage:
+        tick = time.perf_counter()
+        rec = reconstruct(source, stage / "reconstruction", options.reconstruct, progress=report)
+        seconds["reconstruct"] = time.perf_counter() - tick
+        rec = replace(rec, out_dir=stage / "reconstruction")
+        if rec.world.scale_source == ScaleSource.UNKNOWN:
+            warnings.append("scale unknown: pass --aruco-size or --known-extent for a metric scene")
+
+        tick = time.perf_counter()
+        scene = find_objects(rec, options.objects, progress=report)
+        seconds["dense_segment_mesh"] = time.perf_counter() - tick
+        scale_note = None
+        if rec.world.scale_source == ScaleSource.KNOWN_EXTENT and options.reconstruct.known_extent_m:
+            largest = max(scene.objects, key=lambda o: float(np.prod(np.ptp(o.mesh.vertices_m, axis=0))))
+            factor = options.reconstruct.known_extent_m / float(np.ptp(largest.mesh.vertices_m, axis=0).max())
+            scene, rec = _rescale(scene, rec, factor)
+            scale_note = f"known extent refined on the segmented mesh of {largest.name}: scale x {factor:.4f}"
+        for obj in scene.objects:
+            warnings.extend(f"{obj.name}: {w}" for w in obj.warnings)
+
+        tick = time.perf_counter()
+        views = [
+            TextureView(
+                image_bgr=_read_image(rec.out_dir / "images" / f.image_name),
+                world_from_cam=f.world_from_cam,
+                intrinsics=rec.intrinsics,
+            )
+            for f in rec.frames
+        ]
+        textured: list[ObjectInstance] = []
+        coverage: dict[str, float] = {}
+        world_meshes = [(o.mesh.vertices_m + o.world_from_object[:3, 3], o.mesh.faces) for o in scene.objects]
+        for i, obj in enumerate(scene.objects):
+            report("baking textures", i, len(scene.objects))
+            others = [m for j, m in enumerate(world_meshes) if j != i]
+            bake = bake_texture_report(world_meshes[i][0], obj.mesh.faces, views, options.texture, occluders=others)
+            mesh = bake.mesh
+            textured.append(replace(obj, mesh=replace(mesh, vertices_m=mesh.vertices_m - obj.world_from_object[:3, 3])))
+            coverage[obj.name] = bake.coverage
+        seconds["texture"] = time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        specs = []
+        for i, obj in enumerate(textured):
+            report("collision hulls", i, len(textured))
+            source_mesh = next(o for o in scene.objects if o.name == obj.name).mesh
+            collision = convex_decomposition(source_mesh.vertices_m, source_mesh.faces, options.collision)
+            specs.append(
+                SceneObjectSpec(
+                    name=obj.name,
+                    visual=obj.mesh,
+                    collision=collision,
+                    world_from_object=obj.world_from_object,
+                    density_kg_m3=options.default_density_kg_m3,
+                    friction=options.default_friction,
+                )
+            )
+        seconds["collision"] = time.perf_counter() - tick
+
+        tick = time.perf_counter()
+        report("writing MJCF", 0, 1)
+        preview_frame = rec.frames[0]
+        camera = CameraSpec.from_intrinsics("video", preview_frame.world_from_cam, rec.intrinsics)
+        table = TableSpec(half_extents_m=scene.table_half_extents)
+        provenance = _provenance(rec, scene, textured, coverage, scale_note, options)
+        exported = export_scene(specs, table, [camera], stage / "export", manifest_extra=provenance)
+        for child in exported.out_dir.iterdir():
+            shutil.move(str(child), stage / child.name)
+        exported.out_dir.rmdir()
+        scene_xml = stage / "scene.xml"
+        frame_bgr = _read_image(rec.out_dir / "images" / preview_frame.image_name)
+        write_preview(stage / "preview.png", frame_bgr, render_view(scene_xml, camera))
+        settle = settle_test(scene_xml, seconds=options.settle_seconds)
+        manifest_path = stage / "scene.json"
+        manifest = json.loads(manifest_path.read_text())
+        manifest["settle_test"] = {
+            "seconds": options.settle_seconds,
+            "objects": {
+                n: {"displacement_m": m.displacement_m, "rotation_deg": m.rotation_deg} for n, m in settle.items()
+            },
+        }
+        manifest["warnings"] = warnings
+        manifest_path.write_text(json.dumps(manifest, indent=1) + "\n")
+        seconds["export"] = time.perf_counter() - tick
+        manifest["stage_seconds"] = {k: round(v, 2) for k, v in seconds.items()}
+        manifest_path.write_text(json.dumps(manifest, indent=1) + "\n")
+    for warning in warnings:
+        log.warning(warning)
+    if not textured:
+        raise GrounderError("no object found")  # unreachable: find_objects raises first
+    return GroundResult(
+        out_dir=Path(out_dir),
+        scene_xml=Path(out_dir) / "scene.xml",
+        object_names=tuple(o.name for o in textured),
+        settle={n: (m.displacement_m, m.rotation_deg) for n, m in settle.items()},
+        scale_source=str(rec.world.scale_source),
+        warnings=tuple(warnings),
+        stage_seconds=seconds,
+    )
+
+
+def _provenance(
+    rec: ReconstructionResult,
+    scene: SceneObjects,
+    objects: list[ObjectInstance],
+    coverage: dict[str, float],
+    scale_note: str | None,
+    options: GroundOptions,
+) -> dict[str, object]:
+    import importlib.metadata as md
+
+    def version(pkg: str) -> str:
+        try:
+            return md.version(pkg)
+        except md.PackageNotFoundError:
+            return "unknown"
+
+    return {
+        "provenance": {
+            "source": str(rec.source),
+            "scale_source": str(rec.world.scale_source),
+            "scale_note": scale_note,
+            "frames_in_source": rec.num_source_frames,
+            "frames_used": [f.frame_index for f in rec.frames],
+            "registration_rate": rec.registration_rate,
+            "mean_reprojection_error_px": rec.mean_reprojection_error_px,
+            "dense": {"stereo_pairs": scene.num_stereo_pairs, "voxel_size": scene.voxel_size},
+            "assumptions": [
+                "unseen undersides are closed flat where objects meet the table (closed_bottom)",
+                f"density {options.default_density_kg_m3} kg/m^3 and friction {list(options.default_friction)} are "
+                "defaults, not measured",
+            ],
+            "versions": {p: version(p) for p in ("image2sim", "pycolmap", "open3d", "coacd", "mujoco", "trimesh")},
+        },
+        "objects_extra": {
+            o.name: {
+                "closed_bottom": o.closed_bottom,
+                "num_views": o.num_views,
+                "texture_coverage": coverage.get(o.name),
+                "warnings": list(o.warnings),
+            }
+            for o in objects
+        },
+    }
+
+
+def mesh_in_world(obj: ObjectInstance) -> TexturedMesh:
+    """The object's mesh moved to the world frame."""
+    return replace(obj.mesh, vertices_m=obj.mesh.vertices_m + obj.world_from_object[:3, 3])

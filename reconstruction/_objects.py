@@ -1,0 +1,344 @@
+"""Objects on the table: segmentation of the fused surface into instances, and one watertight mesh per object.
+
+Segmentation: surface points clearly above the table (z > `seed_height`) are clustered (DBSCAN); each cluster
+then takes every surface point down to the table inside its footprint. Each instance is confirmed by image
+evidence (it must project inside enough registered frames) and problems are reported, not hidden: objects cut by
+the region of interest or seen in few frames, and footprints that look like several touching objects.
+
+Meshing: the object's surface is voxelised, its footprint on the table is capped (the unseen underside is
+assumed flat where the object meets the table: recorded as `closed_bottom`), enclosed space is filled, and
+marching cubes gives a watertight surface, corrected by half a voxel inwards, smoothed and decimated.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import ndimage
+
+from reconstruction._dense import DenseResult, RegionOfInterest
+from reconstruction.errors import ReconstructionError
+
+if TYPE_CHECKING:
+    import trimesh
+
+log = logging.getLogger(__name__)
+
+
+class SegmentationError(ReconstructionError):
+    """No object could be found or meshed."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class SegmentOptions:
+    """Instance segmentation settings; lengths are multiples of the fused voxel size.
+
+    Attributes:
+        seed_height_voxels: points higher than this above the table seed object clusters.
+        min_height_voxels: points lower than this belong to the table.
+        cluster_eps_voxels: DBSCAN neighbourhood radius.
+        min_points: smallest cluster kept as an object.
+        min_view_fraction: an object must project fully inside at least this fraction of frames.
+        solidity_warning: footprints less convex than this are reported as possibly several touching objects.
+        footprint_dilate_cells: growth of the seed footprint that collects the object's lower surface.
+        table_band_voxels: up-facing points lower than this outside the object's core footprint are table.
+    """
+
+    seed_height_voxels: float = 6.0
+    min_height_voxels: float = 0.8
+    cluster_eps_voxels: float = 4.0
+    min_points: int = 300
+    min_view_fraction: float = 0.15
+    solidity_warning: float = 0.8
+    footprint_dilate_cells: int = 1
+    table_band_voxels: float = 4.0
+
+
+@dataclass(frozen=True, kw_only=True)
+class MeshOptions:
+    """Watertight meshing settings.
+
+    Attributes:
+        face_budget: decimate each object's mesh to at most this many faces.
+        cap_height_voxels: points lower than this outline the footprint closed on the table.
+        smooth_iterations: Taubin smoothing steps after marching cubes.
+    """
+
+    face_budget: int = 4000
+    cap_height_voxels: float = 2.0
+    smooth_iterations: int = 10
+
+
+@dataclass(frozen=True, kw_only=True)
+class ObjectSegment:
+    """Surface of one object instance in the world frame."""
+
+    points_world: np.ndarray  # (N, 3)
+    normals_world: np.ndarray  # (N, 3)
+    face_ids: np.ndarray  # (M,) faces of the fused mesh that belong to the object
+    num_views: int
+    warnings: tuple[str, ...]
+
+
+def segment_objects(
+    dense: DenseResult,
+    roi: RegionOfInterest,
+    cams_from_world: list[np.ndarray],
+    k: np.ndarray,
+    image_size: tuple[int, int],
+    options: SegmentOptions | None = None,
+) -> list[ObjectSegment]:
+    """Object instances on the table (world frame, table top at z = 0), largest first.
+
+    Args:
+        dense: fused surface.
+        roi: region that was fused; objects touching its sides are reported as possibly cut.
+        cams_from_world: (4, 4) per registered frame, OpenCV axes.
+        k: (3, 3) intrinsics, OpenCV pixel convention.
+        image_size: (width, height) px.
+
+    Raises:
+        SegmentationError: nothing stands on the table.
+    """
+    import open3d as o3d
+
+    options = options or SegmentOptions()
+    voxel = dense.voxel_size
+    verts = dense.vertices_world
+    height = verts[:, 2]
+    seeds = np.flatnonzero(height > options.seed_height_voxels * voxel)
+    if len(seeds) < options.min_points:
+        raise SegmentationError(
+            "no object found on the table: the fused surface has nothing standing above the table plane; "
+            "film the objects from more sides, closer, with more texture"
+        )
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(verts[seeds]))
+    labels = np.asarray(cloud.cluster_dbscan(eps=options.cluster_eps_voxels * voxel, min_points=10))
+    candidates = [seeds[labels == i] for i in range(labels.max() + 1)]
+    candidates = [c for c in candidates if len(c) >= options.min_points]
+    if not candidates:
+        raise SegmentationError(
+            "no object found on the table: only small fragments stand above the table plane; "
+            "film the objects from more sides, closer, with more texture"
+        )
+    low_ok = height > options.min_height_voxels * voxel
+    face_owner = np.full(len(dense.faces), -1)
+    segments = []
+    for index, seed_ids in enumerate(sorted(candidates, key=len, reverse=True)):
+        footprint, origin, cell = _footprint_image(
+            verts[seed_ids, :2], voxel, dilate_cells=options.footprint_dilate_cells
+        )
+        ij = np.floor((verts[:, :2] - origin) / cell).astype(int)
+        inside_grid = np.all((ij >= 0) & (ij < footprint.shape), axis=1)
+        members = np.zeros(len(verts), bool)
+        members[inside_grid] = footprint[ij[inside_grid, 0], ij[inside_grid, 1]]
+        members &= low_ok
+        # Table surface beside the object (noisy, a few mm high, facing up) is not the object.
+        core, core_origin, _ = _footprint_image(verts[seed_ids, :2], voxel, dilate_cells=0)
+        core = ndimage.binary_erosion(core, iterations=1)
+        cij = np.floor((verts[:, :2] - core_origin) / cell).astype(int)
+        in_core_grid = np.all((cij >= 0) & (cij < core.shape), axis=1)
+        in_core = np.zeros(len(verts), bool)
+        in_core[in_core_grid] = core[cij[in_core_grid, 0], cij[in_core_grid, 1]]
+        table_like = (height < options.table_band_voxels * voxel) & (dense.vertex_normals[:, 2] > 0.8)
+        members &= in_core | ~table_like
+        ids = np.flatnonzero(members)
+        faces = np.flatnonzero(members[dense.faces].all(axis=1) & (face_owner < 0))
+        face_owner[faces] = index
+        points = verts[ids]
+        warnings = []
+        views = _count_views(points, cams_from_world, k, image_size)
+        if views < options.min_view_fraction * len(cams_from_world):
+            warnings.append(f"seen whole in only {views} of {len(cams_from_world)} frames: partly out of view")
+        margin = 2 * voxel
+        if np.any(points[:, :2].min(0) < roi.min_world[:2] + margin) or np.any(
+            points[:, :2].max(0) > roi.max_world[:2] - margin
+        ):
+            warnings.append("touches the edge of the reconstructed region: it may be cut")
+        solidity = _solidity(footprint)
+        if solidity < options.solidity_warning:
+            warnings.append(
+                f"footprint solidity {solidity:.2f} < {options.solidity_warning}: possibly several touching objects"
+            )
+        segments.append(
+            ObjectSegment(
+                points_world=points,
+                normals_world=dense.vertex_normals[ids],
+                face_ids=faces,
+                num_views=views,
+                warnings=tuple(warnings),
+            )
+        )
+    return segments
+
+
+def _footprint_image(xy: np.ndarray, voxel: float, dilate_cells: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Boolean occupancy image of points projected on the table, holes filled, dilated."""
+    cell = voxel
+    pad = dilate_cells + 2
+    origin = xy.min(axis=0) - pad * cell
+    shape = np.ceil((xy.max(axis=0) - origin) / cell).astype(int) + pad + 1
+    image = np.zeros(shape, bool)
+    ij = np.floor((xy - origin) / cell).astype(int)
+    image[ij[:, 0], ij[:, 1]] = True
+    image = ndimage.binary_closing(image, iterations=2)
+    image = ndimage.binary_fill_holes(image)
+    image = ndimage.binary_dilation(image, iterations=dilate_cells)
+    return image, origin, cell
+
+
+def _solidity(footprint: np.ndarray) -> float:
+    from scipy.spatial import ConvexHull
+
+    ij = np.argwhere(footprint).astype(float)
+    if len(ij) < 4:
+        return 1.0
+    return float(len(ij) / max(ConvexHull(ij).volume, 1.0))
+
+
+def _count_views(points: np.ndarray, cams_from_world: list[np.ndarray], k: np.ndarray, size: tuple[int, int]) -> int:
+    count = 0
+    for pose in cams_from_world:
+        cam = points @ pose[:3, :3].T + pose[:3, 3]
+        if np.any(cam[:, 2] <= 0):
+            continue
+        uv = cam[:, :2] / cam[:, 2:] * [k[0, 0], k[1, 1]] + [k[0, 2], k[1, 2]]
+        if np.all((uv >= 0) & (uv < [size[0], size[1]])):
+            count += 1
+    return count
+
+
+@dataclass(frozen=True, kw_only=True)
+class WatertightMesh:
+    vertices_world: np.ndarray  # (V, 3)
+    faces: np.ndarray  # (F, 3)
+    closed_bottom: bool
+
+
+def _oriented_shell(dense: DenseResult, segment: ObjectSegment, cam_centres: np.ndarray) -> np.ndarray:
+    """The object's fused faces, flipped if needed so that normals point out, towards the cameras."""
+    faces = dense.faces[segment.face_ids]
+    tri = dense.vertices_world[faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    to_cameras = cam_centres.mean(axis=0) - tri.mean(axis=1)
+    if np.sum(np.einsum("ij,ij->i", normals, to_cameras) > 0) < 0.5 * len(faces):
+        faces = faces[:, ::-1]
+    return faces
+
+
+def _footprint_cap(points: np.ndarray, voxel: float, cap_height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulated cap on the table (z = 0, normals down) under the object's lowest points.
+
+    The camera never sees where an object meets the table: closing it flat there is an assumption, recorded
+    with the object (`closed_bottom`).
+    """
+    low = points[points[:, 2] < cap_height][:, :2]
+    if len(low) < 10:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    image, origin, cell = _footprint_image(low, voxel, dilate_cells=0)
+    image = ndimage.binary_erosion(image, iterations=1)
+    cells = np.argwhere(image)
+    corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]])
+    verts = ((cells[:, None, :] + corners[None]) * cell + origin).reshape(-1, 2)
+    verts = np.c_[verts, np.zeros(len(verts))]
+    base = np.arange(len(cells))[:, None] * 4
+    faces = np.concatenate(
+        [base + np.array([0, 2, 1]), base + np.array([0, 3, 2])]
+    )  # clockwise seen from above: normal -z
+    return verts, faces
+
+
+def mesh_object(
+    dense: DenseResult,
+    segment: ObjectSegment,
+    cam_centres: np.ndarray,
+    options: MeshOptions | None = None,
+) -> WatertightMesh:
+    """Watertight mesh of one object: inside = generalized winding number of its fused shell plus a table cap.
+
+    The fused surface has holes (occlusions, weak texture); the winding number (Jacobson et al. 2013) still
+    tells inside from outside across them, where filling voxels or carving would leak.
+
+    Args:
+        dense: fused surface (world frame, table top z = 0).
+        segment: the object's part of it.
+        cam_centres: (M, 3) registered camera centres (to orient the shell).
+        options: settings.
+
+    Raises:
+        SegmentationError: nothing closed could be made of the object.
+    """
+    import igl
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    options = options or MeshOptions()
+    voxel = dense.voxel_size
+    shell_faces = _oriented_shell(dense, segment, cam_centres)
+    cap_v, cap_f = _footprint_cap(segment.points_world, voxel, options.cap_height_voxels * voxel)
+    verts = np.concatenate([dense.vertices_world, cap_v])
+    faces = np.concatenate([shell_faces, cap_f + len(dense.vertices_world)])
+    pad = 3
+    lo_index = np.floor(segment.points_world.min(axis=0) / voxel).astype(int) - pad
+    lo_index[2] = -pad
+    hi_index = np.ceil(segment.points_world.max(axis=0) / voxel).astype(int) + pad
+    shape = tuple(int(n) for n in hi_index - lo_index + 1)
+    lo = lo_index * voxel
+    centres = lo + np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3) * voxel
+    winding = igl.fast_winding_number(
+        np.ascontiguousarray(verts, np.float64), np.ascontiguousarray(faces, np.int64), centres
+    ).reshape(shape)
+    solid = winding > 0.5
+    z0 = int(np.ceil(-lo[2] / voxel))  # first voxel layer at or above the table top z = 0
+    solid[:, :, :z0] = False
+    labels, count = ndimage.label(solid)
+    if count == 0:
+        raise SegmentationError("an object's surface encloses no volume; film it from more sides")
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    solid = ndimage.binary_fill_holes(labels == int(sizes.argmax()))
+    closed_bottom = bool(len(cap_f) > 0 and solid[:, :, z0].any())
+    field = ndimage.gaussian_filter(solid.astype(np.float32), sigma=0.7)
+    field[:, :, :z0] = 0.0
+    field = np.pad(field, 1)  # empty all round, so the surface closes
+    mc_verts, mc_faces, _, _ = marching_cubes(field, level=0.5, spacing=(voxel, voxel, voxel))
+    mesh = trimesh.Trimesh(mc_verts + lo - voxel, mc_faces[:, ::-1], process=True)
+    mesh = _largest_component(mesh)
+    if mesh.volume < 0:
+        mesh.invert()
+    trimesh.smoothing.filter_taubin(mesh, iterations=options.smooth_iterations)
+    mesh = _decimate(mesh, options.face_budget)
+    mesh.vertices[:, 2] = np.maximum(mesh.vertices[:, 2], 0.0)  # nothing below the table top
+    if not mesh.is_watertight or mesh.volume <= 0:
+        raise SegmentationError(
+            "could not build a closed mesh for an object (degenerate surface); film it from more sides"
+        )
+    return WatertightMesh(
+        vertices_world=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), closed_bottom=closed_bottom
+    )
+
+
+def _largest_component(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    parts = mesh.split(only_watertight=False)
+    return max(parts, key=lambda m: abs(m.volume) if m.is_watertight else len(m.faces)) if len(parts) > 1 else mesh
+
+
+def _decimate(mesh: trimesh.Trimesh, face_budget: int) -> trimesh.Trimesh:
+    """Quadric decimation (Open3D keeps closed meshes closed) to the face budget; keeps the input otherwise."""
+    import open3d as o3d
+    import trimesh
+
+    if len(mesh.faces) <= face_budget:
+        return mesh
+    o3d_mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(mesh.vertices), o3d.utility.Vector3iVector(mesh.faces)
+    )
+    simple = o3d_mesh.simplify_quadric_decimation(target_number_of_triangles=face_budget)
+    out = trimesh.Trimesh(np.asarray(simple.vertices), np.asarray(simple.triangles), process=True)
+    if out.is_watertight and out.volume > 0:
+        return out
+    log.warning("decimation broke watertightness; keeping %d faces", len(mesh.faces))
+    return mesh

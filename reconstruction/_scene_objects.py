@@ -1,0 +1,149 @@
+"""From a reconstruction to meshed object instances: region of interest, dense fusion, segmentation, meshing."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from reconstruction import _dense, _objects, _world
+from reconstruction._types import ObjectInstance, ReconstructionResult, TexturedMesh
+from reconstruction.errors import ReconstructionError
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ObjectsOptions:
+    """Dense geometry, segmentation and meshing settings (one CLI section)."""
+
+    dense: _dense.DenseOptions = field(default_factory=_dense.DenseOptions)
+    segment: _objects.SegmentOptions = field(default_factory=_objects.SegmentOptions)
+    mesh: _objects.MeshOptions = field(default_factory=_objects.MeshOptions)
+    roi_margin_fraction: float = 0.08  # margin around the objects' sparse points, x the median camera distance
+
+
+@dataclass(frozen=True, kw_only=True)
+class SceneObjects:
+    """Objects found on the table, and what was fused to find them."""
+
+    objects: tuple[ObjectInstance, ...]
+    roi: _dense.RegionOfInterest
+    voxel_size: float
+    num_stereo_pairs: int
+    table_half_extents: tuple[float, float]  # of the support plane seen, around the world origin
+
+
+def load_views(result: ReconstructionResult) -> list[_dense.StereoView]:
+    """The registered frames of a reconstruction, read back from its output folder."""
+    views = []
+    for frame in result.frames:
+        image = cv2.imread(str(result.out_dir / "images" / frame.image_name), cv2.IMREAD_COLOR)
+        if image is None:
+            raise ReconstructionError(f"{result.out_dir / 'images' / frame.image_name} is missing; re-run reconstruct")
+        views.append(_dense.StereoView(image_bgr=image, world_from_cam=frame.world_from_cam))
+    return views
+
+
+def region_of_interest(result: ReconstructionResult, margin_fraction: float) -> _dense.RegionOfInterest:
+    """Box around the sparse points standing on the table, with a margin of table around them.
+
+    Raises:
+        SegmentationError: no cluster of points stands on the table.
+    """
+    points = result.points_world_m
+    cams = np.array([f.centre_world_m for f in result.frames])
+    plane = _world.Plane(normal=np.array([0.0, 0.0, 1.0]), offset=0.0, inliers=np.abs(points[:, 2]) < 1e-9)
+    scene_size = float(np.median(np.linalg.norm(cams - np.median(points, 0), axis=1)))
+    clusters = _world.objects_above_plane(points, plane, scene_size)
+    if not clusters:
+        raise _objects.SegmentationError(
+            "no object found: no cluster of 3D points stands on the table; film the objects from more sides"
+        )
+    members = points[np.concatenate(clusters)]
+    lo = np.percentile(members, 1, axis=0)
+    hi = np.percentile(members, 99, axis=0)
+    margin = margin_fraction * scene_size
+    lo = np.array([lo[0] - margin, lo[1] - margin, -0.03 * scene_size])
+    hi = np.array([hi[0] + margin, hi[1] + margin, hi[2] + margin])
+    return _dense.RegionOfInterest(min_world=lo, max_world=hi)
+
+
+def find_objects(
+    result: ReconstructionResult, options: ObjectsOptions | None = None, progress: ProgressFn | None = None
+) -> SceneObjects:
+    """Segment and mesh every object on the table of a reconstruction (world frame, table top z = 0).
+
+    Each object's mesh is watertight, expressed in its own frame (origin at its bounding-box centre, axes
+    parallel to the world's), with `world_from_object` its pose. Meshes are not textured here.
+
+    Raises:
+        SegmentationError: no object, or an object that cannot be closed.
+    """
+    options = options or ObjectsOptions()
+    report = progress or (lambda stage, done, total: None)
+    views = load_views(result)
+    roi = region_of_interest(result, options.roi_margin_fraction)
+    k, _ = _dense._opencv_k(result.intrinsics, 1.0)
+    dense = _dense.fuse_views(
+        views, result.intrinsics, roi, options.dense, progress=lambda done, total: report("dense stereo", done, total)
+    )
+    size = (result.intrinsics.width_px, result.intrinsics.height_px)
+    cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
+    report("segmenting objects", 0, 1)
+    segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
+    cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
+    instances = []
+    for index, segment in enumerate(segments):
+        report("meshing objects", index, len(segments))
+        mesh = _objects.mesh_object(dense, segment, cam_centres, options.mesh)
+        centre = (mesh.vertices_world.min(axis=0) + mesh.vertices_world.max(axis=0)) / 2
+        world_from_object = np.eye(4)
+        world_from_object[:3, 3] = centre
+        instances.append(
+            ObjectInstance(
+                name=f"object_{index}",
+                mesh=TexturedMesh(vertices_m=mesh.vertices_world - centre, faces=mesh.faces),
+                world_from_object=world_from_object,
+                num_views=segment.num_views,
+                closed_bottom=mesh.closed_bottom,
+                warnings=segment.warnings,
+            )
+        )
+    report("meshing objects", len(segments), len(segments))
+    table = points_table_extent(result)
+    return SceneObjects(
+        objects=tuple(instances),
+        roi=roi,
+        voxel_size=dense.voxel_size,
+        num_stereo_pairs=dense.num_pairs,
+        table_half_extents=table,
+    )
+
+
+def points_table_extent(result: ReconstructionResult) -> tuple[float, float]:
+    """Half extents of the table top seen (sparse points on z = 0), symmetric about the world origin."""
+    points = result.points_world_m
+    cams = np.array([f.centre_world_m for f in result.frames])
+    scene_size = float(np.median(np.linalg.norm(cams, axis=1)))
+    on_table = points[np.abs(points[:, 2]) < 0.01 * scene_size]
+    if len(on_table) < 20:
+        return (0.5 * scene_size, 0.5 * scene_size)
+    half = np.percentile(np.abs(on_table[:, :2]), 97, axis=0)
+    return (float(half[0]), float(half[1]))
+
+
+def save_instances(path: Path, scene: SceneObjects) -> None:
+    """Debug dump of the meshes as one PLY per object (world frame)."""
+    import trimesh
+
+    path.mkdir(parents=True, exist_ok=True)
+    for obj in scene.objects:
+        mesh = trimesh.Trimesh(obj.mesh.vertices_m + obj.world_from_object[:3, 3], obj.mesh.faces)
+        mesh.export(path / f"{obj.name}.ply")
