@@ -23,8 +23,8 @@ $(STAMP): pyproject.toml Makefile
 	@touch $(STAMP)
 
 demo: install
-	$(VENV)/bin/image2sim reconstruct samples/tabletop/video.mp4 -o out/demo/reconstruction --aruco-size 0.12 --overwrite
-	@echo "Cameras in the marker frame: out/demo/reconstruction/transforms.json (COLMAP model in out/demo/reconstruction/sparse)"
+	$(VENV)/bin/image2sim ground samples/tabletop/video.mp4 -o out/demo/scene --aruco-size 0.12 --overwrite
+	@echo "MuJoCo scene: out/demo/scene/scene.xml (manifest scene.json, picture preview.png)"
 
 lint: install
 	$(VENV)/bin/ruff check .
@@ -44,6 +44,8 @@ samples: install
 
 benchmarks: install
 	$(PY) benchmarks/reconstruct.py
+	$(PY) benchmarks/ground.py
+	$(PY) benchmarks/collision.py
 
 clean:
 	rm -rf out .pytest_cache .mypy_cache .ruff_cache

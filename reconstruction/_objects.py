@@ -64,11 +64,13 @@ class MeshOptions:
     Attributes:
         face_budget: decimate each object's mesh to at most this many faces.
         cap_height_voxels: points lower than this outline the footprint closed on the table.
+        skirt_height_voxels: layers above the table cleared of protrusions thinner than 5 voxels.
         smooth_iterations: Taubin smoothing steps after marching cubes.
     """
 
     face_budget: int = 4000
     cap_height_voxels: float = 2.0
+    skirt_height_voxels: float = 6.0
     smooth_iterations: int = 10
 
 
@@ -300,7 +302,19 @@ def mesh_object(
     sizes = np.bincount(labels.ravel())
     sizes[0] = 0
     solid = ndimage.binary_fill_holes(labels == int(sizes.argmax()))
-    closed_bottom = bool(len(cap_f) > 0 and solid[:, :, z0].any())
+    # Objects rest on the table: below what the cameras saw, each column of the footprint is filled down to the
+    # table (an apple seen only from above becomes solid to the table instead of floating). An assumption.
+    footprint = solid.any(axis=2)
+    first = np.where(footprint, solid.argmax(axis=2), 0)
+    layers = np.arange(shape[2])[None, None, :]
+    extrude = footprint[..., None] & (layers >= z0) & (layers < first[..., None])
+    solid |= extrude
+    # Shadowed table next to an object is poorly matched and leaves thin skirts at its base: open the lowest
+    # layers in the table plane (walls higher up are left alone, however thin).
+    base_layers = slice(z0, min(shape[2], z0 + int(np.ceil(options.skirt_height_voxels))))
+    opened = ndimage.binary_opening(solid[:, :, base_layers], structure=np.ones((5, 5, 1)))
+    solid[:, :, base_layers] = opened
+    closed_bottom = bool(extrude.any() or len(cap_f) > 0)
     field = ndimage.gaussian_filter(solid.astype(np.float32), sigma=0.7)
     field[:, :, :z0] = 0.0
     field = np.pad(field, 1)  # empty all round, so the surface closes

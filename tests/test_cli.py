@@ -33,7 +33,7 @@ def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str)
         assert needle in lines[0], lines[0]
 
 
-@pytest.mark.parametrize("args", [["--help"], ["reconstruct", "--help"]])
+@pytest.mark.parametrize("args", [["--help"], ["reconstruct", "--help"], ["ground", "--help"]])
 def test_help(args: list[str]) -> None:
     proc = run_cli(*args)
     assert proc.returncode == 0 and "Usage" in proc.stdout

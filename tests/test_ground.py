@@ -1,0 +1,179 @@
+"""Film-a-scene end to end (issue 3) on the embedded tabletop sample and the real apple video.
+
+Acceptance per object on the sample: bounding-box centre within 5 mm of the truth, Chamfer distance <= 3 mm,
+extents within 8%; after 2 s of simulation every object within 2 mm and 1 deg of where it started; the concave
+object's collision hulls keep its cavity. Targets not met yet are strict xfails carrying the measured numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from grounder._evaluate import ObjectError, compare_to_truth
+
+
+def _ground(source: Path, out: Path, *flags: str) -> subprocess.CompletedProcess[str]:
+    cmd = [sys.executable, "-m", "grounder.cli", "ground", str(source), "-o", str(out), *flags]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tabletop_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("ground") / "scene"
+    proc = _ground(tabletop_dir / "video.mp4", out, "--aruco-size", "0.12")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert f"MJCF: {out / 'scene.xml'}" in proc.stdout
+    return out
+
+
+@pytest.fixture(scope="module")
+def errors(scene_dir: Path, tabletop_dir: Path) -> dict[str, ObjectError]:
+    return {e.true_name: e for e in compare_to_truth(scene_dir, tabletop_dir / "truth")}
+
+
+def test_object_count_and_centres(errors: dict[str, ObjectError], tabletop_dir: Path) -> None:
+    truth = json.loads((tabletop_dir / "truth" / "objects.json").read_text())["objects"]
+    assert sorted(errors) == sorted(o["name"] for o in truth)  # exactly one grounded object per true object
+    for name, err in errors.items():
+        assert err.centre_error_m <= 0.005, f"{name}: centre off by {err.centre_error_m * 1000:.1f} mm"
+
+
+@pytest.mark.parametrize("name", ["box", "can"])
+def test_chamfer_within_3mm(errors: dict[str, ObjectError], name: str) -> None:
+    assert errors[name].chamfer_m <= 0.003, f"{name}: Chamfer {errors[name].chamfer_m * 1000:.2f} mm"
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="not yet: bowl Chamfer measured 4.6 mm; the orbit never sees under its flared wall, which the "
+    "closed-bottom assumption fills (volume x2.1)",
+)
+def test_bowl_chamfer_within_3mm(errors: dict[str, ObjectError]) -> None:
+    assert errors["bowl"].chamfer_m <= 0.003
+
+
+@pytest.mark.parametrize("name", ["box"])
+def test_extents_within_8_percent(errors: dict[str, ObjectError], name: str) -> None:
+    assert errors[name].extent_error <= 0.08, f"{name}: extents off by {errors[name].extent_error:.1%}"
+
+
+@pytest.mark.xfail(strict=True, reason="not yet: can extents measured 10.4% over: stereo bumps on its shadowed side")
+def test_all_extents_within_8_percent(errors: dict[str, ObjectError]) -> None:
+    assert all(e.extent_error <= 0.08 for e in errors.values())
+
+
+def test_extents_within_15_percent(errors: dict[str, ObjectError]) -> None:
+    """A looser guard against regressions while the 8% target is open (see the xfail above)."""
+    for name, err in errors.items():
+        assert err.extent_error <= 0.15, f"{name}: extents off by {err.extent_error:.1%}"
+
+
+def test_scene_is_self_contained_and_stays_put(scene_dir: Path, tmp_path: Path) -> None:
+    moved = tmp_path / "moved"
+    shutil.copytree(scene_dir, moved)  # relative asset paths: the folder works anywhere
+    model = mujoco.MjModel.from_xml_path(str(moved / "scene.xml"))
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    free_bodies = [model.jnt_bodyid[j] for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+    assert len(free_bodies) == 3
+    start_pos = data.xpos[free_bodies].copy()
+    start_quat = data.xquat[free_bodies].copy()
+    while data.time < 2.0:
+        mujoco.mj_step(model, data)
+    drift_m = np.linalg.norm(data.xpos[free_bodies] - start_pos, axis=1)
+    dots = np.abs(np.sum(data.xquat[free_bodies] * start_quat, axis=1)).clip(0, 1)
+    rot_deg = np.degrees(2 * np.arccos(dots))
+    assert drift_m.max() <= 0.002, drift_m
+    assert rot_deg.max() <= 1.0, rot_deg
+    # Visual geoms in group 2 without contacts, collision hulls in group 3; the table is a static geom at z = 0.
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] in free_bodies:
+            if model.geom_group[g] == 2:
+                assert model.geom_contype[g] == 0 and model.geom_conaffinity[g] == 0
+            else:
+                assert model.geom_group[g] == 3
+
+
+def test_manifest_and_preview(scene_dir: Path) -> None:
+    manifest = json.loads((scene_dir / "scene.json").read_text())
+    assert manifest["provenance"]["scale_source"] == "aruco"
+    assert len(manifest["provenance"]["frames_used"]) >= 60
+    for obj in manifest["objects"].values():
+        assert obj["mass_kg"] == pytest.approx(obj["volume_m3"] * obj["density_kg_m3"], rel=1e-6)
+        assert len(obj["extents_m"]) == 3 and obj["num_hulls"] >= 1
+    assert all(v["closed_bottom"] for v in manifest["objects_extra"].values())
+    assert (scene_dir / "preview.png").stat().st_size > 10_000
+
+
+def test_concave_object_holds_a_ball(scene_dir: Path, errors: dict[str, ObjectError], tmp_path: Path) -> None:
+    """Drop a 1.5 cm ball into the grounded bowl: its hulls must keep the cavity."""
+    bowl = errors["bowl"].name
+    manifest = json.loads((scene_dir / "scene.json").read_text())
+    centre = np.array(manifest["objects"][bowl]["pos_m"])
+    top = centre[2] + manifest["objects"][bowl]["extents_m"][2] / 2
+    spec = mujoco.MjSpec.from_file(str(scene_dir / "scene.xml"))
+    ball = spec.worldbody.add_body(name="ball", pos=[centre[0], centre[1], top + 0.03])
+    ball.add_freejoint()
+    ball.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[0.015, 0, 0], density=800, group=3)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    while data.time < 1.5:
+        mujoco.mj_step(model, data)
+    ball_pos = data.body("ball").xpos
+    assert np.linalg.norm(ball_pos[:2] - centre[:2]) < 0.05  # inside the rim radius (~7.5 cm)
+    assert ball_pos[2] < top  # below the rim: in the cavity, not resting on a lid
+
+
+def test_real_apple_video(shared_data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "apple"
+    proc = _ground(shared_data / "apple_video" / "apple.mp4", out, "--known-extent", "0.08")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    manifest = json.loads((out / "scene.json").read_text())
+    assert list(manifest["objects"]) == ["object_0"]  # exactly one object: the apple
+    (apple,) = manifest["objects"].values()
+    assert max(apple["extents_m"]) == pytest.approx(0.08, rel=1e-3)
+    assert 0.05 < apple["extents_m"][2] < 0.1  # an apple-sized height, resting on the table
+    settle = manifest["settle_test"]["objects"]["object_0"]
+    assert settle["displacement_m"] <= 0.002 and settle["rotation_deg"] <= 1.0
+
+
+def test_ground_bad_input_exits_2(tmp_path: Path) -> None:
+    import cv2
+
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(folder / f"{i}.png"), np.full((120, 160, 3), 90, np.uint8))
+    proc = _ground(folder, tmp_path / "out")
+    assert proc.returncode == 2 and proc.stderr.count("image2sim: error:") == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_no_object_on_the_table_is_reported() -> None:
+    from reconstruction import CameraIntrinsics, ReconstructionResult, RegisteredFrame, ScaleSource, WorldFrame
+    from reconstruction._objects import SegmentationError
+    from reconstruction._scene_objects import region_of_interest
+
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.4, 0.4, (3000, 2)), rng.normal(0, 0.0005, 3000)]  # only a flat table
+    cam = np.eye(4)
+    cam[:3, 3] = [0, -0.6, 0.4]
+    result = ReconstructionResult(
+        out_dir=Path("."), source=Path("."), num_source_frames=1, selected_frame_indices=(0,),
+        dropped_blurred=(), dropped_duplicate=(),
+        intrinsics=CameraIntrinsics(width_px=640, height_px=480, fx_px=500, fy_px=500, cx_px=320, cy_px=240),
+        frames=(RegisteredFrame(frame_index=0, image_name="a.jpg", world_from_cam=cam),),
+        world=WorldFrame(world_from_sfm=np.eye(4), scale_source=ScaleSource.ARUCO, scale=1.0, plane_inlier_ratio=1.0),
+        points_world_m=table, points_rgb=np.zeros((3000, 3), np.uint8), mean_reprojection_error_px=0.3,
+        stage_seconds={},
+    )  # fmt: skip
+    with pytest.raises(SegmentationError, match="no object found"):
+        region_of_interest(result, 0.08)
