@@ -44,7 +44,7 @@ class SegmentOptions:
         min_view_fraction: an object must project fully inside at least this fraction of frames.
         solidity_warning: footprints less convex than this are reported as possibly several touching objects.
         footprint_dilate_cells: growth of the seed footprint that collects the object's lower surface.
-        table_band_voxels: up-facing points lower than this outside the object's core footprint are table.
+        table_band_voxels: points lower than this outside the object's core footprint are table.
     """
 
     seed_height_voxels: float = 6.0
@@ -65,12 +65,14 @@ class MeshOptions:
         face_budget: decimate each object's mesh to at most this many faces.
         cap_height_voxels: points lower than this outline the footprint closed on the table.
         skirt_height_voxels: layers above the table cleared of protrusions thinner than 5 voxels.
+        grid_refinement: inside/outside grid cells per fusion voxel.
         smooth_iterations: Taubin smoothing steps after marching cubes.
     """
 
     face_budget: int = 4000
     cap_height_voxels: float = 2.0
     skirt_height_voxels: float = 6.0
+    grid_refinement: int = 2
     smooth_iterations: int = 10
 
 
@@ -138,14 +140,15 @@ def segment_objects(
         members = np.zeros(len(verts), bool)
         members[inside_grid] = footprint[ij[inside_grid, 0], ij[inside_grid, 1]]
         members &= low_ok
-        # Table surface beside the object (noisy, a few mm high, facing up) is not the object.
+        # Table surface beside the object (noisy, a few mm high) is not the object
         core, core_origin, _ = _footprint_image(verts[seed_ids, :2], voxel, dilate_cells=0)
         core = ndimage.binary_erosion(core, iterations=1)
         cij = np.floor((verts[:, :2] - core_origin) / cell).astype(int)
         in_core_grid = np.all((cij >= 0) & (cij < core.shape), axis=1)
         in_core = np.zeros(len(verts), bool)
         in_core[in_core_grid] = core[cij[in_core_grid, 0], cij[in_core_grid, 1]]
-        table_like = (height < options.table_band_voxels * voxel) & (dense.vertex_normals[:, 2] > 0.8)
+        # (whatever its normal says: stereo noise on shadowed table has random normals)
+        table_like = height < options.table_band_voxels * voxel
         members &= in_core | ~table_like
         ids = np.flatnonzero(members)
         faces = np.flatnonzero(members[dense.faces].all(axis=1) & (face_owner < 0))
@@ -188,7 +191,8 @@ def _footprint_image(xy: np.ndarray, voxel: float, dilate_cells: int) -> tuple[n
     image[ij[:, 0], ij[:, 1]] = True
     image = ndimage.binary_closing(image, iterations=2)
     image = ndimage.binary_fill_holes(image)
-    image = ndimage.binary_dilation(image, iterations=dilate_cells)
+    if dilate_cells > 0:  # scipy reads iterations=0 as "until nothing changes": the whole image
+        image = ndimage.binary_dilation(image, iterations=dilate_cells)
     return image, origin, cell
 
 
@@ -232,12 +236,13 @@ def _oriented_shell(dense: DenseResult, segment: ObjectSegment, cam_centres: np.
 
 
 def _footprint_cap(points: np.ndarray, voxel: float, cap_height: float) -> tuple[np.ndarray, np.ndarray]:
-    """Triangulated cap on the table (z = 0, normals down) under the object's lowest points.
+    """Triangulated cap on the table (z = 0, normals down) under the object's body.
 
-    The camera never sees where an object meets the table: closing it flat there is an assumption, recorded
-    with the object (`closed_bottom`).
+    The outline comes from the points standing above `cap_height`: the object's own lowest points mix with noisy
+    table surface beside it, which made skirts reaching far past the object. The camera never sees where an object
+    meets the table: closing it flat there is an assumption, recorded with the object (`closed_bottom`).
     """
-    low = points[points[:, 2] < cap_height][:, :2]
+    low = points[points[:, 2] >= cap_height][:, :2]
     if len(low) < 10:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
     image, origin, cell = _footprint_image(low, voxel, dilate_cells=0)
@@ -278,9 +283,11 @@ def mesh_object(
     from skimage.measure import marching_cubes
 
     options = options or MeshOptions()
-    voxel = dense.voxel_size
+    # The inside test runs on a grid finer than the fusion voxels: voxel centres that sit on the surface count as
+    # inside, which biases the surface outwards by up to half a grid cell.
+    voxel = dense.voxel_size / options.grid_refinement
     shell_faces = _oriented_shell(dense, segment, cam_centres)
-    cap_v, cap_f = _footprint_cap(segment.points_world, voxel, options.cap_height_voxels * voxel)
+    cap_v, cap_f = _footprint_cap(segment.points_world, dense.voxel_size, options.cap_height_voxels * dense.voxel_size)
     verts = np.concatenate([dense.vertices_world, cap_v])
     faces = np.concatenate([shell_faces, cap_f + len(dense.vertices_world)])
     pad = 3
@@ -311,11 +318,12 @@ def mesh_object(
     solid |= extrude
     # Shadowed table next to an object is poorly matched and leaves thin skirts at its base: open the lowest
     # layers in the table plane (walls higher up are left alone, however thin).
-    base_layers = slice(z0, min(shape[2], z0 + int(np.ceil(options.skirt_height_voxels))))
-    opened = ndimage.binary_opening(solid[:, :, base_layers], structure=np.ones((5, 5, 1)))
+    refine = options.grid_refinement
+    base_layers = slice(z0, min(shape[2], z0 + int(np.ceil(options.skirt_height_voxels * refine))))
+    opened = ndimage.binary_opening(solid[:, :, base_layers], structure=np.ones((4 * refine + 1, 4 * refine + 1, 1)))
     solid[:, :, base_layers] = opened
     closed_bottom = bool(extrude.any() or len(cap_f) > 0)
-    field = ndimage.gaussian_filter(solid.astype(np.float32), sigma=0.7)
+    field = ndimage.gaussian_filter(solid.astype(np.float32), sigma=0.7 * options.grid_refinement)
     field[:, :, :z0] = 0.0
     field = np.pad(field, 1)  # empty all round, so the surface closes
     mc_verts, mc_faces, _, _ = marching_cubes(field, level=0.5, spacing=(voxel, voxel, voxel))

@@ -326,7 +326,8 @@ def build_scene_spec(
     for obj in objects:
         spec_mat = spec.add_material(name=obj.name, specular=0.4 if obj.material in ("metal", "ceramic") else 0.1)
         spec_mat.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = obj.name
-        spec.add_mesh(name=obj.name, file=f"{obj.name}.obj")
+        # Exact inertia: MuJoCo's default ("legacy") integrates the convex hull, which made the bowl 6.8x too heavy.
+        spec.add_mesh(name=obj.name, file=f"{obj.name}.obj", inertia=mujoco.mjtMeshInertia.mjMESH_INERTIA_EXACT)
     spec.add_mesh(name="marker", file="marker.obj")
 
     world = spec.worldbody

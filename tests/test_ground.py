@@ -53,8 +53,8 @@ def test_chamfer_within_3mm(errors: dict[str, ObjectError], name: str) -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="not yet: bowl Chamfer measured 4.6 mm; the orbit never sees under its flared wall, which the "
-    "closed-bottom assumption fills (volume x2.1)",
+    reason="not yet: bowl Chamfer measured 3.9-4.5 mm; the orbit never sees under its flared wall, which the "
+    "closed-bottom assumption fills (volume x2)",
 )
 def test_bowl_chamfer_within_3mm(errors: dict[str, ObjectError]) -> None:
     assert errors["bowl"].chamfer_m <= 0.003
@@ -65,7 +65,10 @@ def test_extents_within_8_percent(errors: dict[str, ObjectError], name: str) -> 
     assert errors[name].extent_error <= 0.08, f"{name}: extents off by {errors[name].extent_error:.1%}"
 
 
-@pytest.mark.xfail(strict=True, reason="not yet: can extents measured 10.4% over: stereo bumps on its shadowed side")
+@pytest.mark.xfail(
+    strict=False,  # multi-threaded SfM varies run to run: bowl 9.1%, can 6.2-7.9% measured
+    reason="not yet: bowl extents measured 9.1% over (can 6-8%): stereo bumps on shadowed sides",
+)
 def test_all_extents_within_8_percent(errors: dict[str, ObjectError]) -> None:
     assert all(e.extent_error <= 0.08 for e in errors.values())
 
