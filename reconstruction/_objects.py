@@ -333,7 +333,11 @@ def mesh_object(
         mesh.invert()
     trimesh.smoothing.filter_taubin(mesh, iterations=options.smooth_iterations)
     mesh = _decimate(mesh, options.face_budget)
-    mesh.vertices[:, 2] = np.maximum(mesh.vertices[:, 2], 0.0)  # nothing below the table top
+    # The assumed bottom is flat on the table: snap what smoothing rounded off back onto z = 0, so the object
+    # rests on a plane instead of rocking on a rounded base.
+    vertices = np.array(mesh.vertices)
+    vertices[vertices[:, 2] < dense.voxel_size, 2] = 0.0
+    mesh = trimesh.Trimesh(vertices, mesh.faces, process=True)
     if not mesh.is_watertight or mesh.volume <= 0:
         raise SegmentationError(
             "could not build a closed mesh for an object (degenerate surface); film it from more sides"

@@ -62,7 +62,7 @@ class SfmOptions:
 
     camera_model: str = "SIMPLE_RADIAL"
     max_image_size_px: int = 1024
-    max_num_features: int = 4096
+    max_num_features: int = 3000
     sequential_overlap: int = 8
     exhaustive_max_images: int = 40
     loop_detection: bool = True

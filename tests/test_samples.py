@@ -289,27 +289,31 @@ def test_toss_ends_at_rest_on_table(
         assert abs(vertices[-1, :, 2].min()) < 2e-3, f"{name}: lowest vertex at z={vertices[-1, :, 2].min():.4f} m"
 
 
-def test_toss_shows_a_slide_and_a_rebound(
+def test_toss_shows_a_slide_and_a_bounce(
     toss_model: mujoco.MjModel, toss_traj: Trajectory, toss_vertices: dict[str, np.ndarray]
 ) -> None:
-    """Friction shows as sliding in contact; restitution as vertical velocity turning upward after an impact.
+    """Friction shows as sliding while touching the table; a bounce as rising again after an impact.
 
-    With these solrefs MuJoCo's soft contact yields a recoil out of a few mm of penetration, not a flight
-    phase: 'rebound' here means vz goes from falling fast to clearly rising, as the brief defines a bounce.
+    In contact = lowest vertex below 1 mm (MuJoCo's soft contacts sink a few mm into the table on impact).
+    Slide = horizontal travel of the object frame summed over consecutive frames that are both in contact.
+    Bounce = after falling onto the table (vz < -0.5 m/s), vz turns clearly upward (> 0.1 m/s); the strict
+    version also asks the object to leave the table again (lowest vertex above 3 mm), i.e. a flight phase.
     """
-    slide_m, rebound_m_s = {}, {}
+    slide_m, rebound_m_s, hop_m = {}, {}, {}
     for name, vertices in toss_vertices.items():
-        in_contact = vertices[:, :, 2].min(axis=1) < 1e-3
+        lowest_z = vertices[:, :, 2].min(axis=1)
+        in_contact = lowest_z < 1e-3
         first = int(np.argmax(in_contact))
         centre_xy = vertices.mean(axis=1)[:, :2]
-        # Only a slide if it never leaves the table again: displacement from first contact to rest.
-        stays = in_contact[first:].all()
-        slide_m[name] = float(np.linalg.norm(centre_xy[-1] - centre_xy[first])) if stays else 0.0
+        step_m = np.linalg.norm(np.diff(centre_xy, axis=0), axis=1)
+        slide_m[name] = float(step_m[in_contact[1:] & in_contact[:-1]].sum())
         vz = _linear_velocity(toss_model, toss_traj, name)[:, 2]
         falling = first > 0 and vz[first - 1] < -0.5
         rebound_m_s[name] = float(vz[first:].max()) if falling else 0.0
+        hop_m[name] = float(lowest_z[first:].max()) if falling else 0.0
     assert max(slide_m.values()) > 0.02, f"no object slides 2 cm in contact: {slide_m}"
     assert max(rebound_m_s.values()) > 0.1, f"no object rebounds after its impact: {rebound_m_s}"
+    assert max(hop_m.values()) > 3e-3, f"no object leaves the table after its first impact: {hop_m}"
 
 
 def test_toss_objects_stay_in_view(toss_camera: dict, toss_vertices: dict[str, np.ndarray]) -> None:
