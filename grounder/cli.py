@@ -189,6 +189,23 @@ def ground(
     typer.echo(f"MJCF: {result.scene_xml}")
 
 
+# Later capabilities add their subcommands from their own modules (each defines `register(app)`), so the command
+# groups stay next to the code they drive.
+_SUBCOMMAND_MODULES = ("cli_properties", "cli_calibrate", "cli_residual", "cli_diagnose", "cli_track")
+
+
+def _register_subcommands() -> None:
+    import importlib
+    import importlib.util
+
+    for name in _SUBCOMMAND_MODULES:
+        if importlib.util.find_spec(f"grounder.{name}") is not None:
+            importlib.import_module(f"grounder.{name}").register(app)
+
+
+_register_subcommands()
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
     try:

@@ -332,19 +332,29 @@ def mesh_object(
     if mesh.volume < 0:
         mesh.invert()
     trimesh.smoothing.filter_taubin(mesh, iterations=options.smooth_iterations)
-    mesh = _decimate(mesh, options.face_budget)
-    # The assumed bottom is flat on the table: snap what smoothing rounded off back onto z = 0, so the object
-    # rests on a plane instead of rocking on a rounded base.
-    vertices = np.array(mesh.vertices)
-    vertices[vertices[:, 2] < dense.voxel_size, 2] = 0.0
-    mesh = trimesh.Trimesh(vertices, mesh.faces, process=True)
-    if not mesh.is_watertight or mesh.volume <= 0:
+    # Decimation and the base snap are refinements: if either breaks the closed surface on some input, fall back to
+    # the surface without it rather than failing the whole scene.
+    decimated = _decimate(mesh, options.face_budget)
+    candidates = [_snap_base(decimated, dense.voxel_size), decimated, _snap_base(mesh, dense.voxel_size), mesh]
+    good = [m for m in candidates if m.is_watertight and np.isfinite(m.volume) and m.volume > 0]
+    if not good:
         raise SegmentationError(
             "could not build a closed mesh for an object (degenerate surface); film it from more sides"
         )
+    mesh = good[0]
     return WatertightMesh(
         vertices_world=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), closed_bottom=closed_bottom
     )
+
+
+def _snap_base(mesh: trimesh.Trimesh, voxel_size: float) -> trimesh.Trimesh:
+    """The assumed bottom is flat on the table: snap what smoothing rounded off back onto z = 0, so the object
+    rests on a plane instead of rocking on a rounded base."""
+    import trimesh
+
+    vertices = np.array(mesh.vertices)
+    vertices[vertices[:, 2] < voxel_size, 2] = 0.0
+    return trimesh.Trimesh(vertices, mesh.faces, process=True)
 
 
 def _largest_component(mesh: trimesh.Trimesh) -> trimesh.Trimesh:

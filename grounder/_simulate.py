@@ -1,0 +1,202 @@
+"""Open-loop simulation of recorded trajectories with `mujoco.rollout`, and the errors between two trajectories.
+
+Shared by calibration, diagnosis, the residual and tracking: every trajectory is re-simulated from its first
+recorded state with its recorded controls, on the model's own timestep, and read back at the recorded times.
+
+Conventions: a trajectory's `ctrl[t]` is held from `time_s[t]` to `time_s[t + 1]` (zero-order hold). The sample
+rate may be coarser than the model timestep; sample times are rounded to whole model steps.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from grounder._trajectory import Trajectory
+from grounder.errors import GrounderError
+
+FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+
+
+def default_nthread() -> int:
+    """Threads for batched rollouts: the CPU cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def step_indices(time_s: np.ndarray, timestep_s: float) -> np.ndarray:
+    """Model steps from the first sample to each sample, (T,) int64, 0 for the first.
+
+    Raises:
+        GrounderError: two samples fall on the same model step (the data is sampled faster than the model).
+    """
+    steps = np.rint((np.asarray(time_s, np.float64) - time_s[0]) / timestep_s).astype(np.int64)
+    if len(steps) > 1 and np.any(np.diff(steps) <= 0):
+        dt_min = float(np.min(np.diff(time_s)))
+        raise GrounderError(
+            f"trajectory samples are {dt_min * 1e3:.3f} ms apart but the model timestep is {timestep_s * 1e3:.3f} ms; "
+            "use a model timestep no longer than the sample interval"
+        )
+    return steps
+
+
+def initial_state(
+    model: mujoco.MjModel, qpos: np.ndarray, qvel: np.ndarray, data: mujoco.MjData | None = None
+) -> np.ndarray:
+    """The full-physics state vector (`mjSTATE_FULLPHYSICS`) with this qpos and qvel, everything else at rest."""
+    data = data if data is not None else mujoco.MjData(model)
+    mujoco.mj_resetData(model, data)
+    data.qpos[:] = qpos
+    data.qvel[:] = qvel
+    mujoco.mj_forward(model, data)
+    state = np.empty(mujoco.mj_stateSize(model, FULLPHYSICS))
+    mujoco.mj_getState(model, data, state, FULLPHYSICS)
+    return state
+
+
+def _offsets(model: mujoco.MjModel) -> tuple[int, int]:
+    """Where qpos and qvel start in a full-physics state vector (components are stored in mjtState bit order)."""
+    qpos_at = mujoco.mj_stateSize(model, int(mujoco.mjtState.mjSTATE_TIME))
+    return qpos_at, qpos_at + model.nq
+
+
+def _controls(traj: Trajectory, steps: np.ndarray, nu: int, nstep: int) -> np.ndarray:
+    """Per-model-step controls (nstep, nu) by zero-order hold of the recorded ones."""
+    out = np.zeros((nstep, nu))
+    if nu == 0 or traj.ctrl is None:
+        return out
+    # Step k (from k to k+1) uses the last sample at or before k.
+    sample_of_step = np.searchsorted(steps, np.arange(nstep), side="right") - 1
+    return traj.ctrl[np.clip(sample_of_step, 0, len(traj.ctrl) - 1)]
+
+
+@dataclass(frozen=True, kw_only=True)
+class RolloutBatch:
+    """A batch of open-loop rollouts ready for `mujoco.rollout`: one row per (model, trajectory) pair.
+
+    Attributes:
+        states0: (B, nstate) full-physics initial states.
+        controls: (B, nstep, nu) per-step controls.
+        sample_steps: per row, (T_b,) the model step of each recorded sample (0 for the first).
+        nstep: steps simulated per row (the longest trajectory's; shorter rows are read only up to their end).
+    """
+
+    states0: np.ndarray
+    controls: np.ndarray
+    sample_steps: tuple[np.ndarray, ...]
+    nstep: int
+
+
+def prepare(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> RolloutBatch:
+    """Initial states, per-step controls and sample steps of trajectories, for any model of this size signature."""
+    if not trajs:
+        raise GrounderError("no trajectories to simulate")
+    data = mujoco.MjData(model)
+    steps = [step_indices(t.time_s, model.opt.timestep) for t in trajs]
+    nstep = max(1, max(int(s[-1]) for s in steps))
+    states0 = np.stack([initial_state(model, t.qpos[0], t.qvel[0], data) for t in trajs])
+    controls = np.stack([_controls(t, s, model.nu, nstep) for t, s in zip(trajs, steps, strict=True)])
+    return RolloutBatch(states0=states0, controls=controls, sample_steps=tuple(steps), nstep=nstep)
+
+
+def rollout_states(models: Sequence[mujoco.MjModel], batch: RolloutBatch, *, nthread: int | None = None) -> np.ndarray:
+    """Simulates len(models) x len(batch rows) rollouts; returns states (M, B, nstep + 1, nstate), row 0 initial.
+
+    All models must share a size signature (same structure, different parameters), as `mujoco.rollout` requires.
+    """
+    nthread = nthread or default_nthread()
+    m_count, b_count = len(models), len(batch.states0)
+    model_list = [m for m in models for _ in range(b_count)]
+    states0 = np.tile(batch.states0, (m_count, 1))
+    controls = np.tile(batch.controls, (m_count, 1, 1)) if models[0].nu else None
+    datas = [mujoco.MjData(models[0]) for _ in range(min(nthread, len(model_list)))]
+    state, _ = mj_rollout.rollout(model_list, datas, states0, controls, nstep=batch.nstep)
+    full = np.concatenate([states0[:, None, :], state], axis=1)
+    return full.reshape(m_count, b_count, batch.nstep + 1, -1)
+
+
+def simulate(
+    model: mujoco.MjModel | Sequence[mujoco.MjModel],
+    trajs: Sequence[Trajectory],
+    *,
+    nthread: int | None = None,
+) -> list[list[Trajectory]] | list[Trajectory]:
+    """Re-simulates each trajectory from its first state with its controls; predictions at the recorded times.
+
+    Args:
+        model: one model, or a sequence of models sharing a size signature (e.g. candidate parameter sets).
+        trajs: recorded trajectories in the model's joint order.
+
+    Returns:
+        For one model, one predicted `Trajectory` per input (same name, times and ctrl). For a sequence of models,
+        a list per model.
+    """
+    models = [model] if isinstance(model, mujoco.MjModel) else list(model)
+    batch = prepare(models[0], trajs)
+    states = rollout_states(models, batch, nthread=nthread)
+    qpos_at, qvel_at = _offsets(models[0])
+    nq, nv = models[0].nq, models[0].nv
+    out: list[list[Trajectory]] = []
+    for i in range(len(models)):
+        preds = []
+        for b, traj in enumerate(trajs):
+            rows = states[i, b, batch.sample_steps[b]]
+            preds.append(
+                Trajectory(
+                    time_s=traj.time_s.copy(),
+                    qpos=rows[:, qpos_at : qpos_at + nq].copy(),
+                    qvel=rows[:, qvel_at : qvel_at + nv].copy(),
+                    ctrl=None if traj.ctrl is None else traj.ctrl.copy(),
+                    name=traj.name,
+                )
+            )
+        out.append(preds)
+    return out[0] if isinstance(model, mujoco.MjModel) else out
+
+
+@dataclass(frozen=True, kw_only=True)
+class FreeJointIndex:
+    """Where one free joint's position and quaternion (w first) live in qpos."""
+
+    body: str
+    pos: slice
+    quat: slice
+
+
+def free_joints(model: mujoco.MjModel) -> list[FreeJointIndex]:
+    """The model's free joints, with the name of the body each moves."""
+    out = []
+    for j in range(model.njnt):
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+            adr = int(model.jnt_qposadr[j])
+            body = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, int(model.jnt_bodyid[j])) or f"body{j}"
+            out.append(FreeJointIndex(body=body, pos=slice(adr, adr + 3), quat=slice(adr + 3, adr + 7)))
+    return out
+
+
+def quat_angle_rad(quat_wxyz_a: np.ndarray, quat_wxyz_b: np.ndarray) -> np.ndarray:
+    """Geodesic angle between rotations (..., 4) -> (...,), radians in [0, pi]; q and -q are the same rotation."""
+    a = quat_wxyz_a / np.linalg.norm(quat_wxyz_a, axis=-1, keepdims=True)
+    b = quat_wxyz_b / np.linalg.norm(quat_wxyz_b, axis=-1, keepdims=True)
+    dot = np.abs(np.sum(a * b, axis=-1))
+    return 2.0 * np.arccos(np.clip(dot, 0.0, 1.0))
+
+
+def free_body_errors(
+    model: mujoco.MjModel, predicted: Trajectory, real: Trajectory
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per free body, (position error (T,) metres, rotation error (T,) radians) between two trajectories."""
+    return {
+        fj.body: (
+            np.linalg.norm(predicted.qpos[:, fj.pos] - real.qpos[:, fj.pos], axis=1),
+            quat_angle_rad(predicted.qpos[:, fj.quat], real.qpos[:, fj.quat]),
+        )
+        for fj in free_joints(model)
+    }
