@@ -1,0 +1,493 @@
+"""Batch calibration jobs (scenes x datasets x settings) on Ray, resumable.
+
+A jobs file (YAML; relative paths are relative to the file)::
+
+    defaults:                      # optional: CalibrateOptions fields applied to every job
+      generations: 10
+      max_train_trajectories: 40
+    jobs:                          # explicit jobs
+      - id: cube_default           # optional; default: <scene stem>__<dataset name>__<settings name>
+        scene: ../samples/cube_toss/cube.xml
+        trajectories: cube_npz/    # a trajectory folder (.npz files) ...
+        format: dair-pll-cube      # ... or, with format, a folder an importer reads (image2sim import-trajectories)
+        settings: {params: [cube.friction.sliding, cube.solref.timeconst]}
+    matrix:                        # optional: every scene x every dataset x every named setting
+      scenes: [a/scene_dir, b.xml]
+      trajectories: [data1/, {path: ../shared/data/cube_toss, format: dair-pll-cube}]
+      settings: {fast: {generations: 2}, full: {}}
+
+Output folder::
+
+    results/<id>.json   one per finished job, written atomically (temporary file, then os.replace): the job's
+                        status (ok or failed with the error), parameters, errors before/after, seconds
+    scenes/<id>/        the calibrated scene folder of a successful job (written atomically by calibrate)
+    results.csv, results.json   the table of all jobs of the file, rewritten after each finished job
+
+A job counts as finished when its ``results/<id>.json`` says ``ok``: a re-run (after a crash or Ctrl-C) skips it
+and runs the rest; failed jobs are run again. A failing job is recorded and does not stop the others. Jobs run as
+Ray tasks (one CPU each) on a local Ray started for the run, or on an existing cluster given by ``address``
+(``ray://host:10001`` or ``auto``); the cluster's nodes need image2sim installed and the paths visible.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import os
+import re
+import secrets
+import shutil
+import time
+import traceback
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from grounder.errors import GrounderError
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, int, int], None]
+
+RESULTS_DIR = "results"
+SCENES_DIR = "scenes"
+_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+_JOB_KEYS = {"id", "scene", "trajectories", "format", "settings"}
+_TOP_KEYS = {"defaults", "jobs", "matrix"}
+
+
+@dataclass(frozen=True, kw_only=True)
+class Job:
+    """One calibration job.
+
+    Attributes:
+        id: Unique, file-name safe identifier.
+        scene: MJCF file or scene folder.
+        trajectories: Trajectory folder, or a folder read with the importer ``format``.
+        format: Importer name (``dair-pll-cube``) or None for the project's trajectory format.
+        settings: `CalibrateOptions` fields (defaults merged in).
+    """
+
+    id: str
+    scene: Path
+    trajectories: Path
+    format: str | None = None
+    settings: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "id": self.id,
+            "scene": str(self.scene),
+            "trajectories": str(self.trajectories),
+            "format": self.format,
+            "settings": dict(self.settings),
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Job:
+        return cls(
+            id=data["id"],
+            scene=Path(data["scene"]),
+            trajectories=Path(data["trajectories"]),
+            format=data.get("format"),
+            settings=dict(data.get("settings") or {}),
+        )
+
+
+def _options_fields() -> set[str]:
+    from grounder._calibrate import CalibrateOptions
+
+    return {f.name for f in fields(CalibrateOptions)}
+
+
+def _check_settings(where: str, settings: object) -> dict[str, Any]:
+    if settings is None:
+        return {}
+    if not isinstance(settings, Mapping):
+        raise GrounderError(f"{where}: settings must be a mapping of calibrate options, got {type(settings).__name__}")
+    unknown = set(settings) - _options_fields()
+    if unknown:
+        raise GrounderError(f"{where}: unknown setting(s) {sorted(unknown)}; known: {sorted(_options_fields())}")
+    return dict(settings)
+
+
+def options_from_settings(settings: Mapping[str, Any]) -> Any:
+    """`CalibrateOptions` from a job's settings (lists become tuples)."""
+    from grounder._calibrate import CalibrateOptions
+
+    values: dict[str, Any] = {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
+    if isinstance(values.get("params"), str):
+        values["params"] = tuple(p for p in values["params"].split(",") if p)
+    try:
+        return CalibrateOptions(**values)
+    except TypeError as exc:
+        raise GrounderError(f"invalid settings {dict(settings)}: {exc}") from exc
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_.") or "x"
+
+
+def _dataset(where: str, entry: object, root: Path) -> tuple[Path, str | None]:
+    if isinstance(entry, str):
+        return (root / entry).resolve(), None
+    if isinstance(entry, Mapping) and "path" in entry and set(entry) <= {"path", "format"}:
+        return (root / str(entry["path"])).resolve(), entry.get("format")
+    raise GrounderError(f"{where}: a dataset is a path or {{path: ..., format: ...}}, got {entry!r}")
+
+
+def load_jobs(path: Path) -> list[Job]:
+    """Reads and validates a jobs file (module docstring); relative paths are resolved against its folder.
+
+    Raises:
+        GrounderError: the file is missing or not YAML, has unknown keys or settings, no job, or repeated ids.
+    """
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise GrounderError(f"{path}: jobs file does not exist")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise GrounderError(f"{path}: not a readable YAML file ({exc})".replace("\n", " ")) from exc
+    if not isinstance(data, Mapping):
+        raise GrounderError(f"{path}: expected a mapping with 'jobs' and/or 'matrix', got {type(data).__name__}")
+    unknown = set(data) - _TOP_KEYS
+    if unknown:
+        raise GrounderError(f"{path}: unknown key(s) {sorted(unknown)}; expected {sorted(_TOP_KEYS)}")
+    root = path.parent.resolve()
+    defaults = _check_settings(f"{path}: defaults", data.get("defaults"))
+    jobs: list[Job] = []
+    for i, entry in enumerate(data.get("jobs") or []):
+        where = f"{path}: jobs[{i}]"
+        if not isinstance(entry, Mapping) or not {"scene", "trajectories"} <= set(entry):
+            raise GrounderError(f"{where}: a job needs 'scene' and 'trajectories'")
+        if set(entry) - _JOB_KEYS:
+            raise GrounderError(
+                f"{where}: unknown key(s) {sorted(set(entry) - _JOB_KEYS)}; expected {sorted(_JOB_KEYS)}"
+            )
+        scene = (root / str(entry["scene"])).resolve()
+        trajectories, fmt = _dataset(where, entry["trajectories"], root)
+        fmt = entry.get("format", fmt)
+        settings = {**defaults, **_check_settings(where, entry.get("settings"))}
+        job_id = str(entry.get("id") or f"{_slug(scene.stem)}__{_slug(trajectories.name)}__{i}")
+        jobs.append(Job(id=job_id, scene=scene, trajectories=trajectories, format=fmt, settings=settings))
+    matrix = data.get("matrix")
+    if matrix is not None:
+        if not isinstance(matrix, Mapping) or not {"scenes", "trajectories"} <= set(matrix):
+            raise GrounderError(f"{path}: matrix needs 'scenes' and 'trajectories' lists (and optional 'settings')")
+        raw_settings = matrix.get("settings") or {"default": {}}
+        if isinstance(raw_settings, Sequence) and not isinstance(raw_settings, str):
+            named = {
+                str(s.get("name", f"s{k}")): {kk: v for kk, v in s.items() if kk != "name"}
+                for k, s in enumerate(raw_settings)
+            }
+        elif isinstance(raw_settings, Mapping):
+            named = dict(raw_settings)
+        else:
+            raise GrounderError(f"{path}: matrix.settings must be a mapping name -> settings or a list")
+        for scene_entry in matrix["scenes"]:
+            scene = (root / str(scene_entry)).resolve()
+            for data_entry in matrix["trajectories"]:
+                trajectories, fmt = _dataset(f"{path}: matrix", data_entry, root)
+                for sname, sval in named.items():
+                    settings = {**defaults, **_check_settings(f"{path}: matrix.settings.{sname}", sval)}
+                    scene_label = _slug(scene.stem if scene.suffix else scene.name)
+                    job_id = f"{scene_label}__{_slug(trajectories.name)}__{_slug(sname)}"
+                    jobs.append(Job(id=job_id, scene=scene, trajectories=trajectories, format=fmt, settings=settings))
+    if not jobs:
+        raise GrounderError(f"{path}: holds no job; add a 'jobs' list or a 'matrix'")
+    seen: set[str] = set()
+    for job in jobs:
+        if not _ID_RE.match(job.id):
+            raise GrounderError(f"{path}: job id {job.id!r} is not a safe file name; use letters, digits, _ . -")
+        if job.id in seen:
+            raise GrounderError(f"{path}: job id {job.id!r} appears twice; give the jobs distinct ids")
+        seen.add(job.id)
+        options_from_settings(job.settings)  # fail before any work starts
+    return jobs
+
+
+def _write_json_atomic(path: Path, payload: object) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    try:
+        with open(tmp, "w") as f:
+            f.write(json.dumps(payload, indent=1) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def result_path(out_dir: Path, job_id: str) -> Path:
+    return Path(out_dir) / RESULTS_DIR / f"{job_id}.json"
+
+
+def read_result(out_dir: Path, job_id: str) -> dict[str, Any] | None:
+    """A job's result record, or None if it has none (or an unreadable one)."""
+    path = result_path(out_dir, job_id)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def is_finished(out_dir: Path, job_id: str) -> bool:
+    record = read_result(out_dir, job_id)
+    return bool(record and record.get("status") == "ok" and (Path(out_dir) / SCENES_DIR / job_id).is_dir())
+
+
+def run_job(job_json: Mapping[str, Any], out_dir: str) -> dict[str, Any]:
+    """Runs one job and writes its result record atomically; never raises (a failure is recorded).
+
+    Runs inside a Ray worker (or inline). Returns the record.
+    """
+    job = Job.from_json(job_json)
+    out = Path(out_dir)
+    scene_out = out / SCENES_DIR / job.id
+    tick = time.time()
+    record: dict[str, Any] = {"id": job.id, "job": job.to_json(), "started_unix": tick, "pid": os.getpid()}
+    try:
+        from grounder._calibrate import calibrate
+        from grounder._import import import_trajectories
+        from grounder._trajectory import load_trajectories
+
+        options = options_from_settings({"nthread": 1, **job.settings})
+        if job.format:
+            trajs = import_trajectories(job.format, job.trajectories)
+        else:
+            trajs = load_trajectories(job.trajectories)
+        if scene_out.exists():
+            shutil.rmtree(scene_out)  # a scene written before a crash whose result record was not
+        result = calibrate(job.scene, trajs, options=options, out=scene_out)
+        summary = result.to_json()
+        record.update(
+            status="ok",
+            error=None,
+            parameters={p.name: p.value for p in result.parameters},
+            intervals={p.name: [p.interval_low, p.interval_high] for p in result.parameters},
+            errors={
+                when: {
+                    split: {
+                        "position_pct": float(s.position_pct.mean()),
+                        "rotation_deg": float(s.rotation_deg.mean()),
+                        "count": len(s.names),
+                    }
+                    for split, s in side.items()
+                }
+                for when, side in (("before", result.before), ("after", result.after))
+            },
+            steps_per_second=summary["steps_per_second"],
+            scene_out=str(scene_out),
+        )
+    except GrounderError as exc:
+        record.update(status="failed", error=str(exc))
+    except Exception as exc:  # a job's crash must not stop the batch: record it with its traceback
+        record.update(status="failed", error=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc())
+    record["seconds"] = time.time() - tick
+    _write_json_atomic(result_path(out, job.id), record)
+    return record
+
+
+_TABLE_COLUMNS = (
+    "id",
+    "status",
+    "scene",
+    "trajectories",
+    "seconds",
+    "train_position_pct_before",
+    "train_position_pct_after",
+    "validation_position_pct_before",
+    "validation_position_pct_after",
+    "validation_rotation_deg_before",
+    "validation_rotation_deg_after",
+    "parameters",
+    "error",
+)
+
+
+def _row(job: Job, record: dict[str, Any] | None) -> dict[str, Any]:
+    row: dict[str, Any] = {c: "" for c in _TABLE_COLUMNS}
+    row.update(id=job.id, scene=str(job.scene), trajectories=str(job.trajectories))
+    if record is None:
+        row["status"] = "pending"
+        return row
+    row["status"] = record.get("status", "")
+    row["seconds"] = round(float(record.get("seconds", 0.0)), 2)
+    row["error"] = record.get("error") or ""
+    errors = record.get("errors") or {}
+    for when in ("before", "after"):
+        for split in ("train", "validation"):
+            if split in errors.get(when, {}):
+                row[f"{split}_position_pct_{when}"] = round(errors[when][split]["position_pct"], 3)
+                if split == "validation":
+                    row[f"validation_rotation_deg_{when}"] = round(errors[when][split]["rotation_deg"], 3)
+    if record.get("parameters"):
+        row["parameters"] = json.dumps({k: round(v, 6) for k, v in record["parameters"].items()})
+    return row
+
+
+def write_table(out_dir: Path, jobs: Sequence[Job]) -> list[dict[str, Any]]:
+    """Rewrites ``results.csv`` and ``results.json`` from the per-job records; returns the rows."""
+    out_dir = Path(out_dir)
+    rows = [_row(job, read_result(out_dir, job.id)) for job in jobs]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(_TABLE_COLUMNS))
+    writer.writeheader()
+    writer.writerows(rows)
+    _write_text_atomic(out_dir / "results.csv", buf.getvalue())
+    _write_json_atomic(out_dir / "results.json", rows)
+    return rows
+
+
+@dataclass(frozen=True, kw_only=True)
+class BatchSummary:
+    """What a batch run did.
+
+    Attributes:
+        total: Jobs in the file.
+        skipped: Jobs already finished before this run.
+        ran: Jobs run now.
+        failed: Ids of jobs that failed (now or before, and still not ok).
+        rows: The results table.
+        seconds: Wall time.
+    """
+
+    total: int
+    skipped: tuple[str, ...]
+    ran: tuple[str, ...]
+    failed: tuple[str, ...]
+    rows: tuple[dict[str, Any], ...]
+    seconds: float
+
+
+def ray_init_kwargs(address: str | None, num_cpus: int | None) -> dict[str, Any]:
+    """Arguments of ``ray.init``: connect to ``address`` when given, else start a small local Ray."""
+    if address:
+        return {"address": address, "log_to_driver": False}
+    return {
+        "num_cpus": num_cpus or max(1, (os.cpu_count() or 2) - 1),
+        "include_dashboard": False,
+        "log_to_driver": False,
+        "configure_logging": False,
+    }
+
+
+def run_batch(
+    jobs: Sequence[Job],
+    out_dir: Path,
+    *,
+    address: str | None = None,
+    num_cpus: int | None = None,
+    inline: bool = False,
+    progress: Progress | None = None,
+) -> BatchSummary:
+    """Runs the jobs not yet finished in ``out_dir`` on Ray (or ``inline``, one after another, without Ray).
+
+    Args:
+        jobs: From :func:`load_jobs`.
+        out_dir: Output folder (module docstring); created if missing, reused to resume.
+        address: A Ray cluster address; None starts a local Ray for this run.
+        num_cpus: CPUs of the local Ray (one job per CPU); ignored with ``address``.
+        inline: Run in this process without Ray (debugging, tiny batches).
+        progress: ``progress(stage, done, total)``.
+
+    Returns:
+        The summary; failed jobs are listed, not raised.
+    """
+    tick = time.time()
+    out_dir = Path(out_dir)
+    (out_dir / RESULTS_DIR).mkdir(parents=True, exist_ok=True)
+    (out_dir / SCENES_DIR).mkdir(parents=True, exist_ok=True)
+    report: Progress = progress or (lambda _s, _d, _t: None)
+    skipped = [j.id for j in jobs if is_finished(out_dir, j.id)]
+    pending = [j for j in jobs if j.id not in set(skipped)]
+    # Leftovers of a run that was killed while writing: temporary files and folders (never results).
+    for leftover in [*(out_dir / RESULTS_DIR).glob(".*.tmp"), *(out_dir / SCENES_DIR).glob(".*.tmp")]:
+        if leftover.is_dir():
+            shutil.rmtree(leftover, ignore_errors=True)
+        else:
+            leftover.unlink(missing_ok=True)
+    total = len(jobs)
+    done = len(skipped)
+    stage = "batch jobs"
+    report(stage, done, total)
+    if skipped:
+        log.info("skipping %d finished job(s)", len(skipped))
+    write_table(out_dir, jobs)
+    ran: list[str] = []
+    if pending and inline:
+        for job in pending:
+            record = run_job(job.to_json(), str(out_dir))
+            ran.append(job.id)
+            done += 1
+            _log_record(record)
+            write_table(out_dir, jobs)
+            report(stage, done, total)
+    elif pending:
+        import ray
+
+        started_here = not ray.is_initialized()
+        if started_here:
+            ray.init(**ray_init_kwargs(address, num_cpus))
+        try:
+            remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+            refs = {remote.remote(job.to_json(), str(out_dir)): job for job in pending}
+            waiting = list(refs)
+            while waiting:
+                ready, waiting = ray.wait(waiting, num_returns=1)
+                for ref in ready:
+                    job = refs[ref]
+                    try:
+                        record = ray.get(ref)
+                    except Exception as exc:  # the worker died (killed, out of memory): record it here
+                        record = {
+                            "id": job.id,
+                            "job": job.to_json(),
+                            "status": "failed",
+                            "error": f"worker failed: {type(exc).__name__}: {exc}".splitlines()[0],
+                        }
+                        _write_json_atomic(result_path(out_dir, job.id), record)
+                    ran.append(job.id)
+                    done += 1
+                    _log_record(record)
+                    write_table(out_dir, jobs)
+                    report(stage, done, total)
+        finally:
+            if started_here:
+                ray.shutdown()
+    rows = write_table(out_dir, jobs)
+    failed = tuple(r["id"] for r in rows if r["status"] == "failed")
+    return BatchSummary(
+        total=total,
+        skipped=tuple(skipped),
+        ran=tuple(ran),
+        failed=failed,
+        rows=tuple(rows),
+        seconds=time.time() - tick,
+    )
+
+
+def _log_record(record: Mapping[str, Any]) -> None:
+    if record.get("status") == "ok":
+        log.info("job %s finished in %.1f s", record.get("id"), float(record.get("seconds", 0.0)))
+    else:
+        log.warning("job %s failed: %s", record.get("id"), record.get("error"))

@@ -1,0 +1,916 @@
+"""Calibration: fit a scene's physical parameters to recorded trajectories, with intervals and a validation split.
+
+Parameter names (``box.mass``, ``box.friction.sliding``, ``box.solref.timeconst``, ``geom:NAME.friction.sliding``,
+``joint:NAME.damping``, ``actuator:NAME.gain``, ``opt.gravity_scale``, ...) and their defaults are documented in
+:mod:`grounder._calibrate_params`; in short:
+
+- ``BODY.mass``, ``BODY.com.x|y|z``, ``BODY.friction.sliding|torsional|rolling``, ``BODY.solref.timeconst|dampratio``,
+  ``BODY.solimp.dmin|dmax|width|midpoint|power``, ``BODY.size_scale`` (contact parameters apply to every collision
+  geom of the body, whose priority is raised so that its values govern its contacts);
+- ``geom:NAME.<same contact fields>``, ``joint:NAME.damping|frictionloss|armature|stiffness``,
+  ``actuator:NAME.gain|kp|kv``, ``opt.gravity_scale`` (compensates a timing/length bias of the measurement),
+  ``opt.impratio``.
+
+How it fits (raw mode):
+
+1. The trajectories are split once, reproducibly: the names in natural order are shuffled with
+   ``numpy.random.default_rng(split_seed)``; the first ``round(validation_fraction * N)`` are validation, the rest
+   training (at least one of each when N >= 2). Optionally a seeded subset of the training split is used.
+2. Loss of a trajectory: re-simulated open loop from its first recorded state (:mod:`grounder._simulate`), for each
+   free body the time-average of the position error as a percentage of the body's size (largest extent of its
+   collision geoms: the cube's width) plus ``rotation_weight`` times the time-average geodesic rotation error in
+   degrees, averaged over free bodies; plus, for hinge/slide joints, the time-average joint error (rad, or m as a
+   percentage of 0.1 m). The objective is the mean over training trajectories: exactly the metric of Acosta, Yang
+   & Posa (RA-L 2022) when ``rotation_weight = 0``.
+3. Global search (contact losses have many local minima): SciPy's differential evolution in the unit box (log scale
+   for time constants, masses, gains), seeded, with the scene's own values in the first population. Each
+   generation is one batched `mujoco.rollout` call over (candidate models x training trajectories).
+4. Local refinement: `mujoco.minimize.least_squares` from the best candidate, residual per trajectory
+   ``sqrt(loss)`` (so the sum of squares is the objective), finite differences batched in one rollout per
+   Jacobian. The better of the two is kept.
+5. Intervals: Gauss-Newton (Laplace) approximation at the optimum, as in ``mujoco.sysid.calculate_intervals``:
+   ``cov = s^2 (J^T J)^-1`` with ``s^2`` the residual variance, a z-interval in search coordinates mapped back to
+   physical units and clipped to the bounds. A parameter the data does not constrain gets its whole bounds.
+
+Embedding mode fits the objects' property embeddings instead (prior: the grounded scene's ``scene.json``
+``properties.embedding`` / ``embedding_std``), decoded to density/friction/solref by the property model; see
+:func:`calibrate`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import secrets
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import mujoco
+import numpy as np
+
+from grounder import _simulate as sim
+from grounder._calibrate_params import (
+    Parameter,
+    apply_to_model,
+    apply_to_spec,
+    body_size_m,
+    resolve_parameters,
+)
+from grounder._trajectory import Trajectory, _natural_key, validate_against_model
+from grounder.errors import GrounderError
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass(frozen=True, kw_only=True)
+class CalibrateOptions:
+    """Settings of one calibration (also the ``image2sim calibrate`` options and a batch job's ``settings``).
+
+    Attributes:
+        params: Parameter specifications ``NAME`` or ``NAME=LOW:HIGH``; empty: the scene kind's defaults.
+        mode: ``raw`` (parameters within bounds) or ``embedding`` (the object's property embedding).
+        validation_fraction: Share of trajectories held out for validation.
+        split_seed: Seed of the train/validation shuffle.
+        max_train_trajectories: Fit on at most this many training trajectories (a seeded subset); None: all.
+        rotation_weight: Percent-of-size per degree of rotation error in the loss (0: position only).
+        popsize: Differential-evolution population per parameter (SciPy's ``popsize``).
+        generations: Differential-evolution generations (0 skips the global search).
+        local_iterations: `mujoco.minimize.least_squares` iterations (0 skips the local refinement).
+        fd_step: Finite-difference step in search coordinates (unit box); large, as contact losses are rough.
+        interval_level: Two-sided level of the parameter intervals.
+        seed: Seed of the global search.
+        nthread: Rollout threads; None: the CPU cores this process may use.
+        max_batch_mb: Memory cap of one rollout call's recorded states; larger batches are split.
+    """
+
+    params: tuple[str, ...] = ()
+    mode: Literal["raw", "embedding"] = "raw"
+    validation_fraction: float = 0.3
+    split_seed: int = 0
+    max_train_trajectories: int | None = None
+    rotation_weight: float = 0.0
+    popsize: int = 8
+    generations: int = 20
+    local_iterations: int = 10
+    fd_step: float = 0.02
+    interval_level: float = 0.95
+    seed: int = 0
+    nthread: int | None = None
+    max_batch_mb: float = 256.0
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("raw", "embedding"):
+            raise GrounderError(f"mode must be 'raw' or 'embedding', got {self.mode!r}")
+        if not 0.0 <= self.validation_fraction < 1.0:
+            raise GrounderError(f"validation_fraction must be in [0, 1), got {self.validation_fraction}")
+        if self.max_train_trajectories is not None and self.max_train_trajectories < 1:
+            raise GrounderError("max_train_trajectories must be >= 1")
+        if self.popsize < 1 or self.generations < 0 or self.local_iterations < 0:
+            raise GrounderError("popsize must be >= 1, generations and local_iterations >= 0")
+        if not 0.0 < self.interval_level < 1.0:
+            raise GrounderError(f"interval_level must be in (0, 1), got {self.interval_level}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ParameterFit:
+    """One fitted parameter, physical units.
+
+    Attributes:
+        name: Parameter name.
+        nominal: The scene's value before calibration.
+        value: The calibrated value.
+        lower, upper: Search bounds.
+        interval_low, interval_high: ``interval_level`` interval (clipped to the bounds).
+        unit: Unit.
+    """
+
+    name: str
+    nominal: float
+    value: float
+    lower: float
+    upper: float
+    interval_low: float
+    interval_high: float
+    unit: str
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class ErrorSummary:
+    """Open-loop errors of one model on a set of trajectories (means over free bodies per trajectory).
+
+    Attributes:
+        names: Trajectory names.
+        position_pct: (N,) time-average position error, percent of the body size.
+        rotation_deg: (N,) time-average geodesic rotation error, degrees.
+        loss: (N,) the calibration loss per trajectory.
+    """
+
+    names: tuple[str, ...]
+    position_pct: np.ndarray
+    rotation_deg: np.ndarray
+    loss: np.ndarray
+
+    def as_dict(self) -> dict[str, Any]:
+        def stats(a: np.ndarray) -> dict[str, float]:
+            return {"mean": float(np.mean(a)), "std": float(np.std(a))} if len(a) else {"mean": math.nan, "std": 0.0}
+
+        return {
+            "count": len(self.names),
+            "position_pct_of_size": stats(self.position_pct),
+            "rotation_deg": stats(self.rotation_deg),
+            "loss": stats(self.loss),
+            "per_trajectory": {
+                n: {"position_pct": float(p), "rotation_deg": float(r)}
+                for n, p, r in zip(self.names, self.position_pct, self.rotation_deg, strict=True)
+            },
+        }
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class CalibrationResult:
+    """What a calibration found.
+
+    Attributes:
+        parameters: The fitted parameters, in the order given.
+        train_names, validation_names: The split.
+        before, after: Errors of the scene as given and as calibrated, per split: keys ``train``, ``validation``.
+        model: The calibrated, compiled model.
+        spec: The calibrated `MjSpec` (what ``scene.xml`` is written from).
+        history: Best training loss after each stage step (DE generations, then least-squares iterations).
+        evaluations: Number of (model, trajectory) rollouts simulated.
+        steps_per_second: Model steps per second of wall time spent inside `mujoco.rollout` calls.
+        eval_steps_per_second: Model steps per second of the whole evaluation (building models, rollout, losses).
+        seconds: Wall time of the calibration.
+        mode: ``raw`` or ``embedding``.
+        out_dir: The calibrated scene folder, when one was written.
+    """
+
+    parameters: tuple[ParameterFit, ...]
+    train_names: tuple[str, ...]
+    validation_names: tuple[str, ...]
+    before: dict[str, ErrorSummary]
+    after: dict[str, ErrorSummary]
+    model: mujoco.MjModel
+    spec: mujoco.MjSpec
+    history: tuple[float, ...]
+    evaluations: int
+    steps_per_second: float
+    eval_steps_per_second: float
+    seconds: float
+    mode: str = "raw"
+    out_dir: Path | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def values(self) -> dict[str, float]:
+        """Calibrated values by parameter name."""
+        return {p.name: p.value for p in self.parameters}
+
+    @property
+    def intervals(self) -> dict[str, tuple[float, float]]:
+        """Intervals by parameter name."""
+        return {p.name: (p.interval_low, p.interval_high) for p in self.parameters}
+
+    def to_json(self) -> dict[str, Any]:
+        """What ``calibration.json`` holds."""
+        return {
+            "mode": self.mode,
+            "parameters": {
+                p.name: {
+                    "value": p.value,
+                    "nominal": p.nominal,
+                    "interval": [p.interval_low, p.interval_high],
+                    "bounds": [p.lower, p.upper],
+                    "unit": p.unit,
+                }
+                for p in self.parameters
+            },
+            "split": {"train": list(self.train_names), "validation": list(self.validation_names)},
+            "errors": {
+                "before": {k: v.as_dict() for k, v in self.before.items()},
+                "after": {k: v.as_dict() for k, v in self.after.items()},
+            },
+            "history": list(self.history),
+            "evaluations": self.evaluations,
+            "steps_per_second": self.steps_per_second,
+            "eval_steps_per_second": self.eval_steps_per_second,
+            "seconds": self.seconds,
+            **self.extra,
+        }
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Scene loading and trajectory split
+
+
+def scene_xml_path(scene: Path) -> Path:
+    """The MJCF of a scene given as a file or as a scene folder (``scene.xml`` inside)."""
+    scene = Path(scene)
+    if scene.is_dir():
+        xml = scene / "scene.xml"
+        if not xml.is_file():
+            raise GrounderError(f"{scene}: scene folder has no scene.xml; pass an MJCF file or a grounded scene folder")
+        return xml
+    if not scene.is_file():
+        raise GrounderError(f"{scene}: scene does not exist; pass an MJCF file or a grounded scene folder")
+    return scene
+
+
+def load_scene(scene: Path) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
+    """The scene's `MjSpec` and compiled model.
+
+    Raises:
+        GrounderError: missing or unreadable MJCF.
+    """
+    xml = scene_xml_path(scene)
+    try:
+        spec = mujoco.MjSpec.from_file(str(xml))
+        model = spec.compile()
+    except Exception as exc:  # mujoco raises ValueError for parse and compile errors
+        raise GrounderError(f"{xml}: MuJoCo cannot load it ({exc})".replace("\n", " ")) from exc
+    return spec, model
+
+
+def split_names(names: Sequence[str], validation_fraction: float, seed: int) -> tuple[list[str], list[str]]:
+    """The documented train/validation split (module docstring, step 1): returns (train, validation)."""
+    ordered = sorted(names, key=_natural_key)
+    if len(ordered) < 2 or validation_fraction <= 0:
+        return ordered, []
+    perm = np.random.default_rng(seed).permutation(len(ordered))
+    n_val = min(max(1, round(validation_fraction * len(ordered))), len(ordered) - 1)
+    val = sorted((ordered[i] for i in perm[:n_val]), key=_natural_key)
+    train = sorted((ordered[i] for i in perm[n_val:]), key=_natural_key)
+    return train, val
+
+
+def training_subset(train: Sequence[str], max_count: int | None, seed: int) -> list[str]:
+    """A seeded subset of at most ``max_count`` training names (all when None)."""
+    if max_count is None or max_count >= len(train):
+        return list(train)
+    pick = np.random.default_rng(seed + 1).choice(len(train), size=max_count, replace=False)
+    return sorted((train[i] for i in pick), key=_natural_key)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Batched evaluation
+
+
+@dataclass(frozen=True, kw_only=True)
+class _JointError:
+    qpos_index: int
+    scale: float  # error units per "percent": hinge 0.01 rad, slide 0.001 m
+
+
+class Evaluator:
+    """Losses of many candidate parameter vectors on a fixed set of trajectories, each batch one `mujoco.rollout`.
+
+    Trajectories are grouped by length so that short ones are not simulated to the length of the longest.
+    """
+
+    def __init__(
+        self,
+        base: mujoco.MjModel,
+        params: Sequence[Parameter],
+        trajs: Sequence[Trajectory],
+        *,
+        rotation_weight: float,
+        nthread: int | None = None,
+        max_batch_mb: float = 256.0,
+        group_size: int = 16,
+    ) -> None:
+        if not trajs:
+            raise GrounderError("no trajectories to evaluate")
+        self.base = base
+        self.params = list(params)
+        self.trajs = list(trajs)
+        self.rotation_weight = rotation_weight
+        self.nthread = nthread or sim.default_nthread()
+        self.max_batch_bytes = max_batch_mb * 2**20
+        self._data = mujoco.MjData(base)
+        self.qpos_at, _ = sim._offsets(base)
+        self.free = sim.free_joints(base)
+        self.sizes = [body_size_m(base, mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_BODY, fj.body)) for fj in self.free]
+        self.scalar: list[_JointError] = []
+        for j in range(base.njnt):
+            jtype = int(base.jnt_type[j])
+            if jtype == mujoco.mjtJoint.mjJNT_HINGE:
+                self.scalar.append(_JointError(qpos_index=int(base.jnt_qposadr[j]), scale=0.01))
+            elif jtype == mujoco.mjtJoint.mjJNT_SLIDE:
+                self.scalar.append(_JointError(qpos_index=int(base.jnt_qposadr[j]), scale=0.001))
+        order = sorted(range(len(self.trajs)), key=lambda i: self.trajs[i].num_steps)
+        self.groups = [order[i : i + group_size] for i in range(0, len(order), group_size)]
+        self.batches = [sim.prepare(base, [self.trajs[i] for i in g]) for g in self.groups]
+        self.rollouts = 0
+        self.steps = 0
+        self.rollout_seconds = 0.0
+        self.eval_seconds = 0.0
+
+    def models(self, values: np.ndarray) -> list[mujoco.MjModel]:
+        """Models for (K, P) physical parameter vectors."""
+        return [apply_to_model(self.base, self.params, row, data=self._data) for row in np.atleast_2d(values)]
+
+    def errors(self, models: Sequence[mujoco.MjModel]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per (model, trajectory): position % of size, rotation degrees, loss; each (K, B)."""
+        tick = time.perf_counter()
+        k_count, b_count = len(models), len(self.trajs)
+        pos = np.zeros((k_count, b_count))
+        rot = np.zeros((k_count, b_count))
+        joint = np.zeros((k_count, b_count))
+        nstate = mujoco.mj_stateSize(self.base, sim.FULLPHYSICS)
+        for group, batch in zip(self.groups, self.batches, strict=True):
+            per_model_bytes = len(group) * (batch.nstep + 1) * nstate * 8 * 2
+            chunk = max(1, int(self.max_batch_bytes // max(per_model_bytes, 1)))
+            for start in range(0, k_count, chunk):
+                sub = list(models[start : start + chunk])
+                t0 = time.perf_counter()
+                states = sim.rollout_states(sub, batch, nthread=self.nthread)
+                self.rollout_seconds += time.perf_counter() - t0
+                self.rollouts += len(sub) * len(group)
+                self.steps += len(sub) * len(group) * batch.nstep
+                for col, b in enumerate(group):
+                    traj = self.trajs[b]
+                    rows = states[:, col, batch.sample_steps[col], self.qpos_at : self.qpos_at + self.base.nq]
+                    p_err = np.zeros(len(sub))
+                    r_err = np.zeros(len(sub))
+                    for fj, size in zip(self.free, self.sizes, strict=True):
+                        dpos = np.linalg.norm(rows[:, :, fj.pos] - traj.qpos[None, :, fj.pos], axis=2)
+                        p_err += 100.0 * dpos.mean(axis=1) / size
+                        ang = sim.quat_angle_rad(
+                            rows[:, :, fj.quat], np.broadcast_to(traj.qpos[:, fj.quat], rows[:, :, fj.quat].shape)
+                        )
+                        r_err += np.degrees(ang.mean(axis=1))
+                    if self.free:
+                        p_err /= len(self.free)
+                        r_err /= len(self.free)
+                    j_err = np.zeros(len(sub))
+                    for je in self.scalar:
+                        j_err += (
+                            np.abs(rows[:, :, je.qpos_index] - traj.qpos[None, :, je.qpos_index]).mean(1) / je.scale
+                        )
+                    pos[start : start + len(sub), b] = p_err
+                    rot[start : start + len(sub), b] = r_err
+                    joint[start : start + len(sub), b] = j_err
+        loss = pos + self.rotation_weight * rot + joint
+        loss[~np.isfinite(loss)] = 1e6
+        self.eval_seconds += time.perf_counter() - tick
+        return pos, rot, loss
+
+    def loss_of_values(self, values: np.ndarray) -> np.ndarray:
+        """Per (candidate, trajectory) loss (K, B) for (K, P) physical values."""
+        _, _, loss = self.errors(self.models(values))
+        return loss
+
+    def summary(self, model: mujoco.MjModel) -> ErrorSummary:
+        pos, rot, loss = self.errors([model])
+        return ErrorSummary(
+            names=tuple(t.name for t in self.trajs), position_pct=pos[0], rotation_deg=rot[0], loss=loss[0]
+        )
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Search
+
+
+def _to_values(params: Sequence[Parameter], unit: np.ndarray) -> np.ndarray:
+    """(K, P) unit-box coordinates -> physical values."""
+    unit = np.atleast_2d(unit)
+    return np.stack([p.from_unit(unit[:, i]) for i, p in enumerate(params)], axis=1)
+
+
+def _nominal_unit(params: Sequence[Parameter]) -> np.ndarray:
+    return np.array([float(np.clip(p.to_unit(p.nominal), 0.0, 1.0)) for p in params])
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class _Problem:
+    """A search in the unit box: coordinates -> raw parameter values, and the residuals the fit minimises.
+
+    Residuals of a point: ``sqrt(loss_b) / data_scale`` per trajectory, then ``prior(u)`` (embedding mode). The
+    objective is their sum of squares divided by the number of trajectories (raw mode: the mean loss).
+    """
+
+    ev: Evaluator
+    x0: np.ndarray
+    values: Callable[[np.ndarray], np.ndarray]
+    fixed: tuple[int, ...] = ()
+    prior: Callable[[np.ndarray], np.ndarray] | None = None
+    data_scale: float = 1.0
+
+    @property
+    def free(self) -> list[int]:
+        return [i for i in range(len(self.x0)) if i not in self.fixed]
+
+    def residuals(self, u_rows: np.ndarray) -> np.ndarray:
+        """(K, n) -> (K, R)."""
+        u_rows = np.atleast_2d(u_rows)
+        loss = self.ev.loss_of_values(self.values(u_rows))
+        res = np.sqrt(np.maximum(loss, 0.0)) / self.data_scale
+        if self.prior is not None:
+            res = np.concatenate([res, self.prior(u_rows)], axis=1)
+        return res
+
+    def objective(self, u_rows: np.ndarray) -> np.ndarray:
+        return np.sum(self.residuals(u_rows) ** 2, axis=1) / len(self.ev.trajs)
+
+
+def _global_search(
+    prob: _Problem, options: CalibrateOptions, report: Progress, history: list[float]
+) -> tuple[np.ndarray, float]:
+    from scipy.optimize import differential_evolution
+
+    n = len(prob.x0)
+    best: dict[str, Any] = {"u": prob.x0, "loss": math.inf}
+
+    def objective(u_cols: np.ndarray) -> np.ndarray:
+        u = np.atleast_2d(u_cols.T) if u_cols.ndim == 2 else u_cols[None]
+        loss = prob.objective(u)
+        i = int(np.argmin(loss))
+        if loss[i] < best["loss"]:
+            best["u"], best["loss"] = u[i].copy(), float(loss[i])
+        return loss
+
+    generation = {"k": 0}
+
+    def callback(*_args: Any, **_kwargs: Any) -> None:
+        generation["k"] += 1
+        history.append(best["loss"])
+        report("global search (differential evolution)", generation["k"], options.generations)
+
+    report("global search (differential evolution)", 0, options.generations)
+    differential_evolution(
+        objective,
+        [(0.0, 1.0)] * n,
+        popsize=options.popsize,
+        maxiter=options.generations,
+        seed=options.seed,
+        x0=prob.x0,
+        init="sobol" if n > 1 else "latinhypercube",
+        vectorized=True,
+        updating="deferred",
+        polish=False,
+        tol=0.0,
+        callback=callback,
+    )
+    return best["u"], best["loss"]
+
+
+def _local_refine(
+    prob: _Problem, u0: np.ndarray, options: CalibrateOptions, report: Progress, history: list[float]
+) -> tuple[np.ndarray, float]:
+    """Least squares over the free coordinates from ``u0``; choices (condim, cone) stay as in ``u0``."""
+    from mujoco import minimize
+
+    free = prob.free
+
+    def full(cols: np.ndarray) -> np.ndarray:
+        u = np.tile(u0, (len(cols), 1))
+        u[:, free] = cols
+        return u
+
+    def residual(x: np.ndarray) -> np.ndarray:
+        cols = np.atleast_2d(x.T)  # minimize passes (n, k): k points
+        return prob.residuals(full(cols)).T  # (R, k)
+
+    def on_iter(trace: list[Any]) -> None:
+        history.append(float(2.0 * trace[-1].objective / len(prob.ev.trajs)))
+        done = min(len(trace), options.local_iterations)
+        report("local refinement (mujoco.minimize)", done, options.local_iterations)
+
+    report("local refinement (mujoco.minimize)", 0, options.local_iterations)
+    x, _trace = minimize.least_squares(
+        u0[free].copy(),
+        residual,
+        bounds=[np.zeros(len(free)), np.ones(len(free))],
+        eps=options.fd_step,
+        max_iter=options.local_iterations,
+        verbose=minimize.Verbosity.SILENT,
+        iter_callback=on_iter,
+    )
+    u = full(np.asarray(x, dtype=np.float64).reshape(1, -1))[0]
+    return u, float(prob.objective(u[None])[0])
+
+
+def _jacobian(prob: _Problem, u: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (R,) at u and their central finite-difference Jacobian (R, len(free)) in unit coordinates."""
+    free = prob.free
+    cols = [u]
+    steps = np.zeros(len(free))
+    for k, i in enumerate(free):
+        lo, hi = max(u[i] - step, 0.0), min(u[i] + step, 1.0)
+        up, down = u.copy(), u.copy()
+        up[i], down[i] = hi, lo
+        steps[k] = hi - lo
+        cols += [up, down]
+    res = prob.residuals(np.stack(cols))  # (1 + 2 len(free), R)
+    jac = np.stack([(res[1 + 2 * k] - res[2 + 2 * k]) / max(steps[k], 1e-12) for k in range(len(free))], axis=1)
+    return res[0], jac.reshape(res.shape[1], len(free))
+
+
+def _search(prob: _Problem, options: CalibrateOptions, report: Progress) -> tuple[np.ndarray, list[float]]:
+    """Global then local search from ``prob.x0``; returns the best point and the loss history."""
+    history = [float(prob.objective(prob.x0[None])[0])]
+    best_u, best_loss = prob.x0, history[0]
+    if options.generations > 0:
+        u, loss = _global_search(prob, options, report, history)
+        if loss < best_loss:
+            best_u, best_loss = u, loss
+    if options.local_iterations > 0 and prob.free:
+        u, loss = _local_refine(prob, best_u, options, report, history)
+        if loss < best_loss:
+            best_u, best_loss = u, loss
+        history.append(best_loss)
+    log.info("calibration: training objective %.3f -> %.3f", history[0], best_loss)
+    return best_u, history
+
+
+def _intervals_unit(residuals: np.ndarray, jac: np.ndarray, level: float) -> np.ndarray:
+    """Half-widths (P,) in unit coordinates; inf where the data does not constrain the parameter."""
+    from scipy.stats import norm
+
+    dof = max(residuals.size - jac.shape[1], 1)
+    s2 = float(residuals @ residuals) / dof
+    hess = jac.T @ jac
+    lam, vec = np.linalg.eigh(hess)
+    lam_max = float(lam.max(initial=0.0))
+    half = np.empty(jac.shape[1])
+    z = float(norm.ppf(0.5 + level / 2.0))
+    for j in range(jac.shape[1]):
+        acc = 0.0
+        vmax = float(np.max(np.abs(vec[j]))) or 1.0
+        for i in range(len(lam)):
+            li = lam[i] if lam_max > 0 and lam[i] / lam_max >= 1e-12 else 0.0
+            vji = vec[j, i] if abs(vec[j, i] / vmax) >= 1e-8 else 0.0
+            if li == 0.0 and vji != 0.0:
+                acc = math.inf
+                break
+            if li != 0.0:
+                acc += vji**2 / li
+        half[j] = z * math.sqrt(s2 * acc) if math.isfinite(acc) else math.inf
+    return half
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Public entry point
+
+
+def _raw_fits(
+    prob: _Problem, params: Sequence[Parameter], best_u: np.ndarray, options: CalibrateOptions, report: Progress
+) -> tuple[np.ndarray, list[ParameterFit]]:
+    """Values and intervals (module docstring, step 5) of raw mode at the optimum."""
+    report("intervals", 0, 1)
+    half = np.zeros(len(params))  # a choice is reported as itself
+    if prob.free:
+        residuals, jac = _jacobian(prob, best_u, options.fd_step)
+        half[prob.free] = _intervals_unit(residuals, jac, options.interval_level)
+    values = _to_values(params, best_u[None])[0]
+    fits = []
+    for i, p in enumerate(params):
+        if p.discrete:
+            lo = hi = float(values[i])
+        else:
+            lo = p.lower if not math.isfinite(half[i]) else float(p.from_unit(best_u[i] - half[i]))
+            hi = p.upper if not math.isfinite(half[i]) else float(p.from_unit(best_u[i] + half[i]))
+        fits.append(
+            ParameterFit(
+                name=p.name,
+                nominal=p.nominal,
+                value=float(values[i]),
+                lower=p.lower,
+                upper=p.upper,
+                interval_low=lo,
+                interval_high=hi,
+                unit=p.unit,
+            )
+        )
+    report("intervals", 1, 1)
+    return values, fits
+
+
+def _fit_embedding(
+    scene: Path,
+    base: mujoco.MjModel,
+    fit_trajs: Sequence[Trajectory],
+    options: CalibrateOptions,
+    common: dict[str, Any],
+    report: Progress,
+) -> tuple[list[Parameter], np.ndarray, list[ParameterFit], Evaluator, list[float], dict[str, Any]]:
+    """Embedding mode (see grounder._calibrate_embedding): MAP embedding, posterior, decoded raw parameters."""
+    from grounder import _calibrate_embedding as emb
+
+    if options.params:
+        raise GrounderError("--params does not apply to embedding mode (it fits the property embedding); leave it out")
+    space = emb.embedding_space(scene, base)
+    params = list(space.params)
+    ev = Evaluator(base, params, fit_trajs, **common)
+    x0 = emb.to_unit(np.zeros(space.dim))
+    prior_loss = ev.loss_of_values(space.values(np.zeros((1, space.dim))))[0]
+
+    def values_of(u: np.ndarray) -> np.ndarray:
+        return space.values(emb.from_unit(u))
+
+    # 1. Data only (from the prior mean): the misfit left at its optimum is the noise scale s^2 of the posterior.
+    fit_u, history = _search(_Problem(ev=ev, x0=x0, values=values_of), options, report)
+    misfit = float(ev.loss_of_values(values_of(fit_u[None]))[0].mean())
+    data_scale = math.sqrt(max(misfit, 1e-6))
+    # 2. The posterior's mode: least squares on [sqrt(loss_b) / s, w] from the data-only optimum.
+    prob = _Problem(ev=ev, x0=x0, values=values_of, prior=emb.from_unit, data_scale=data_scale)
+    best_u = fit_u
+    if options.local_iterations > 0:
+        u, _ = _local_refine(prob, fit_u, options, report, [])
+        if prob.objective(u[None])[0] <= prob.objective(fit_u[None])[0]:
+            best_u = u
+        history.append(float(ev.loss_of_values(values_of(best_u[None]))[0].mean()))
+    report("intervals", 0, 1)
+    _, jac = _jacobian(prob, best_u, options.fd_step)
+    jac_w = jac / (2 * emb.W_BOUND)  # d residual / d w
+    cov_w = np.linalg.pinv(jac_w.T @ jac_w)
+    w = emb.from_unit(best_u)
+    values = space.values(w[None])[0]
+    samples = emb.posterior_samples(space, w, cov_w, count=200, seed=options.seed)
+    prior_samples = emb.posterior_samples(space, np.zeros(space.dim), np.eye(space.dim), count=200, seed=options.seed)
+    alpha = 50.0 * (1.0 - options.interval_level)
+    fits = []
+    for i, p in enumerate(params):
+        fits.append(
+            ParameterFit(
+                name=p.name,
+                nominal=p.nominal,
+                value=float(values[i]),
+                lower=float(np.percentile(prior_samples[:, i], 0.5)),
+                upper=float(np.percentile(prior_samples[:, i], 99.5)),
+                interval_low=float(np.percentile(samples[:, i], alpha)),
+                interval_high=float(np.percentile(samples[:, i], 100.0 - alpha)),
+                unit=p.unit,
+            )
+        )
+    report("intervals", 1, 1)
+    w_std = np.sqrt(np.maximum(np.diag(cov_w), 0.0))
+    extra = {
+        "embedding": emb.summaries(space, w, w_std),
+        "embedding_objective": {
+            "prior_mean_loss": float(prior_loss.mean()),
+            "data_only_loss": misfit,
+            "noise_scale_s2": data_scale**2,
+        },
+    }
+    return params, values, fits, ev, history, extra
+
+
+def _check_trajectories(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> None:
+    if not trajs:
+        raise GrounderError("no trajectories to calibrate on; pass a folder with at least one .npz trajectory")
+    names = [t.name for t in trajs]
+    if len(set(names)) != len(names):
+        raise GrounderError("trajectory names must be unique; the split is made by name")
+    for t in trajs:
+        validate_against_model(t, model)
+        sim.step_indices(t.time_s, model.opt.timestep)
+
+
+def calibrate(
+    scene: Path,
+    trajs: Sequence[Trajectory],
+    *,
+    options: CalibrateOptions | None = None,
+    out: Path | None = None,
+    progress: Progress | None = None,
+) -> CalibrationResult:
+    """Fits the scene's physical parameters to recorded trajectories.
+
+    Args:
+        scene: An MJCF file, or a scene folder holding ``scene.xml``.
+        trajs: Recorded trajectories in the scene's joint order (uniquely named).
+        options: Parameters, split, search budget; defaults: the scene kind's parameters (module docstring).
+        out: If given, the calibrated scene folder to write (must not exist or be empty): ``scene.xml`` (and the
+            source folder's other files and assets), ``calibration.json``, ``report.html``. Written in a temporary
+            sibling folder and moved into place at the end.
+        progress: ``progress(stage, done, total)`` callback.
+
+    Returns:
+        The fitted parameters with intervals, errors before/after on both splits, the calibrated model and spec.
+
+    Raises:
+        GrounderError: the scene cannot be loaded, a trajectory does not fit it, a parameter name is unknown, there
+            are no trajectories, the output folder is not empty, or embedding mode is asked of a scene without a
+            property embedding.
+    """
+    options = options or CalibrateOptions()
+    report: Progress = progress or (lambda _s, _d, _t: None)
+    tick = time.perf_counter()
+    scene = Path(scene)
+    if out is not None:
+        out = Path(out)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise GrounderError(f"{out}: output folder exists and is not empty; choose a new folder")
+    spec, base = load_scene(scene)
+    _check_trajectories(base, trajs)
+    by_name = {t.name: t for t in trajs}
+    train_names, val_names = split_names(list(by_name), options.validation_fraction, options.split_seed)
+    fit_names = training_subset(train_names, options.max_train_trajectories, options.split_seed)
+    fit_trajs = [by_name[n] for n in fit_names]
+    common: dict[str, Any] = {
+        "rotation_weight": options.rotation_weight,
+        "nthread": options.nthread,
+        "max_batch_mb": options.max_batch_mb,
+    }
+    extra: dict[str, Any] = {}
+    if options.mode == "embedding":
+        params, values, fits, ev, history, extra = _fit_embedding(scene, base, fit_trajs, options, common, report)
+    else:
+        params = resolve_parameters(base, options.params)
+        ev = Evaluator(base, params, fit_trajs, **common)
+        prob = _Problem(
+            ev=ev,
+            x0=_nominal_unit(params),
+            values=lambda u: _to_values(params, u),
+            fixed=tuple(i for i, p in enumerate(params) if p.discrete),
+        )
+        best_u, history = _search(prob, options, report)
+        values, fits = _raw_fits(prob, params, best_u, options, report)
+
+    calibrated_spec = apply_to_spec(spec, base, params, values)
+    try:
+        calibrated = calibrated_spec.compile()
+    except Exception as exc:
+        raise GrounderError(f"the calibrated scene does not compile ({exc})") from exc
+
+    report("validation", 0, 1)
+    before: dict[str, ErrorSummary] = {}
+    after: dict[str, ErrorSummary] = {}
+    for split, names in (("train", train_names), ("validation", val_names)):
+        if not names:
+            continue
+        split_ev = Evaluator(base, params, [by_name[n] for n in names], **common)
+        before[split] = split_ev.summary(base)
+        after[split] = split_ev.summary(calibrated)
+    report("validation", 1, 1)
+
+    result = CalibrationResult(
+        parameters=tuple(fits),
+        train_names=tuple(train_names),
+        validation_names=tuple(val_names),
+        before=before,
+        after=after,
+        model=calibrated,
+        spec=calibrated_spec,
+        history=tuple(history),
+        evaluations=ev.rollouts,
+        steps_per_second=ev.steps / max(ev.rollout_seconds, 1e-9),
+        eval_steps_per_second=ev.steps / max(ev.eval_seconds, 1e-9),
+        seconds=time.perf_counter() - tick,
+        mode=options.mode,
+        extra={
+            **extra,
+            "scene": str(scene),
+            "fit_trajectories": fit_names,
+            "options": {
+                k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items() if k != "nthread"
+            },
+        },
+    )
+    if out is not None:
+        report("writing", 0, 1)
+        write_calibrated_scene(scene, result, [by_name[n] for n in val_names or train_names], out, base)
+        result = CalibrationResult(**{**result.__dict__, "out_dir": out})
+        report("writing", 1, 1)
+    return result
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Output
+
+
+_NOT_COPIED = ("scene.xml", "calibration.json", "report.html", "reconstruction")
+
+
+def _copy_scene_files(scene: Path, spec: mujoco.MjSpec, stage: Path) -> None:
+    """Copies what the calibrated scene.xml refers to: the scene folder's files, or the mesh/texture/hfield files
+    of a lone MJCF, at the same relative paths. Left out: ``reconstruction/`` (large, unchanged) and a learned
+    residual (``residual.*``), which was trained against the uncalibrated model and no longer applies."""
+    if scene.is_dir():
+        for child in scene.iterdir():
+            if child.name in _NOT_COPIED or child.name.startswith("residual."):
+                continue
+            if child.is_dir():
+                shutil.copytree(child, stage / child.name)
+            else:
+                shutil.copy2(child, stage / child.name)
+        return
+    src_dir = scene.parent
+    groups = (
+        (spec.meshes, spec.meshdir),
+        (spec.textures, spec.texturedir),
+        (spec.hfields, spec.meshdir),
+        (spec.skins, spec.meshdir),
+    )
+    for elements, base_dir in groups:
+        for element in elements:
+            rel = getattr(element, "file", "")
+            if not rel:
+                continue
+            rel_path = Path(base_dir or "") / rel
+            src = (src_dir / rel_path).resolve()
+            if src.is_file() and not rel_path.is_absolute():
+                dst = stage / rel_path
+                dst.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(src, dst)
+
+
+def _note_in_manifest(manifest: Path, result: CalibrationResult) -> None:
+    """Records in a copied ``scene.json`` that scene.xml was calibrated, and with which values."""
+    if not manifest.is_file():
+        return
+    try:
+        data = json.loads(manifest.read_text())
+    except (OSError, ValueError):
+        return
+    if isinstance(data, dict):
+        data["calibration"] = {
+            "file": "calibration.json",
+            "mode": result.mode,
+            "parameters": result.values,
+            "note": "scene.xml holds the calibrated values; per-object entries above are from before calibration",
+        }
+        manifest.write_text(json.dumps(data, indent=1) + "\n")
+
+
+def write_calibrated_scene(
+    scene: Path,
+    result: CalibrationResult,
+    report_trajs: Sequence[Trajectory],
+    out: Path,
+    base: mujoco.MjModel,
+) -> Path:
+    """Writes ``out``: calibrated ``scene.xml`` (+ assets), ``calibration.json``, ``report.html``; atomically."""
+    scene = Path(scene)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = out.with_name(f".{out.name}.{secrets.token_hex(6)}.tmp")
+    stage.mkdir()
+    try:
+        _copy_scene_files(scene, result.spec, stage)
+        (stage / "scene.xml").write_text(result.spec.to_xml())
+        _note_in_manifest(stage / "scene.json", result)
+        # The written MJCF must reproduce the calibrated model: a drifted writer would silently lose the fit.
+        reloaded = mujoco.MjModel.from_xml_path(str(stage / "scene.xml"))
+        if reloaded.nq != base.nq or reloaded.nv != base.nv:
+            raise GrounderError("the written scene.xml does not match the scene's joints")
+        (stage / "calibration.json").write_text(json.dumps(result.to_json(), indent=1) + "\n")
+        from grounder._calibrate_report import write_report
+
+        write_report(stage / "report.html", result, base, report_trajs)
+        if out.exists():
+            out.rmdir()  # checked empty by calibrate()
+        os.replace(stage, out)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    return out

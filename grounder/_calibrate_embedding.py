@@ -1,0 +1,195 @@
+"""Embedding-mode calibration: fit each object's property embedding instead of raw parameters.
+
+A grounded scene's ``scene.json`` stores per object ``properties.embedding`` and ``properties.embedding_std``: the
+property model's prior ``z ~ N(embedding, diag(embedding_std^2))``, and ``grounder._properties.decode_embedding(z)``
+maps z to density, friction (sliding, torsional, rolling) and solref (timeconst, dampratio). Calibration searches
+the standardised offset ``w = (z - embedding) / embedding_std`` in ``[-3, 3]^D`` per object and minimises the
+negative log posterior
+
+    J(w) = sum_b loss_b(w) / s^2 + |w|^2,
+
+with ``loss_b`` the per-trajectory loss of raw mode and ``s^2`` a noise scale: the mean training loss left at the
+data-only optimum (what no embedding explains). So: (1) differential evolution, then least squares, on the data
+alone, from the prior mean; (2) `mujoco.minimize.least_squares` on the residuals ``[sqrt(loss_b) / s, w]`` from
+there, for the posterior's mode; its covariance from the Gauss-Newton Hessian. The decoded properties are applied
+as raw parameters (``BODY.mass`` scaled with the density, ``BODY.friction.*``, ``BODY.solref.*``), and their
+intervals are percentiles of the decoded posterior samples.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from grounder._calibrate_params import Parameter, resolve_parameter
+from grounder.errors import GrounderError
+
+Decoder = Callable[[np.ndarray], Mapping[str, Any]]
+W_BOUND = 3.0
+_FIELDS = ("mass", "friction.sliding", "friction.torsional", "friction.rolling", "solref.timeconst", "solref.dampratio")
+
+
+def embedding_decoder() -> Decoder:
+    """``z -> {"density_kg_m3", "friction", "solref", ...}`` from the property model (``grounder._properties``).
+
+    Raises:
+        GrounderError: the property model is not available.
+    """
+    import importlib
+    import importlib.util
+
+    if importlib.util.find_spec("grounder._properties") is None:
+        raise GrounderError("embedding mode needs the property model (grounder._properties), which is not installed")
+    module = importlib.import_module("grounder._properties")
+    decoder: Decoder = module.decode_embedding
+    return decoder
+
+
+def scene_manifest(scene: Path) -> dict[str, Any]:
+    """The scene's ``scene.json`` (next to ``scene.xml``)."""
+    scene = Path(scene)
+    manifest = scene / "scene.json" if scene.is_dir() else scene.parent / "scene.json"
+    if not manifest.is_file():
+        raise GrounderError(f"{scene}: scene has no property embedding (no scene.json next to it); use --mode raw")
+    try:
+        data = json.loads(manifest.read_text())
+    except (OSError, ValueError) as exc:
+        raise GrounderError(f"{manifest}: unreadable scene.json ({exc})") from exc
+    if not isinstance(data, dict):
+        raise GrounderError(f"{manifest}: expected a JSON object")
+    return data
+
+
+@dataclass(frozen=True, kw_only=True)
+class ObjectPrior:
+    """One object's embedding prior and what its raw parameters are now."""
+
+    body: str
+    embedding: np.ndarray  # (D,)
+    embedding_std: np.ndarray  # (D,)
+    density0_kg_m3: float  # the density the scene's mass was computed with
+    mass0_kg: float
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class EmbeddingSpace:
+    """The search space of embedding mode and its map to raw parameters."""
+
+    objects: tuple[ObjectPrior, ...]
+    params: tuple[Parameter, ...]  # per object, the _FIELDS in order
+    decoder: Decoder
+
+    @property
+    def dim(self) -> int:
+        return sum(len(o.embedding) for o in self.objects)
+
+    def split(self, w: np.ndarray) -> list[np.ndarray]:
+        out, start = [], 0
+        for o in self.objects:
+            out.append(w[start : start + len(o.embedding)])
+            start += len(o.embedding)
+        return out
+
+    def z_of(self, w: np.ndarray) -> list[np.ndarray]:
+        return [o.embedding + o.embedding_std * wi for o, wi in zip(self.objects, self.split(w), strict=True)]
+
+    def decoded(self, w: np.ndarray) -> list[Mapping[str, Any]]:
+        return [self.decoder(z) for z in self.z_of(w)]
+
+    def values(self, w_rows: np.ndarray) -> np.ndarray:
+        """(K, dim) standardised offsets -> (K, P) raw parameter values."""
+        rows = []
+        for w in np.atleast_2d(w_rows):
+            row: list[float] = []
+            for o, d in zip(self.objects, self.decoded(w), strict=True):
+                friction = [float(x) for x in d["friction"]]
+                solref = [float(x) for x in d["solref"]]
+                mass = o.mass0_kg * float(d["density_kg_m3"]) / o.density0_kg_m3
+                row += [mass, *friction, *solref]
+            rows.append(row)
+        return np.asarray(rows, dtype=np.float64)
+
+
+def embedding_space(scene: Path, model: mujoco.MjModel, decoder: Decoder | None = None) -> EmbeddingSpace:
+    """Reads the priors from ``scene.json`` and resolves the raw parameters they decode to.
+
+    Raises:
+        GrounderError: no scene.json, no object with ``properties.embedding``, malformed embeddings, or a body
+            named in scene.json that the MJCF lacks.
+    """
+    manifest = scene_manifest(scene)
+    objects = manifest.get("objects", {})
+    items = list(objects.items()) if isinstance(objects, dict) else [(o.get("name", ""), o) for o in objects]
+    priors: list[ObjectPrior] = []
+    for body, entry in items:
+        props = entry.get("properties") if isinstance(entry, dict) else None
+        if not isinstance(props, dict) or "embedding" not in props:
+            continue
+        emb = np.asarray(props["embedding"], dtype=np.float64)
+        std = np.asarray(props.get("embedding_std", np.ones_like(emb)), dtype=np.float64)
+        if emb.ndim != 1 or emb.shape != std.shape or not np.isfinite(emb).all() or not (std > 0).all():
+            raise GrounderError(f"scene.json: object {body!r} has a malformed embedding / embedding_std")
+        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+        if bid <= 0:
+            raise GrounderError(f"scene.json names object {body!r} but the MJCF has no such body")
+        mass0 = float(model.body_mass[bid])
+        density0 = entry.get("density_kg_m3")
+        priors.append(
+            ObjectPrior(
+                body=body,
+                embedding=emb,
+                embedding_std=std,
+                density0_kg_m3=float(density0) if density0 else math.nan,
+                mass0_kg=mass0,
+            )
+        )
+    if not priors:
+        raise GrounderError(f"{scene}: scene has no property embedding (no object has properties.embedding)")
+    decoder = decoder or embedding_decoder()
+    # Without the density the mass was computed with, the prior mean's density stands for the scene's mass.
+    fixed = []
+    for p in priors:
+        if not math.isfinite(p.density0_kg_m3) or p.density0_kg_m3 <= 0:
+            density = float(decoder(p.embedding)["density_kg_m3"])
+            p = ObjectPrior(**{**p.__dict__, "density0_kg_m3": density})
+        fixed.append(p)
+    params = tuple(resolve_parameter(model, f"{p.body}.{f}") for p in fixed for f in _FIELDS)
+    return EmbeddingSpace(objects=tuple(fixed), params=params, decoder=decoder)
+
+
+def to_unit(w: np.ndarray) -> np.ndarray:
+    return (np.asarray(w) + W_BOUND) / (2 * W_BOUND)
+
+
+def from_unit(u: np.ndarray) -> np.ndarray:
+    return np.clip(np.asarray(u), 0.0, 1.0) * 2 * W_BOUND - W_BOUND
+
+
+def posterior_samples(space: EmbeddingSpace, w: np.ndarray, cov: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """Raw parameter values (count, P) decoded from samples of the posterior N(w, cov)."""
+    rng = np.random.default_rng(seed)
+    cov = 0.5 * (cov + cov.T)
+    lam, vec = np.linalg.eigh(cov)
+    draws = w + (rng.standard_normal((count, len(w))) * np.sqrt(np.maximum(lam, 0.0))) @ vec.T
+    return space.values(np.clip(draws, -W_BOUND, W_BOUND))
+
+
+def summaries(space: EmbeddingSpace, w: np.ndarray, w_std: np.ndarray) -> dict[str, Any]:
+    """Per object: prior and posterior embedding (with std) and the decoded posterior mean, for calibration.json."""
+    out: dict[str, Any] = {}
+    for o, wi, si, d in zip(space.objects, space.split(w), space.split(w_std), space.decoded(w), strict=True):
+        out[o.body] = {
+            "prior_embedding": o.embedding.tolist(),
+            "prior_embedding_std": o.embedding_std.tolist(),
+            "posterior_embedding": (o.embedding + o.embedding_std * wi).tolist(),
+            "posterior_embedding_std": (o.embedding_std * si).tolist(),
+            "decoded": {k: d[k] for k in ("density_kg_m3", "friction", "solref") if k in d},
+        }
+    return out

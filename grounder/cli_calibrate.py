@@ -1,0 +1,207 @@
+"""CLI commands ``calibrate``, ``rollout``, ``import-trajectories`` and ``batch`` (registered by ``grounder.cli``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def _split_params(params: list[str] | None) -> tuple[str, ...]:
+    out: list[str] = []
+    for item in params or []:
+        out += [p.strip() for p in item.split(",") if p.strip()]
+    return tuple(out)
+
+
+def _check_new_dir(path: Path, overwrite: bool) -> None:
+    from grounder.errors import GrounderError
+
+    if path.exists() and not path.is_dir():
+        raise GrounderError(f"{path}: exists and is not a folder; choose a new output folder")
+    if path.is_dir() and any(path.iterdir()) and not overwrite:
+        raise GrounderError(f"{path}: output folder is not empty; choose a new folder or pass --overwrite")
+
+
+def register(app: typer.Typer) -> None:
+    """Adds the calibration commands to the ``image2sim`` app."""
+    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+
+    @app.command()
+    def calibrate(
+        scene: Annotated[Path, typer.Argument(help="An MJCF file or a scene folder (with scene.xml).")],
+        traj_dir: Annotated[Path, typer.Argument(help="Folder of recorded trajectories (.npz, the project format).")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Calibrated scene folder to write (new or empty).")],
+        params: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--params",
+                help="Parameter NAME or NAME=LOW:HIGH (repeat or comma-separate), e.g. cube.friction.sliding, "
+                "cube.solref.timeconst=0.002:0.05, opt.gravity_scale. Default: the scene kind's defaults.",
+            ),
+        ] = None,
+        mode: Annotated[
+            str, typer.Option(help="raw (parameters within bounds) or embedding (property embedding).")
+        ] = "raw",
+        validation_fraction: Annotated[float, typer.Option(help="Share of trajectories held out.")] = 0.3,
+        split_seed: Annotated[int, typer.Option(help="Seed of the train/validation shuffle.")] = 0,
+        max_train: Annotated[
+            int | None, typer.Option(help="Fit on at most this many training trajectories (seeded subset).")
+        ] = None,
+        generations: Annotated[
+            int, typer.Option(help="Differential-evolution generations (0: no global search).")
+        ] = 20,
+        popsize: Annotated[int, typer.Option(help="Differential-evolution population per parameter.")] = 8,
+        local_iterations: Annotated[int, typer.Option(help="mujoco.minimize least-squares iterations.")] = 10,
+        rotation_weight: Annotated[float, typer.Option(help="Loss weight: percent of size per degree.")] = 0.0,
+        seed: Annotated[int, typer.Option(help="Seed of the global search.")] = 0,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Fit a scene's physical parameters to recorded trajectories: scene.xml, calibration.json, report.html."""
+        _setup_logging(verbose)
+        with user_errors_exit_2():
+            from grounder._calibrate import CalibrateOptions, load_scene
+            from grounder._calibrate import calibrate as run_calibrate
+            from grounder._trajectory import load_trajectories
+
+            if mode not in ("raw", "embedding"):
+                fail(f"--mode must be raw or embedding, got {mode!r}")
+            _check_new_dir(out, overwrite=False)
+            options = CalibrateOptions(
+                params=_split_params(params),
+                mode=mode,  # type: ignore[arg-type]
+                validation_fraction=validation_fraction,
+                split_seed=split_seed,
+                max_train_trajectories=max_train,
+                generations=generations,
+                popsize=popsize,
+                local_iterations=local_iterations,
+                rotation_weight=rotation_weight,
+                seed=seed,
+            )
+            _, model = load_scene(scene)
+            trajs = load_trajectories(traj_dir, model)
+            from grounder._calibrate_params import resolve_parameters
+
+            resolve_parameters(model, options.params)  # unknown names fail before any work
+            with stage_progress() as progress:
+                result = run_calibrate(scene, trajs, options=options, out=out, progress=progress)
+        for p in result.parameters:
+            interval = f"[{p.interval_low:.4g}, {p.interval_high:.4g}]"
+            typer.echo(f"{p.name:32s} {p.nominal:10.4g} -> {p.value:10.4g}  {interval} {p.unit}")
+        for split, after in result.after.items():
+            before = result.before[split]
+            typer.echo(
+                f"{split}: position {before.position_pct.mean():.1f}% -> {after.position_pct.mean():.1f}% of size, "
+                f"rotation {before.rotation_deg.mean():.1f} -> {after.rotation_deg.mean():.1f} deg "
+                f"({len(after.names)} trajectories)"
+            )
+        typer.echo(f"wrote {out}")
+
+    @app.command()
+    def rollout(
+        scene: Annotated[Path, typer.Argument(help="An MJCF file or a scene folder (with scene.xml).")],
+        traj_dir: Annotated[Path, typer.Argument(help="Folder of recorded trajectories (.npz).")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Folder for the predicted trajectories.")],
+        no_residual: Annotated[
+            bool, typer.Option("--no-residual", help="Plain MuJoCo even when the scene folder has a residual.")
+        ] = False,
+        overwrite: Annotated[bool, typer.Option(help="Write into a non-empty output folder.")] = False,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Simulate every trajectory from its first state with its controls; same file names in the output."""
+        _setup_logging(verbose)
+        with user_errors_exit_2():
+            preds, used_residual = run_rollout(scene, traj_dir, out, use_residual=not no_residual, overwrite=overwrite)
+        what = "MuJoCo + residual" if used_residual else "MuJoCo"
+        typer.echo(f"simulated {len(preds)} trajectories with {what}; wrote {out}")
+
+    @app.command("import-trajectories")
+    def import_trajectories_cmd(
+        src: Annotated[Path, typer.Argument(help="The recorded data (for dair-pll-cube: the folder with tosses/).")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Trajectory folder to write (new or empty).")],
+        fmt: Annotated[str, typer.Option("--format", help="Input format: dair-pll-cube.")] = "dair-pll-cube",
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Convert recorded motion into the project's trajectory format."""
+        _setup_logging(verbose)
+        with user_errors_exit_2():
+            from grounder._import import import_trajectories
+            from grounder._trajectory import save_trajectories
+
+            _check_new_dir(out, overwrite=False)
+            trajs = import_trajectories(fmt, src)
+            if out.is_dir():
+                out.rmdir()  # empty: let save_trajectories build it atomically
+            save_trajectories(trajs, out)
+        steps = sum(t.num_steps for t in trajs)
+        typer.echo(f"imported {len(trajs)} trajectories ({steps} samples) from {src}; wrote {out}")
+
+    @app.command()
+    def batch(
+        jobs_file: Annotated[Path, typer.Argument(help="JOBS.yaml: scenes x datasets x settings.")],
+        out: Annotated[
+            Path | None, typer.Option("-o", "--out", help="Output folder (default: JOBS_results next to the file).")
+        ] = None,
+        address: Annotated[
+            str | None, typer.Option(help="Ray cluster address (ray://host:10001 or auto); default: a local Ray.")
+        ] = None,
+        num_cpus: Annotated[int | None, typer.Option(help="CPUs of the local Ray (jobs at a time).")] = None,
+        inline: Annotated[bool, typer.Option(help="Run the jobs one by one in this process, without Ray.")] = False,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Run many calibrations on Ray; re-running skips finished jobs. Results in results.csv / results.json.
+
+        Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file.
+        """
+        _setup_logging(verbose)
+        with user_errors_exit_2():
+            from grounder._batch import load_jobs, run_batch
+
+            jobs = load_jobs(jobs_file)
+            out_dir = out if out is not None else jobs_file.with_name(f"{jobs_file.stem}_results")
+            with stage_progress() as progress:
+                summary = run_batch(jobs, out_dir, address=address, num_cpus=num_cpus, inline=inline, progress=progress)
+        for row in summary.rows:
+            if row["status"] == "failed":
+                typer.echo(f"job {row['id']} failed: {row['error']}", err=True)
+        typer.echo(
+            f"{summary.total} jobs: {len(summary.skipped)} already finished, {len(summary.ran)} run now, "
+            f"{len(summary.failed)} failed; table: {out_dir / 'results.csv'}"
+        )
+        if summary.failed:
+            raise typer.Exit(1)  # the other jobs finished; re-running retries only the failed ones
+
+
+def run_rollout(
+    scene: Path, traj_dir: Path, out: Path, *, use_residual: bool = True, overwrite: bool = False
+) -> tuple[list, bool]:
+    """The ``rollout`` command's library side: returns (predicted trajectories, whether the residual was used).
+
+    Uses ``grounder._simulator.Simulator`` when that module exists, the scene folder has a residual and
+    ``use_residual``; plain :func:`grounder._simulate.simulate` otherwise.
+    """
+    import importlib
+    import importlib.util
+
+    from grounder._calibrate import load_scene
+    from grounder._simulate import simulate
+    from grounder._trajectory import load_trajectories, save_trajectories
+
+    _check_new_dir(out, overwrite=overwrite)
+    _, model = load_scene(scene)
+    trajs = load_trajectories(traj_dir, model)
+    used = False
+    scene_dir = scene if scene.is_dir() else scene.parent
+    if use_residual and importlib.util.find_spec("grounder._simulator") is not None:
+        module = importlib.import_module("grounder._simulator")
+        if module.has_residual(scene_dir):
+            preds = module.Simulator(scene).rollout(trajs)
+            used = True
+    if not used:
+        preds = simulate(model, trajs)
+    if out.is_dir() and not any(out.iterdir()):
+        out.rmdir()
+    save_trajectories(preds, out)
+    return list(preds), used

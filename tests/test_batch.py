@@ -1,0 +1,226 @@
+"""Batch calibration: the jobs file, failure isolation, resuming after a kill on a real local Ray, Ray addresses."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from grounder import _simulate as sim
+from grounder._batch import load_jobs, ray_init_kwargs, read_result, run_batch
+from grounder._trajectory import Trajectory, save_trajectories
+from grounder.errors import GrounderError
+
+REPO = Path(__file__).resolve().parents[1]
+CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
+TINY = {"params": ["cube.friction.sliding"], "generations": 1, "popsize": 2, "local_iterations": 0}
+
+
+@pytest.fixture(scope="module")
+def traj_dir(tmp_path_factory) -> Path:
+    model = mujoco.MjModel.from_xml_path(str(CUBE_XML))
+    rng = np.random.default_rng(0)
+    seeds = []
+    for i in range(3):
+        qpos = np.array([0, 0, 0.12, 1, 0, 0, 0], dtype=float)
+        qvel = np.concatenate([rng.uniform(-1, 1, 2), [-0.5], rng.uniform(-3, 3, 3)])
+        seeds.append(
+            Trajectory(
+                time_s=np.arange(40) / 148.0, qpos=np.tile(qpos, (40, 1)), qvel=np.tile(qvel, (40, 1)), name=f"t{i}"
+            )
+        )
+    return save_trajectories(sim.simulate(model, seeds), tmp_path_factory.mktemp("batch") / "trajs")  # type: ignore[arg-type]
+
+
+def _write_jobs(path: Path, jobs: list[dict], **extra: object) -> Path:
+    import yaml
+
+    path.write_text(yaml.safe_dump({"defaults": TINY, "jobs": jobs, **extra}))
+    return path
+
+
+def test_jobs_file(tmp_path: Path, traj_dir: Path) -> None:
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml",
+        [{"id": "one", "scene": str(CUBE_XML), "trajectories": str(traj_dir), "settings": {"seed": 3}}],
+        matrix={"scenes": [str(CUBE_XML)], "trajectories": [str(traj_dir)], "settings": {"a": {}, "b": {"popsize": 3}}},
+    )
+    jobs = load_jobs(jobs_file)
+    assert [j.id for j in jobs] == ["one", "cube__trajs__a", "cube__trajs__b"]
+    assert jobs[0].settings["seed"] == 3 and jobs[0].settings["generations"] == 1
+    assert jobs[2].settings["popsize"] == 3
+
+    bad = tmp_path / "bad.yaml"
+    _write_jobs(bad, [{"scene": "a.xml", "trajectories": "d", "settings": {"popsze": 3}}])
+    with pytest.raises(GrounderError, match="unknown setting"):
+        load_jobs(bad)
+    _write_jobs(bad, [{"id": "x", "scene": "a.xml", "trajectories": "d"}] * 2)
+    with pytest.raises(GrounderError, match="appears twice"):
+        load_jobs(bad)
+    bad.write_text("jobs: []\n")
+    with pytest.raises(GrounderError, match="no job"):
+        load_jobs(bad)
+
+
+def test_failing_job_is_recorded_and_others_finish(tmp_path: Path, traj_dir: Path) -> None:
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml",
+        [
+            {"id": "good", "scene": str(CUBE_XML), "trajectories": str(traj_dir)},
+            {"id": "missing_scene", "scene": "nope.xml", "trajectories": str(traj_dir)},
+            {
+                "id": "bad_param",
+                "scene": str(CUBE_XML),
+                "trajectories": str(traj_dir),
+                "settings": {"params": ["cube.nope"]},
+            },
+        ],
+    )
+    out = tmp_path / "out"
+    summary = run_batch(load_jobs(jobs_file), out, inline=True)
+    assert set(summary.ran) == {"good", "missing_scene", "bad_param"}
+    assert set(summary.failed) == {"missing_scene", "bad_param"}
+    assert "does not exist" in (read_result(out, "missing_scene") or {})["error"]
+    assert "unknown parameter" in (read_result(out, "bad_param") or {})["error"]
+    good = read_result(out, "good")
+    assert good is not None and good["status"] == "ok" and "cube.friction.sliding" in good["parameters"]
+    assert (out / "scenes" / "good" / "scene.xml").is_file()
+    rows = json.loads((out / "results.json").read_text())
+    assert [r["id"] for r in rows] == ["good", "missing_scene", "bad_param"]
+    assert (out / "results.csv").read_text().count("\n") == 4
+
+    again = run_batch(load_jobs(jobs_file), out, inline=True)
+    assert again.skipped == ("good",) and set(again.ran) == {"missing_scene", "bad_param"}
+    assert read_result(out, "good") == good
+
+
+def test_ray_address_is_passed_through(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, traj_dir: Path) -> None:
+    import ray
+
+    assert ray_init_kwargs("ray://head:10001", None)["address"] == "ray://head:10001"
+    local = ray_init_kwargs(None, 1)
+    assert local["num_cpus"] == 1 and "address" not in local and local["include_dashboard"] is False
+
+    seen: dict[str, object] = {}
+
+    class Connected(Exception):
+        pass
+
+    def fake_init(**kwargs: object) -> None:
+        seen.update(kwargs)
+        raise Connected
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", fake_init)
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml", [{"id": "a", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}]
+    )
+    with pytest.raises(Connected):
+        run_batch(load_jobs(jobs_file), tmp_path / "out", address="ray://head:10001")
+    assert seen["address"] == "ray://head:10001"
+
+
+def _session_pids(sid: int) -> list[int]:
+    """Processes of a session (the run and every Ray process it started, workers included)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[0] != "Z" and int(fields[3]) == sid:  # state, ppid, pgrp, session
+            pids.append(int(stat.parent.name))
+    return pids
+
+
+def _kill_session(sid: int) -> None:
+    """SIGKILL every process of the session we started, until none is left: a crash of the whole run."""
+    deadline = time.monotonic() + 30
+    while (pids := _session_pids(sid)) and time.monotonic() < deadline:
+        for pid in pids:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        time.sleep(0.1)
+    assert not _session_pids(sid), "processes of the killed run survived"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the run's processes in /proc")
+def test_ray_run_killed_midway_resumes_without_redoing(tmp_path: Path, traj_dir: Path) -> None:
+    """A real local Ray (one CPU, jobs one at a time): SIGKILL the whole run once some jobs finished, re-run."""
+    job_ids = [f"job{i}" for i in range(6)]
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml",
+        [
+            {"id": j, "scene": str(CUBE_XML), "trajectories": str(traj_dir), "settings": {"seed": i}}
+            for i, j in enumerate(job_ids)
+        ],
+    )
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "grounder.cli", "batch", str(jobs_file), "-o", str(out), "--num-cpus", "1"]
+    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
+    proc = subprocess.Popen(
+        cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
+    )
+    deadline = time.monotonic() + 180
+    finished_first: list[str] = []
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            finished_first = [j for j in job_ids if (read_result(out, j) or {}).get("status") == "ok"]
+            if finished_first:
+                break
+            time.sleep(0.05)
+    finally:
+        # The driver, Ray's services and its workers (in their own process groups, same session).
+        _kill_session(proc.pid)
+        proc.communicate(timeout=60)
+    assert finished_first, "no job finished before the deadline"
+    finished_first = [j for j in job_ids if (read_result(out, j) or {}).get("status") == "ok"]
+    assert len(finished_first) < len(job_ids), "the run finished before it could be killed"
+    first_records = {j: (out / "results" / f"{j}.json").read_bytes() for j in finished_first}
+
+    rerun = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert (
+        f"{len(finished_first)} already finished, {len(job_ids) - len(finished_first)} run now, 0 failed"
+        in rerun.stdout
+    )
+    for j in job_ids:
+        assert (read_result(out, j) or {}).get("status") == "ok", j
+        assert (out / "scenes" / j / "scene.xml").is_file()
+    for j, raw in first_records.items():
+        assert (out / "results" / f"{j}.json").read_bytes() == raw, f"{j} was redone"
+    rows = json.loads((out / "results.json").read_text())
+    assert [r["status"] for r in rows] == ["ok"] * len(job_ids)
+    assert not list((out / "scenes").glob(".*.tmp")) and not list((out / "results").glob(".*.tmp"))
+
+
+def test_cli_batch_inline_reports_failures(tmp_path: Path, traj_dir: Path) -> None:
+    from typer.testing import CliRunner
+
+    from grounder.cli import app
+
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml",
+        [
+            {"id": "good", "scene": str(CUBE_XML), "trajectories": str(traj_dir)},
+            {"id": "empty", "scene": str(CUBE_XML), "trajectories": str(tmp_path)},
+        ],
+    )
+    result = CliRunner().invoke(app, ["batch", str(jobs_file), "--inline"])
+    assert result.exit_code == 1, result.output
+    assert "job empty failed" in result.output and "1 failed" in result.output
+    assert (tmp_path / "jobs_results" / "results.csv").is_file()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("jobs: [{scene: a.xml}]\n")
+    result = CliRunner().invoke(app, ["batch", str(bad)])
+    assert result.exit_code == 2 and "needs 'scene' and 'trajectories'" in result.output, result.output

@@ -1,0 +1,365 @@
+"""Calibration: parameter names act the same on a model and on its MJCF, known parameters are recovered from
+synthetic tosses, the calibrated scene folder is complete, and bad input gives one line and exit code 2."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from grounder import _simulate as sim
+from grounder._calibrate import CalibrateOptions, calibrate, split_names
+from grounder._calibrate_params import apply_to_model, apply_to_spec, resolve_parameters
+from grounder._trajectory import Trajectory, load_trajectories, save_trajectories
+from grounder.errors import GrounderError
+
+REPO = Path(__file__).resolve().parents[1]
+CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
+RATE_HZ = 148.0
+
+MULTI_XML = """
+<mujoco>
+  <option timestep="0.002"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="1 1 0.1"/>
+    <body name="box" pos="0 0 0.2">
+      <freejoint/>
+      <geom name="box_geom" type="box" size="0.05 0.04 0.03" mass="0.5"/>
+      <geom name="box_cap" type="sphere" pos="0.05 0 0" size="0.02" mass="0.1"/>
+    </body>
+    <body name="arm" pos="0.5 0 0.3">
+      <joint name="hinge" type="hinge" axis="0 1 0" damping="0.1"/>
+      <geom name="ball" type="capsule" fromto="0 0 0 0.2 0 0" size="0.02"/>
+    </body>
+  </worldbody>
+  <actuator><motor name="motor" joint="hinge" gear="1"/></actuator>
+</mujoco>
+"""
+
+
+def test_parameters_set_model_and_spec_identically() -> None:
+    spec = mujoco.MjSpec.from_string(MULTI_XML)
+    base = spec.compile()
+    names = [
+        "box.mass",
+        "box.com.x",
+        "box.friction.sliding",
+        "box.friction.rolling",
+        "box.solref.timeconst",
+        "box.solref.dampratio",
+        "box.solimp.width",
+        "box.size_scale",
+        "geom:ball.friction.torsional",
+        "joint:hinge.damping",
+        "joint:hinge.armature",
+        "actuator:motor.gain",
+        "opt.gravity_scale",
+        "opt.impratio",
+    ]
+    params = resolve_parameters(base, names)
+    rng = np.random.default_rng(3)
+    values = [float(p.from_unit(rng.uniform(0.1, 0.9))) for p in params]
+    direct = apply_to_model(base, params, values)
+    compiled = apply_to_spec(spec, base, params, values).compile()
+    for field in (
+        "body_mass",
+        "body_inertia",
+        "body_ipos",
+        "body_invweight0",
+        "dof_invweight0",
+        "geom_friction",
+        "geom_solref",
+        "geom_solimp",
+        "geom_size",
+        "geom_pos",
+        "geom_rbound",
+        "geom_priority",
+        "dof_damping",
+        "dof_armature",
+        "actuator_gainprm",
+    ):
+        np.testing.assert_allclose(
+            getattr(direct, field), getattr(compiled, field), rtol=1e-6, atol=1e-9, err_msg=field
+        )
+    np.testing.assert_allclose(direct.geom_aabb, compiled.geom_aabb, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(direct.opt.gravity, compiled.opt.gravity)
+    assert direct.opt.impratio == pytest.approx(compiled.opt.impratio)
+    box = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_BODY, "box")
+    assert direct.body_mass[box] == pytest.approx(values[0])
+    # Calibrated contact geoms outrank the floor, so their own friction governs their contacts.
+    floor = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_GEOM, "floor")
+    assert (
+        direct.geom_priority[mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_GEOM, "box_geom")]
+        > direct.geom_priority[floor]
+    )
+
+
+@pytest.mark.parametrize(
+    ("name", "needle"),
+    [
+        ("box.weight", "unknown parameter"),
+        ("crate.mass", "no body 'crate'"),
+        ("geom:nope.friction.sliding", "unknown geom"),
+        ("joint:hinge.color", "unknown parameter"),
+        ("box.friction.sliding=0.5:0.1", "LOW < HIGH"),
+        ("box.solref.timeconst=0:0.1", "lower bound must be > 0"),
+    ],
+)
+def test_bad_parameter_names(name: str, needle: str) -> None:
+    base = mujoco.MjModel.from_xml_string(MULTI_XML)
+    with pytest.raises(GrounderError, match=needle.replace("(", r"\(")):
+        resolve_parameters(base, [name])
+
+
+def test_split_is_reproducible_and_disjoint() -> None:
+    names = [str(i) for i in range(20)]
+    train, val = split_names(names, 0.3, seed=0)
+    assert len(val) == 6 and len(train) == 14
+    assert not set(train) & set(val) and set(train) | set(val) == set(names)
+    assert (train, val) == split_names(list(reversed(names)), 0.3, seed=0)
+    assert split_names(names, 0.3, seed=1) != (train, val)
+
+
+def _true_cube(friction: float, timeconst: float) -> mujoco.MjModel:
+    spec = mujoco.MjSpec.from_file(str(CUBE_XML))
+    spec.geom("cube").friction[0] = friction
+    spec.geom("cube").solref[0] = timeconst
+    spec.geom("cube").priority = 1
+    return spec.compile()
+
+
+def _synthetic_tosses(model: mujoco.MjModel, count: int, frames: int, seed: int) -> list[Trajectory]:
+    """Tosses simulated by a known model, sampled at 148 Hz: a sliding, tumbling landing each."""
+    rng = np.random.default_rng(seed)
+    seeds = []
+    for i in range(count):
+        quat = rng.normal(size=4)
+        qpos = np.concatenate([[0.0, 0.0, rng.uniform(0.1, 0.16)], quat / np.linalg.norm(quat)])
+        qvel = np.concatenate([rng.uniform(-1.5, 1.5, 2), [rng.uniform(-1.0, 0.0)], rng.uniform(-6, 6, 3)])
+        time_s = np.arange(frames) / RATE_HZ
+        seeds.append(
+            Trajectory(time_s=time_s, qpos=np.tile(qpos, (frames, 1)), qvel=np.tile(qvel, (frames, 1)), name=f"toss{i}")
+        )
+    return sim.simulate(model, seeds)  # type: ignore[return-value]
+
+
+@pytest.fixture(scope="module")
+def synthetic() -> tuple[list[Trajectory], dict[str, float]]:
+    truth = {"cube.friction.sliding": 0.45, "cube.solref.timeconst": 0.008}
+    model = _true_cube(truth["cube.friction.sliding"], truth["cube.solref.timeconst"])
+    return _synthetic_tosses(model, count=10, frames=60, seed=0), truth
+
+
+def test_calibration_recovers_known_parameters(synthetic, tmp_path: Path) -> None:
+    trajs, truth = synthetic
+    options = CalibrateOptions(
+        params=tuple(truth), popsize=5, generations=6, local_iterations=6, validation_fraction=0.3, nthread=2
+    )
+    out = tmp_path / "calibrated"
+    result = calibrate(CUBE_XML, trajs, options=options, out=out)
+
+    for name, true_value in truth.items():
+        assert result.values[name] == pytest.approx(true_value, rel=0.05), (name, result.values)
+        lo, hi = result.intervals[name]
+        assert lo <= result.values[name] <= hi
+    before, after = result.before["validation"], result.after["validation"]
+    assert before.position_pct.mean() > 5.0  # the nominal cube (friction 0.18, timeconst 0.02) is visibly wrong
+    # Contact makes the loss rough: 1-2% parameter error still leaves ~1% of the cube width.
+    assert after.position_pct.mean() < min(2.5, 0.1 * before.position_pct.mean()), after.position_pct
+    assert set(result.validation_names) | set(result.train_names) == {t.name for t in trajs}
+    assert len(result.validation_names) == 3
+
+    # The written scene is the calibrated model, with its report and record.
+    reloaded = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
+    cube_geom = mujoco.mj_name2id(reloaded, mujoco.mjtObj.mjOBJ_GEOM, "cube")
+    assert reloaded.geom_friction[cube_geom, 0] == pytest.approx(truth["cube.friction.sliding"], rel=0.05)
+    np.testing.assert_allclose(reloaded.geom_solref, result.model.geom_solref, rtol=1e-5)
+    record = json.loads((out / "calibration.json").read_text())
+    assert set(record["parameters"]) == set(truth)
+    assert record["split"]["validation"] == list(result.validation_names)
+    assert record["errors"]["after"]["validation"]["position_pct_of_size"]["mean"] == pytest.approx(
+        after.position_pct.mean()
+    )
+    report = (out / "report.html").read_text()
+    assert report.count("data:image/png;base64,") >= 3 and "cube.friction.sliding" in report
+
+
+def test_output_folder_must_be_new(synthetic, tmp_path: Path) -> None:
+    trajs, _ = synthetic
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "keep.txt").write_text("mine")
+    with pytest.raises(GrounderError, match="not empty"):
+        calibrate(CUBE_XML, trajs, options=CalibrateOptions(generations=0, local_iterations=0), out=tmp_path / "taken")
+    assert (tmp_path / "taken" / "keep.txt").read_text() == "mine"
+
+
+def test_embedding_mode_needs_an_embedding(synthetic) -> None:
+    trajs, _ = synthetic
+    with pytest.raises(GrounderError, match="scene has no property embedding"):
+        calibrate(CUBE_XML, trajs, options=CalibrateOptions(mode="embedding"))
+
+
+def test_embedding_mode_recovers_a_known_embedding(synthetic, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With a stand-in decoder (z -> friction, timeconst), the posterior embedding explains the synthetic tosses."""
+    import grounder._calibrate_embedding as emb
+
+    def decoder(z: np.ndarray) -> dict:
+        return {
+            "density_kg_m3": 500.0,
+            "friction": [0.3 * np.exp(z[0]), 0.005, 1e-4],
+            "solref": [0.02 * np.exp(z[1]), 1.0],
+        }
+
+    monkeypatch.setattr(emb, "embedding_decoder", lambda: decoder)
+    trajs, truth = synthetic
+    z_true = np.log([truth["cube.friction.sliding"] / 0.3, truth["cube.solref.timeconst"] / 0.02])
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    entry = {"density_kg_m3": 500.0, "properties": {"embedding": [0.0, 0.0], "embedding_std": [0.6, 0.6]}}
+    (scene / "scene.json").write_text(json.dumps({"objects": {"cube": entry}}))
+    options = CalibrateOptions(mode="embedding", popsize=5, generations=6, local_iterations=4, nthread=2)
+    result = calibrate(scene, trajs, options=options, out=tmp_path / "out")
+    posterior = np.array(result.extra["embedding"]["cube"]["posterior_embedding"])
+    assert posterior[0] == pytest.approx(z_true[0], abs=0.08)  # friction is well determined by sliding tosses
+    assert result.values["cube.friction.sliding"] == pytest.approx(truth["cube.friction.sliding"], rel=0.08)
+    # The time constant much less so (the search budget leaves it ~30% off): its posterior interval holds the truth.
+    lo, hi = result.intervals["cube.solref.timeconst"]
+    assert lo <= truth["cube.solref.timeconst"] <= hi and hi / lo < 4
+    assert result.values["cube.mass"] == pytest.approx(0.37)  # the decoded density equals the scene's
+    lo, hi = result.intervals["cube.friction.sliding"]
+    assert lo <= result.values["cube.friction.sliding"] <= hi
+    assert result.after["validation"].position_pct.mean() < 0.1 * result.before["validation"].position_pct.mean()
+    record = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert record["mode"] == "embedding" and "posterior_embedding_std" in record["embedding"]["cube"]
+
+
+def test_scene_folder_with_assets(tmp_path: Path, synthetic) -> None:
+    """A scene folder is copied with its other files; the calibrated MJCF keeps relative asset paths."""
+    trajs, _ = synthetic
+    scene = tmp_path / "scene"
+    (scene / "assets").mkdir(parents=True)
+    (scene / "assets" / "note.txt").write_text("asset")
+    (scene / "scene.json").write_text("{}")
+    (scene / "residual.json").write_text("{}")  # trained against the uncalibrated model: not carried over
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    result = calibrate(
+        scene,
+        trajs[:4],
+        options=CalibrateOptions(params=("cube.friction.sliding",), generations=1, popsize=2, local_iterations=0),
+        out=tmp_path / "out",
+    )
+    assert (tmp_path / "out" / "assets" / "note.txt").read_text() == "asset"
+    manifest = json.loads((tmp_path / "out" / "scene.json").read_text())
+    assert set(manifest["calibration"]["parameters"]) == {"cube.friction.sliding"}
+    assert not (tmp_path / "out" / "residual.json").exists()
+    assert result.out_dir == tmp_path / "out"
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+
+
+def _cli(*args: str):
+    from grounder.cli import app
+
+    return CliRunner().invoke(app, list(args))
+
+
+def _assert_exit_2(result, needle: str) -> None:
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.startswith("image2sim: error:")]
+    assert len(lines) == 1 and needle in lines[0], result.output
+    assert "Traceback" not in result.output
+
+
+@pytest.fixture(scope="module")
+def traj_dir(synthetic, tmp_path_factory) -> Path:
+    trajs, _ = synthetic
+    return save_trajectories(trajs[:3], tmp_path_factory.mktemp("data") / "trajs")
+
+
+def test_cli_unknown_parameter(traj_dir: Path, tmp_path: Path) -> None:
+    _assert_exit_2(
+        _cli("calibrate", str(CUBE_XML), str(traj_dir), "-o", str(tmp_path / "o"), "--params", "cube.colour"),
+        "unknown parameter 'cube.colour'",
+    )
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_trajectory_does_not_match_model(traj_dir: Path, tmp_path: Path) -> None:
+    xml = tmp_path / "two.xml"
+    xml.write_text(MULTI_XML)
+    _assert_exit_2(_cli("calibrate", str(xml), str(traj_dir), "-o", str(tmp_path / "o")), "does not fit the model")
+
+
+def test_cli_empty_directory(tmp_path: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    _assert_exit_2(_cli("calibrate", str(CUBE_XML), str(tmp_path / "empty"), "-o", str(tmp_path / "o")), "no .npz")
+    _assert_exit_2(_cli("rollout", str(CUBE_XML), str(tmp_path / "empty"), "-o", str(tmp_path / "p")), "no .npz")
+
+
+def test_cli_missing_scene(traj_dir: Path, tmp_path: Path) -> None:
+    _assert_exit_2(
+        _cli("calibrate", str(tmp_path / "nope.xml"), str(traj_dir), "-o", str(tmp_path / "o")), "does not exist"
+    )
+
+
+def test_cli_calibrate_runs(traj_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "cal"
+    result = _cli(
+        "calibrate", str(CUBE_XML), str(traj_dir), "-o", str(out),
+        "--params", "cube.friction.sliding,cube.solref.timeconst", "--generations", "1", "--popsize", "2",
+        "--local-iterations", "0",
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "cube.friction.sliding" in result.output and (out / "calibration.json").is_file()
+
+
+def test_cli_rollout_matches_simulate(traj_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "pred"
+    result = _cli("rollout", str(CUBE_XML), str(traj_dir), "-o", str(out), "--no-residual")
+    assert result.exit_code == 0, result.output
+    model = mujoco.MjModel.from_xml_path(str(CUBE_XML))
+    real = load_trajectories(traj_dir, model)
+    preds = load_trajectories(out, model)
+    assert [p.name for p in preds] == [t.name for t in real]
+    expected = sim.simulate(model, real)
+    for p, e in zip(preds, expected, strict=True):
+        np.testing.assert_allclose(p.qpos, e.qpos)  # type: ignore[union-attr]
+        np.testing.assert_allclose(p.time_s, e.time_s)  # type: ignore[union-attr]
+
+
+def test_cli_rollout_uses_the_residual_when_the_scene_has_one(
+    traj_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import grounder._simulator as simulator
+
+    calls: list[str] = []
+
+    class FakeSimulator:
+        def __init__(self, scene: Path, *, use_residual: bool = True) -> None:
+            calls.append(str(scene))
+            self.model = mujoco.MjModel.from_xml_path(str(CUBE_XML))
+
+        def rollout(self, trajs: list[Trajectory]) -> list[Trajectory]:
+            return sim.simulate(self.model, trajs)  # type: ignore[return-value]
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    monkeypatch.setattr(simulator, "has_residual", lambda scene_dir: Path(scene_dir) == scene)
+    monkeypatch.setattr(simulator, "Simulator", FakeSimulator)
+    result = _cli("rollout", str(scene), str(traj_dir), "-o", str(tmp_path / "a"))
+    assert result.exit_code == 0 and "MuJoCo + residual" in result.output and calls == [str(scene)], result.output
+    result = _cli("rollout", str(scene), str(traj_dir), "-o", str(tmp_path / "b"), "--no-residual")
+    assert result.exit_code == 0 and "MuJoCo + residual" not in result.output and len(calls) == 1, result.output
+
+
+@pytest.mark.parametrize("command", ["calibrate", "rollout", "import-trajectories", "batch"])
+def test_cli_help(command: str) -> None:
+    result = _cli(command, "--help")
+    assert result.exit_code == 0 and "Usage" in result.output, result.output
