@@ -1,0 +1,444 @@
+"""The library of candidate effects for gap diagnosis: each a parametrised change of a MuJoCo model or of the
+simulation loop (controls, measurement).
+
+An effect has a few named parameters, each searched in a box (log or linear), and knows the values that reproduce
+the nominal model. Applying several effects composes them in order. Three kinds:
+
+- ``recalibration``: a parameter the nominal model already has, re-fitted (``sliding_friction`` when the model has
+  friction): a win means "this existing value is miscalibrated", not "something is missing";
+- ``new_effect``: physics the nominal model leaves out or sets to zero (``air_drag``, ``actuator_delay``, ...);
+- ``measurement``: a bias of the tracking, not of the physics (``length_scale``: recorded positions are ``s`` times
+  the true ones; ``time_scale``: recorded seconds are ``1/k`` of true seconds).
+
+The names in :data:`EFFECT_NAMES` are the interface (CLI ``--effects`` and ``diagnosis.json``).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from grounder.errors import GrounderError
+
+# Plain ints: numpy ints compare equal to mjtJoint members but `in` on a tuple of them fails.
+_FREE = int(mujoco.mjtJoint.mjJNT_FREE)
+_BALL = int(mujoco.mjtJoint.mjJNT_BALL)
+_SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
+_HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Param:
+    """One searched parameter: box ``[lo, hi]`` searched in log space when ``log`` (``lo > 0``), else linearly."""
+
+    name: str
+    lo: float
+    hi: float
+    log: bool = True
+
+    def from_unit(self, u: np.ndarray) -> np.ndarray:
+        u = np.clip(u, 0.0, 1.0)
+        if self.log:
+            return np.exp(np.log(self.lo) + u * (np.log(self.hi) - np.log(self.lo)))
+        return self.lo + u * (self.hi - self.lo)
+
+    def to_unit(self, value: float) -> float:
+        if self.log:
+            value = max(value, self.lo)
+            return float(np.clip((np.log(value) - np.log(self.lo)) / (np.log(self.hi) - np.log(self.lo)), 0, 1))
+        return float(np.clip((value - self.lo) / (self.hi - self.lo), 0, 1))
+
+
+@dataclass(frozen=True, kw_only=True)
+class Transforms:
+    """What a set of effects does outside the MjModel: to controls, to initial states and to predictions."""
+
+    delay_s: float = 0.0
+    length_scale: float = 1.0  # recorded positions = length_scale x true positions
+    time_scale: float = 1.0  # true seconds per recorded second
+    velocity_lag_s: float = 0.0  # recorded velocities describe the motion this long before the recorded positions
+
+
+@dataclass(frozen=True, kw_only=True)
+class Effect:
+    """A parametrised change. ``apply`` edits a copy of the model (and may return loop transforms)."""
+
+    name: str
+    description: str
+    params_of: Callable[[mujoco.MjModel], tuple[Param, ...]]
+    nominal_of: Callable[[mujoco.MjModel], dict[str, float]]
+    apply: Callable[[mujoco.MjModel, dict[str, float], dict[str, float]], None]  # (model, values, transforms)
+    applicable: Callable[[mujoco.MjModel], bool]
+    kind_of: Callable[[mujoco.MjModel], str] = field(default=lambda m: "new_effect")
+    in_mjcf: bool = True
+
+
+# ---------------------------------------------------------------------------------------------------------- helpers
+def moving_bodies(model: mujoco.MjModel) -> list[int]:
+    """Bodies with at least one degree of freedom above them (not welded to the world)."""
+    return [b for b in range(1, model.nbody) if model.body_weldid[b] != 0]
+
+
+def contact_geoms(model: mujoco.MjModel) -> np.ndarray:
+    """Geoms that take part in collisions."""
+    return np.flatnonzero((model.geom_contype != 0) | (model.geom_conaffinity != 0))
+
+
+def _has_free(model: mujoco.MjModel) -> bool:
+    return bool(np.any(model.jnt_type == _FREE))
+
+
+def _has_contacts(model: mujoco.MjModel) -> bool:
+    geoms = contact_geoms(model)
+    return bool(len(geoms)) and _has_free(model)
+
+
+def joint_dofs(model: mujoco.MjModel) -> np.ndarray:
+    """Dofs of hinge and slide joints (the ones joint damping, friction and armature act on)."""
+    out = [int(model.jnt_dofadr[j]) for j in range(model.njnt) if int(model.jnt_type[j]) in (_HINGE, _SLIDE)]
+    return np.array(out, dtype=np.int64)
+
+
+def _dof_inertia(model: mujoco.MjModel) -> np.ndarray:
+    """Diagonal of the joint-space inertia at qpos0 for the hinge/slide dofs."""
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    full = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, full)
+    return np.diag(full)[joint_dofs(model)]
+
+
+def _torque_scale(model: mujoco.MjModel) -> float:
+    """A typical joint torque: total moving mass x g x model extent (N m)."""
+    mass = float(sum(model.body_mass[b] for b in moving_bodies(model)))
+    return max(mass * 9.81 * float(model.stat.extent), 1e-6)
+
+
+def leaf_body(model: mujoco.MjModel) -> int:
+    """The last moving body in tree order (the distal link of an arm, or the object itself)."""
+    bodies = moving_bodies(model)
+    if not bodies:
+        raise GrounderError("the model has no moving body; diagnosis needs at least one joint")
+    return bodies[-1]
+
+
+def _body_size_m(model: mujoco.MjModel, body: int) -> float:
+    geoms = np.flatnonzero(model.geom_bodyid == body)
+    if len(geoms) == 0:
+        return 0.1
+    return float(max(model.geom_rbound[g] for g in geoms))
+
+
+def _mean(values: np.ndarray, default: float = 0.0) -> float:
+    return float(np.mean(values)) if len(values) else default
+
+
+# ---------------------------------------------------------------------------------------------------------- effects
+def _friction_effect(name: str, column: int, lo: float, hi: float, what: str) -> Effect:
+    def params(model: mujoco.MjModel) -> tuple[Param, ...]:
+        return (Param(name="mu", lo=lo, hi=hi),)
+
+    def nominal(model: mujoco.MjModel) -> dict[str, float]:
+        geoms = contact_geoms(model)
+        # MuJoCo takes the larger coefficient of the two geoms in contact.
+        return {"mu": float(np.max(model.geom_friction[geoms, column])) if len(geoms) else 0.0}
+
+    def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
+        geoms = contact_geoms(model)
+        model.geom_friction[geoms, column] = values["mu"]
+        if column > 0:
+            # Torsional friction needs condim >= 4 and rolling friction condim 6.
+            need = 4 if column == 1 else 6
+            model.geom_condim[geoms] = np.maximum(model.geom_condim[geoms], need)
+
+    def kind(model: mujoco.MjModel) -> str:
+        geoms = contact_geoms(model)
+        condim_ok = bool(len(geoms)) and int(np.max(model.geom_condim[geoms])) >= (3 if column == 0 else 2 + 2 * column)
+        return "recalibration" if nominal(model)["mu"] > lo and condim_ok else "new_effect"
+
+    return Effect(
+        name=name,
+        description=f"{what} coefficient of every colliding geom",
+        params_of=params,
+        nominal_of=nominal,
+        apply=apply,
+        applicable=_has_contacts,
+        kind_of=kind,
+    )
+
+
+def _solref_effect(name: str, column: int) -> Effect:
+    def params(model: mujoco.MjModel) -> tuple[Param, ...]:
+        if column == 0:
+            return (Param(name="timeconst_s", lo=2.0 * model.opt.timestep, hi=0.1),)
+        return (Param(name="dampratio", lo=0.05, hi=2.0),)
+
+    key = "timeconst_s" if column == 0 else "dampratio"
+
+    def nominal(model: mujoco.MjModel) -> dict[str, float]:
+        geoms = contact_geoms(model)
+        return {key: _mean(model.geom_solref[geoms, column], 0.02 if column == 0 else 1.0)}
+
+    def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
+        geoms = contact_geoms(model)
+        model.geom_solref[geoms, column] = values[key]
+        if column == 0:
+            # Stiffness alone: the default contact stiffness also depends on solimp; keep it.
+            model.geom_solref[geoms, 1] = np.maximum(model.geom_solref[geoms, 1], 1e-3)
+
+    what = (
+        "contact time constant (solref[0]; larger = softer)"
+        if column == 0
+        else "contact damping ratio (solref[1]; smaller = bouncier)"
+    )
+    return Effect(
+        name=name,
+        description=what,
+        params_of=params,
+        nominal_of=nominal,
+        apply=apply,
+        applicable=_has_contacts,
+        kind_of=lambda m: "recalibration",
+    )
+
+
+def _dof_effect(name: str, attr: str, what: str) -> Effect:
+    def params(model: mujoco.MjModel) -> tuple[Param, ...]:
+        inertia = _dof_inertia(model)
+        tau = _torque_scale(model)
+        if attr == "dof_damping":
+            hi = max(float(np.max(inertia)) / 0.05, 1e-6)  # time constants down to 50 ms
+        elif attr == "dof_frictionloss":
+            hi = 0.5 * tau
+        else:
+            hi = 5.0 * max(float(np.max(inertia)), 1e-9)
+        return (Param(name="value", lo=hi * 1e-4, hi=hi),)
+
+    def nominal(model: mujoco.MjModel) -> dict[str, float]:
+        return {"value": _mean(getattr(model, attr)[joint_dofs(model)])}
+
+    def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
+        getattr(model, attr)[joint_dofs(model)] = values["value"]
+
+    def kind(model: mujoco.MjModel) -> str:
+        return "recalibration" if nominal(model)["value"] > 0 else "new_effect"
+
+    return Effect(
+        name=name,
+        description=f"{what} of every hinge and slide joint (one shared value)",
+        params_of=params,
+        nominal_of=nominal,
+        apply=apply,
+        applicable=lambda m: len(joint_dofs(m)) > 0,
+        kind_of=kind,
+    )
+
+
+def _air_drag() -> Effect:
+    def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
+        # MuJoCo's inertia-box fluid model: quadratic drag proportional to the medium density.
+        model.opt.density = values["density_kg_m3"]
+
+    return Effect(
+        name="air_drag",
+        description="quadratic aerodynamic drag (MuJoCo fluid model, medium density)",
+        params_of=lambda m: (Param(name="density_kg_m3", lo=0.05, hi=500.0),),
+        nominal_of=lambda m: {"density_kg_m3": float(m.opt.density)},
+        apply=apply,
+        applicable=lambda m: len(moving_bodies(m)) > 0,
+        kind_of=lambda m: "recalibration" if m.opt.density > 0 else "new_effect",
+    )
+
+
+def _actuator_delay() -> Effect:
+    def apply(model: mujoco.MjModel, values: dict[str, float], transforms: dict[str, float]) -> None:
+        transforms["delay_s"] = transforms.get("delay_s", 0.0) + values["delay_s"]
+
+    return Effect(
+        name="actuator_delay",
+        description="controls act this many seconds after they are recorded",
+        params_of=lambda m: (Param(name="delay_s", lo=0.0, hi=0.1, log=False),),
+        nominal_of=lambda m: {"delay_s": 0.0},
+        apply=apply,
+        applicable=lambda m: m.nu > 0,
+        in_mjcf=False,
+    )
+
+
+def _actuator_gain() -> Effect:
+    def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
+        model.actuator_gainprm[:, 0] *= values["scale"]
+
+    return Effect(
+        name="actuator_gain",
+        description="actuator gain (force per unit control) scaled for every actuator",
+        params_of=lambda m: (Param(name="scale", lo=0.25, hi=4.0),),
+        nominal_of=lambda m: {"scale": 1.0},
+        apply=apply,
+        applicable=lambda m: m.nu > 0,
+        kind_of=lambda m: "recalibration",
+    )
+
+
+def _mass() -> Effect:
+    def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
+        for b in moving_bodies(model):
+            model.body_mass[b] *= values["scale"]
+            model.body_inertia[b] *= values["scale"]
+
+    return Effect(
+        name="mass",
+        description="mass (and inertia, same density) of every moving body scaled",
+        params_of=lambda m: (Param(name="scale", lo=0.25, hi=4.0),),
+        nominal_of=lambda m: {"scale": 1.0},
+        apply=apply,
+        applicable=lambda m: len(moving_bodies(m)) > 0,
+        kind_of=lambda m: "recalibration",
+    )
+
+
+def _com_offset() -> Effect:
+    def params(model: mujoco.MjModel) -> tuple[Param, ...]:
+        half = 0.5 * _body_size_m(model, leaf_body(model))
+        return tuple(Param(name=f"d{axis}_m", lo=-half, hi=half, log=False) for axis in "xyz")
+
+    def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
+        body = leaf_body(model)
+        model.body_ipos[body] += [values["dx_m"], values["dy_m"], values["dz_m"]]
+        # The compiler marks bodies whose inertial frame is their body frame and then skips the offset.
+        model.body_sameframe[body] = 0
+        model.body_simple[body] = 0
+        dofs = slice(int(model.body_dofadr[body]), int(model.body_dofadr[body] + model.body_dofnum[body]))
+        model.dof_simplenum[dofs] = 0
+
+    return Effect(
+        name="com_offset",
+        description="centre of mass of the distal (last) moving body shifted, in its body frame",
+        params_of=params,
+        nominal_of=lambda m: {"dx_m": 0.0, "dy_m": 0.0, "dz_m": 0.0},
+        apply=apply,
+        applicable=lambda m: len(moving_bodies(m)) > 0,
+        kind_of=lambda m: "recalibration",
+    )
+
+
+def _length_scale() -> Effect:
+    def apply(model: mujoco.MjModel, values: dict[str, float], transforms: dict[str, float]) -> None:
+        transforms["length_scale"] = transforms.get("length_scale", 1.0) * values["scale"]
+
+    return Effect(
+        name="length_scale",
+        description="tracking bias: recorded positions are `scale` x the true ones",
+        params_of=lambda m: (Param(name="scale", lo=0.9, hi=1.1, log=False),),
+        nominal_of=lambda m: {"scale": 1.0},
+        apply=apply,
+        applicable=_has_free,
+        kind_of=lambda m: "measurement",
+        in_mjcf=False,
+    )
+
+
+def _time_scale() -> Effect:
+    def apply(model: mujoco.MjModel, values: dict[str, float], transforms: dict[str, float]) -> None:
+        transforms["time_scale"] = transforms.get("time_scale", 1.0) * values["scale"]
+        model.opt.timestep *= values["scale"]
+
+    return Effect(
+        name="time_scale",
+        description="timing bias: one recorded second lasts `scale` true seconds",
+        params_of=lambda m: (Param(name="scale", lo=0.9, hi=1.1, log=False),),
+        nominal_of=lambda m: {"scale": 1.0},
+        apply=apply,
+        applicable=_has_free,
+        kind_of=lambda m: "measurement",
+        in_mjcf=False,
+    )
+
+
+def _velocity_lag() -> Effect:
+    def apply(model: mujoco.MjModel, values: dict[str, float], transforms: dict[str, float]) -> None:
+        transforms["velocity_lag_s"] = transforms.get("velocity_lag_s", 0.0) + values["lag_s"]
+
+    return Effect(
+        name="velocity_lag",
+        description="recording bias: recorded velocities lag the recorded positions (e.g. backward differences)",
+        params_of=lambda m: (Param(name="lag_s", lo=-0.01, hi=0.01, log=False),),
+        nominal_of=lambda m: {"lag_s": 0.0},
+        apply=apply,
+        applicable=lambda m: m.nv > 0,
+        kind_of=lambda m: "measurement",
+        in_mjcf=False,
+    )
+
+
+LIBRARY: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        _air_drag(),
+        _friction_effect("sliding_friction", 0, 0.02, 2.0, "sliding friction"),
+        _friction_effect("torsional_friction", 1, 1e-5, 0.1, "torsional friction (m)"),
+        _friction_effect("rolling_friction", 2, 1e-6, 0.05, "rolling friction (m)"),
+        _solref_effect("restitution", 1),
+        _solref_effect("contact_stiffness", 0),
+        _dof_effect("joint_damping", "dof_damping", "viscous damping (N m s/rad)"),
+        _dof_effect("joint_friction", "dof_frictionloss", "Coulomb friction loss (N m)"),
+        _dof_effect("armature", "dof_armature", "armature (rotor inertia, kg m^2)"),
+        _actuator_delay(),
+        _actuator_gain(),
+        _mass(),
+        _com_offset(),
+        _length_scale(),
+        _time_scale(),
+        _velocity_lag(),
+    )
+}
+EFFECT_NAMES: tuple[str, ...] = tuple(LIBRARY)
+"""Every effect name the diagnosis knows, in library order."""
+
+
+def resolve_effects(names: list[str] | tuple[str, ...] | None, model: mujoco.MjModel) -> list[Effect]:
+    """The named effects (all applicable ones when ``names`` is None).
+
+    Raises:
+        GrounderError: an unknown name, or a named effect that cannot act on this model.
+    """
+    if names is None:
+        return [e for e in LIBRARY.values() if e.applicable(model)]
+    out = []
+    for name in names:
+        if name not in LIBRARY:
+            raise GrounderError(f"unknown effect '{name}'; available: {', '.join(EFFECT_NAMES)}")
+        effect = LIBRARY[name]
+        if not effect.applicable(model):
+            raise GrounderError(
+                f"effect '{name}' cannot act on this model (no actuator, joint or contact it applies to); "
+                f"leave it out of --effects"
+            )
+        out.append(effect)
+    if not out:
+        raise GrounderError("no effect to test; pass at least one name to --effects")
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class AppliedEffect:
+    """An effect with fitted values."""
+
+    effect: Effect
+    values: dict[str, float]
+
+
+def apply_effects(model: mujoco.MjModel, applied: list[AppliedEffect]) -> tuple[mujoco.MjModel, Transforms]:
+    """A copy of ``model`` with the effects applied in order, and the loop transforms they add."""
+    out = copy.copy(model)
+    transforms: dict[str, float] = {}
+    for item in applied:
+        item.effect.apply(out, item.values, transforms)
+    if applied:
+        # Constants derived from masses and inertias (e.g. the inverse weights that set constraint softness).
+        mujoco.mj_setConst(out, mujoco.MjData(out))
+    return out, Transforms(**transforms)
