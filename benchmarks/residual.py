@@ -1,0 +1,224 @@
+"""Residual dynamics on the real cube tosses: calibrated-only vs calibrated + residual, on held-out tosses.
+
+Metric (Acosta, Yang & Posa, RA-L 2022): per toss, the time-average of the position error divided by the cube
+width (0.1048 m) and of the geodesic rotation error (deg), rolled out from the first recorded state; mean and std
+over the validation tosses. Split: seeded 70/30 of the toss ids (seed 0), unless the calibration module provides
+its split.
+
+The calibrated scene comes from ``grounder._calibrate.calibrate`` with ``benchmarks/cube_toss.py``'s settings
+(``--calibrated DIR`` reuses one); without that module (or with ``--grid``) this script calibrates friction and
+contact softness itself by a grid search on the training tosses.
+
+Run: ``.venv/bin/python benchmarks/residual.py [--quick] [--grid]`` (needs ../shared/data/cube_toss). Also runs a
+withheld-effect case (a synthetic cube with hidden air drag) unless ``--no-synthetic``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from grounder._import import load_dair_pll_cube  # noqa: E402
+from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
+from grounder._simulate import quat_angle_rad, simulate  # noqa: E402
+from grounder._simulator import Simulator  # noqa: E402
+from grounder._trajectory import Trajectory  # noqa: E402
+
+DATA = REPO.parent / "shared" / "data" / "cube_toss"
+NOMINAL_XML = REPO / "samples" / "cube_toss" / "cube.xml"
+CUBE_WIDTH_M = 0.1048
+SPLIT_SEED = 0
+TRAIN_FRACTION = 0.7
+
+
+def split(trajs: list[Trajectory]) -> tuple[list[Trajectory], list[Trajectory]]:
+    """The calibration's split (``grounder._calibrate.split_names``, 30% validation, seed 0) when it exists, else
+    the same recipe here: names in natural order shuffled with numpy's default_rng(0), the first 30% validation."""
+    by_name = {t.name: t for t in trajs}
+    try:
+        from grounder._calibrate import split_names
+
+        train_names, val_names = split_names(list(by_name), 1.0 - TRAIN_FRACTION, SPLIT_SEED)
+        print("split: grounder._calibrate.split_names(validation 0.3, seed 0), as benchmarks/cube_toss.py")
+    except ImportError:
+        order = sorted(by_name, key=lambda n: int(n) if n.isdigit() else n)
+        perm = np.random.default_rng(SPLIT_SEED).permutation(len(order))
+        n_val = round((1.0 - TRAIN_FRACTION) * len(order))
+        val_names = sorted(order[i] for i in perm[:n_val])
+        train_names = sorted(order[i] for i in perm[n_val:])
+        print("split: seeded 70/30 of toss ids (numpy default_rng(0) permutation)")
+    return [by_name[n] for n in train_names], [by_name[n] for n in val_names]
+
+
+def metric(preds: list[Trajectory], real: list[Trajectory]) -> tuple[np.ndarray, np.ndarray]:
+    """Per toss: time-averaged position error / cube width, time-averaged rotation error in degrees."""
+    pos = np.array(
+        [np.mean(np.linalg.norm(p.qpos[:, :3] - r.qpos[:, :3], axis=1)) for p, r in zip(preds, real, strict=True)]
+    )
+    rot = np.array(
+        [np.degrees(np.mean(quat_angle_rad(p.qpos[:, 3:], r.qpos[:, 3:]))) for p, r in zip(preds, real, strict=True)]
+    )
+    return pos / CUBE_WIDTH_M, rot
+
+
+def fmt(pos: np.ndarray, rot: np.ndarray) -> str:
+    return f"{100 * pos.mean():5.1f}% +- {100 * pos.std():4.1f}   {rot.mean():5.1f} +- {rot.std():4.1f} deg"
+
+
+def _with_contact(xml: str, friction: float, dampratio: float, timeconst: float) -> str:
+    xml = re.sub(r'friction="[^"]*"', f'friction="{friction} 0.005 0.0001"', xml, count=1)
+    return re.sub(r'solref="[^"]*"', f'solref="{timeconst} {dampratio}"', xml, count=1)
+
+
+def grid_calibrate(train: list[Trajectory], out_dir: Path) -> tuple[Path, str]:
+    """Friction x contact damping ratio x time constant grid on the training tosses; writes out_dir/scene.xml."""
+    nominal = NOMINAL_XML.read_text()
+    best: tuple[float, str, str] | None = None
+    for friction in (0.15, 0.18, 0.2, 0.22, 0.25, 0.28):
+        for dampratio in (0.5, 1.0, 2.0):
+            for timeconst in (0.01, 0.02):
+                xml = _with_contact(nominal, friction, dampratio, timeconst)
+                preds = simulate(mujoco.MjModel.from_xml_string(xml), train)
+                pos, rot = metric(preds, train)  # type: ignore[arg-type]
+                score = float(pos.mean() + rot.mean() / 90.0)  # position (widths) + rotation (quarter turns)
+                if best is None or score < best[0]:
+                    best = (score, xml, f"friction {friction}, solref ({timeconst}, {dampratio})")
+    assert best is not None
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "scene.xml").write_text(best[1])
+    return out_dir, f"grid search in this benchmark: {best[2]}"
+
+
+CALIBRATED_PARAMS = (  # benchmarks/cube_toss.py's defaults
+    "cube.friction.sliding",
+    "cube.friction.torsional",
+    "cube.friction.rolling",
+    "cube.solref.timeconst",
+    "cube.solref.dampratio",
+    "cube.condim",
+    "opt.cone",
+    "opt.impratio",
+    "opt.gravity_scale",
+    "cube.size_scale",
+)
+
+
+def calibrated_scene(
+    trajs: list[Trajectory], train: list[Trajectory], work: Path, force_grid: bool
+) -> tuple[Path, str]:
+    """The calibration engineer's calibration (benchmarks/cube_toss.py's settings), else this script's grid."""
+    if not force_grid:
+        try:
+            from grounder._calibrate import CalibrateOptions, calibrate
+        except ImportError:
+            calibrate = None  # type: ignore[assignment]
+        if calibrate is not None:
+            nominal = work / "nominal"
+            nominal.mkdir()
+            (nominal / "scene.xml").write_text(NOMINAL_XML.read_text())
+            out = work / "calibrated"
+            options = CalibrateOptions(
+                params=CALIBRATED_PARAMS,
+                validation_fraction=1.0 - TRAIN_FRACTION,
+                split_seed=SPLIT_SEED,
+                max_train_trajectories=40,
+                popsize=5,
+                generations=12,
+                local_iterations=4,
+            )
+            calibrate(nominal, trajs, options=options, out=out)
+            return out, "grounder._calibrate.calibrate, benchmarks/cube_toss.py settings (fit on 40 training tosses)"
+    return grid_calibrate(train, work / "grid")
+
+
+def cube_tosses(options: ResidualOptions, force_grid: bool, quick: bool, calibrated: Path | None) -> None:
+    trajs = load_dair_pll_cube(DATA)
+    train, val = split(trajs)
+    if quick:
+        train, val = train[:60], val[:30]
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(tmp)
+        t0 = time.perf_counter()
+        if calibrated is not None:
+            scene, how = calibrated, f"given: {calibrated}"
+        else:
+            scene, how = calibrated_scene(trajs, train, work, force_grid)
+        print(f"calibrated scene: {how} ({time.perf_counter() - t0:.0f} s)")
+        base = Simulator(scene, use_residual=False)
+        t0 = time.perf_counter()
+        result = train_residual(scene, train, work / "residual", options)
+        print(
+            f"residual trained in {time.perf_counter() - t0:.0f} s on {len(train)} tosses, {result.num_samples} samples"
+        )
+        hybrid = Simulator(work / "residual")
+        forced = Simulator(work / "residual")
+        assert hybrid.residual is not None and forced.residual is not None
+        forced.residual.out_gain[:] = 1.0
+        scores = ", ".join(f"{g:g}: {v:.3f}" for g, v in result.gain_scores.items())
+        print(f"output gain chosen on held-out training tosses: {result.gain:g} (scores {scores})")
+        print(f"\n{'':36s}{'position / width':>20s}   {'rotation':>16s}")
+        sims = (
+            ("calibrated only", base),
+            (f"calibrated + residual (gain {result.gain:g})", hybrid),
+            ("calibrated + residual at gain 1", forced),
+        )
+        for label, tosses in (("train", train), ("validation", val)):
+            for name, sim in sims:
+                pos, rot = metric(sim.rollout(tosses), tosses)
+                print(f"{label:11s} {name:34s} {fmt(pos, rot)}")
+        print("\ntarget (validation, residual): <= 10% of cube width and <= 10 deg")
+
+
+def synthetic_drag(options: ResidualOptions) -> None:
+    """Withheld effect: the recorded cube feels air drag the nominal model lacks (tests/test_residual.py's case)."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from test_residual import DRAG_DENSITY, _cube_xml, _tosses
+
+    train, val = _tosses(80, seed=1, fluid_density=DRAG_DENSITY), _tosses(40, seed=2, fluid_density=DRAG_DENSITY)
+    with tempfile.TemporaryDirectory() as tmp:
+        nominal = Path(tmp) / "nominal"
+        nominal.mkdir()
+        (nominal / "scene.xml").write_text(_cube_xml())
+        # noise-free synthetic recordings: no pose smoothing (it only blurs the impacts)
+        train_residual(nominal, train, Path(tmp) / "residual", replace(options, smooth_window=0))
+        width = 0.1
+        print(
+            f"\nwithheld effect: hidden air drag (fluid density {DRAG_DENSITY} kg/m^3), 80 train / 40 held-out tosses"
+        )
+        for name, scene in (("nominal (no drag)", nominal), ("nominal + residual", Path(tmp) / "residual")):
+            pos, rot = metric(Simulator(scene).rollout(val), val)
+            print(f"held-out {name:22s} {fmt(pos * CUBE_WIDTH_M / width, rot)}  (position / 0.1 m cube width)")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="60 training / 30 validation tosses")
+    parser.add_argument("--grid", action="store_true", help="calibrate by this script's grid search")
+    parser.add_argument("--calibrated", type=Path, default=None, help="use this calibrated scene folder")
+    parser.add_argument("--no-synthetic", action="store_true", help="skip the withheld-effect case")
+    parser.add_argument("--steps", type=int, default=ResidualOptions().steps)
+    parser.add_argument("--smooth", type=int, default=ResidualOptions().smooth_window)
+    parser.add_argument("--rounds", type=int, default=ResidualOptions().dagger_rounds)
+    args = parser.parse_args()
+    options = ResidualOptions(steps=args.steps, dagger_rounds=args.rounds, smooth_window=args.smooth)
+    if not DATA.is_dir():
+        print(f"{DATA} is absent: skipping the cube tosses")
+    else:
+        cube_tosses(options, args.grid, args.quick, args.calibrated)
+    if not args.no_synthetic:
+        synthetic_drag(options)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""The residual as a torch module (training, ONNX export). Imported lazily: torch is a heavy import.
+
+Computes exactly what :class:`grounder._residual.NumpyResidual` computes; see ``grounder/_residual.py``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from grounder._residual import NUM_FEATURES, NUM_OUTPUTS, GateOptions
+
+
+def _smoothstep(x: torch.Tensor) -> torch.Tensor:
+    x = torch.clamp(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+class ResidualModel(nn.Module):
+    """Features (N, B, 11) -> gated, bounded correction (N, B, 12); one MLP per free body.
+
+    Buffers hold everything the function needs besides weights (normalisation, bounds, coverage statistics), so
+    the ``state_dict`` alone reproduces it.
+    """
+
+    feat_mean: torch.Tensor
+    feat_std: torch.Tensor
+    out_scale: torch.Tensor
+    out_bound: torch.Tensor
+    range_lo: torch.Tensor
+    range_hi: torch.Tensor
+    centres: torch.Tensor
+    coverage_dist: torch.Tensor
+    out_gain: torch.Tensor
+    radius_m: torch.Tensor
+
+    def __init__(self, *, num_bodies: int, hidden: int, layers: int, gate: GateOptions, radius_m: np.ndarray):
+        super().__init__()
+        self.gate_options = gate
+        nets = []
+        for _ in range(num_bodies):
+            mods: list[nn.Module] = []
+            width = NUM_FEATURES
+            for _ in range(layers):
+                mods += [nn.Linear(width, hidden), nn.Tanh()]
+                width = hidden
+            mods.append(nn.Linear(width, NUM_OUTPUTS))
+            nets.append(nn.Sequential(*mods))
+        self.nets = nn.ModuleList(nets)
+        b, k = num_bodies, gate.coverage_centres
+        self.register_buffer("feat_mean", torch.zeros(b, NUM_FEATURES, dtype=torch.float64))
+        self.register_buffer("feat_std", torch.ones(b, NUM_FEATURES, dtype=torch.float64))
+        self.register_buffer("out_scale", torch.ones(b, NUM_OUTPUTS, dtype=torch.float64))
+        self.register_buffer("out_bound", torch.ones(b, NUM_OUTPUTS, dtype=torch.float64))
+        self.register_buffer("range_lo", torch.zeros(b, NUM_FEATURES, dtype=torch.float64))
+        self.register_buffer("range_hi", torch.ones(b, NUM_FEATURES, dtype=torch.float64))
+        self.register_buffer("centres", torch.zeros(b, k, NUM_FEATURES, dtype=torch.float64))
+        self.register_buffer("coverage_dist", torch.ones(b, dtype=torch.float64))
+        self.register_buffer("out_gain", torch.ones(b, dtype=torch.float64))
+        self.register_buffer("radius_m", torch.as_tensor(np.asarray(radius_m, dtype=np.float64)))
+        self.double()
+
+    def gate(self, feats: torch.Tensor) -> torch.Tensor:
+        g = self.gate_options
+        speed = torch.linalg.vector_norm(feats[..., 5:8], dim=-1) + self.radius_m * torch.linalg.vector_norm(
+            feats[..., 8:11], dim=-1
+        )
+        moving = _smoothstep((speed - g.rest_speed_m_s[0]) / (g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
+        flying = _smoothstep((feats[..., 0] - g.air_clearance_m[0]) / (g.air_clearance_m[1] - g.air_clearance_m[0]))
+        active = 1.0 - (1.0 - moving) * (1.0 - flying)
+        margin = g.range_margin * (self.range_hi - self.range_lo) + 1e-9
+        outside = torch.clamp(torch.maximum(self.range_lo - feats, feats - self.range_hi), min=0.0) / margin
+        in_range = torch.prod(1.0 - _smoothstep(outside), dim=-1)
+        z = (feats - self.feat_mean) / self.feat_std
+        d2 = (
+            torch.sum(z * z, dim=-1, keepdim=True)
+            - 2.0 * torch.einsum("nbf,bkf->nbk", z, self.centres)
+            + torch.sum(self.centres**2, dim=-1)
+        )
+        dist = torch.sqrt(torch.clamp(torch.amin(d2, dim=-1), min=0.0))
+        near = 1.0 - _smoothstep(dist / self.coverage_dist - 1.0)
+        return active * in_range * near
+
+    def raw(self, feats: torch.Tensor) -> torch.Tensor:
+        z = (feats - self.feat_mean) / self.feat_std
+        outs = []
+        for b, net in enumerate(self.nets):
+            u = net(z[:, b])
+            outs.append(self.out_bound[b] * torch.tanh(u * self.out_scale[b] / self.out_bound[b]))
+        return torch.stack(outs, dim=1)
+
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:
+        return self.raw(feats) * (self.gate(feats) * self.out_gain).unsqueeze(-1)
+
+
+def export_onnx(model: ResidualModel, path: Path) -> None:
+    """Writes the features -> gated correction function as ONNX (float64, dynamic batch) and checks the graph."""
+    import onnx
+
+    model.eval()
+    example = torch.zeros(2, len(model.nets), NUM_FEATURES, dtype=torch.float64)
+    example[..., 4] = 1.0
+    torch.onnx.export(
+        model,
+        (example,),
+        str(path),
+        input_names=["features"],
+        output_names=["correction"],
+        dynamic_axes={"features": {0: "batch"}, "correction": {0: "batch"}},
+        opset_version=17,
+        dynamo=False,
+    )
+    onnx.checker.check_model(onnx.load(str(path)))

@@ -1,0 +1,314 @@
+"""The learned residual: trained on tiny synthetic tosses with a withheld effect (air drag), checked for what it
+must guarantee (rest stays rest, bounded, fades outside training states), agreement of its numpy / torch / ONNX
+forms, batched stepping, and the CLI."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from grounder._residual import (
+    FEATURE_NAMES,
+    META_FILE,
+    ONNX_FILE,
+    WEIGHTS_FILE,
+    apply_correction,
+    body_features,
+    correction_targets,
+    free_bodies,
+    quat_to_rotvec,
+    rotvec_to_quat,
+)
+from grounder._residual_train import ResidualOptions, train_residual
+from grounder._simulate import quat_angle_rad, simulate
+from grounder._simulator import Simulator, has_residual
+from grounder._trajectory import Trajectory, save_trajectories
+from grounder.errors import GrounderError
+
+HALF_M = 0.05
+RATE_HZ = 100.0
+PERIOD_STEPS = 4  # model timestep 2.5 ms
+
+
+def _cube_xml(fluid_density: float = 0.0) -> str:
+    # The "real" world differs from the nominal model by air drag (MuJoCo's inertia-box fluid model): a withheld
+    # effect the residual has to learn.
+    return f"""<mujoco>
+  <option timestep="{1.0 / RATE_HZ / PERIOD_STEPS}" gravity="0 0 -9.81" density="{fluid_density}"
+          integrator="implicitfast" cone="pyramidal"/>
+  <worldbody>
+    <geom name="floor" type="plane" size="3 3 0.1" friction="0.3 0.005 0.0001"/>
+    <body name="cube" pos="0 0 0.3">
+      <freejoint/>
+      <inertial pos="0 0 0" mass="0.4" diaginertia="7e-4 7e-4 7e-4"/>
+      <geom type="box" size="{HALF_M} {HALF_M} {HALF_M}" friction="0.3 0.005 0.0001"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+
+def _tosses(count: int, seed: int, fluid_density: float, num_samples: int = 60) -> list[Trajectory]:
+    """Tosses recorded at RATE_HZ in the world with drag: from 0.4-0.8 m high, 1.5-3 m/s sideways, spinning."""
+    rng = np.random.default_rng(seed)
+    model = mujoco.MjModel.from_xml_string(_cube_xml(fluid_density))
+    qpos0 = np.zeros((count, 7))
+    qpos0[:, 2] = rng.uniform(0.4, 0.8, count)
+    quat = rng.normal(size=(count, 4))
+    qpos0[:, 3:] = quat / np.linalg.norm(quat, axis=1, keepdims=True)
+    qvel0 = np.zeros((count, 6))
+    heading = rng.uniform(0, 2 * np.pi, count)
+    speed = rng.uniform(1.5, 3.0, count)
+    qvel0[:, 0], qvel0[:, 1] = speed * np.cos(heading), speed * np.sin(heading)
+    qvel0[:, 2] = rng.uniform(0.0, 1.5, count)
+    qvel0[:, 3:] = rng.normal(scale=4.0, size=(count, 3))
+    time_s = np.arange(num_samples) / RATE_HZ
+    seeds = [
+        Trajectory(time_s=time_s, qpos=np.repeat(q[None], num_samples, 0), qvel=np.repeat(v[None], num_samples, 0))
+        for q, v in zip(qpos0, qvel0, strict=True)
+    ]
+    sims = simulate(model, seeds)
+    assert isinstance(sims, list)
+    return [
+        Trajectory(time_s=s.time_s, qpos=s.qpos, qvel=s.qvel, name=f"toss_{seed}_{i}")  # type: ignore[union-attr]
+        for i, s in enumerate(sims)
+    ]
+
+
+def _mean_errors(preds: list[Trajectory], real: list[Trajectory]) -> tuple[float, float]:
+    pos = [np.mean(np.linalg.norm(p.qpos[:, :3] - r.qpos[:, :3], axis=1)) for p, r in zip(preds, real, strict=True)]
+    rot = [np.degrees(np.mean(quat_angle_rad(p.qpos[:, 3:], r.qpos[:, 3:]))) for p, r in zip(preds, real, strict=True)]
+    return float(np.mean(pos)), float(np.mean(rot))
+
+
+DRAG_DENSITY = 40.0  # kg/m^3: exaggerated so that a short toss shows it clearly
+TINY = ResidualOptions(
+    steps=600, dagger_rounds=0, dagger_horizon=10, dagger_stride=3, hidden=32, smooth_window=0, seed=0
+)
+
+
+@pytest.fixture(scope="module")
+def nominal_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    scene = tmp_path_factory.mktemp("nominal")
+    (scene / "scene.xml").write_text(_cube_xml())
+    return scene
+
+
+@pytest.fixture(scope="module")
+def trained(nominal_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("trained") / "residual_scene"
+    train_residual(nominal_scene, _tosses(24, seed=1, fluid_density=DRAG_DENSITY), out, TINY)
+    return out
+
+
+def test_quaternion_helpers_round_trip() -> None:
+    rng = np.random.default_rng(0)
+    rotvec = rng.normal(size=(50, 3))
+    rotvec *= (np.minimum(np.linalg.norm(rotvec, axis=1), 3.0) / np.linalg.norm(rotvec, axis=1))[:, None]
+    np.testing.assert_allclose(quat_to_rotvec(rotvec_to_quat(rotvec)), rotvec, atol=1e-12)
+    tiny = np.array([[1e-9, -2e-9, 3e-10]])
+    np.testing.assert_allclose(quat_to_rotvec(rotvec_to_quat(tiny)), tiny, rtol=1e-9)
+
+
+def test_targets_invert_apply(nominal_scene: Path) -> None:
+    model = mujoco.MjModel.from_xml_path(str(nominal_scene / "scene.xml"))
+    bodies = free_bodies(model)
+    trajs = _tosses(2, seed=5, fluid_density=0.0, num_samples=20)
+    q0, v0 = trajs[0].qpos, trajs[0].qvel
+    q1, v1 = trajs[1].qpos, trajs[1].qvel
+    feats, rots = body_features(q0, v0, bodies)
+    corr = correction_targets(q0, v0, q1, v1, rots, bodies)
+    q_back, v_back = apply_correction(q0, v0, corr, rots, bodies)
+    np.testing.assert_allclose(q_back[:, :3], q1[:, :3], atol=1e-12)
+    assert np.max(quat_angle_rad(q_back[:, 3:], q1[:, 3:])) < 1e-9
+    np.testing.assert_allclose(v_back, v1, atol=1e-12)
+    # clearance of a cube lying flat at height h is h - half-edge
+    flat = np.array([[0.0, 0.0, 0.2, 1.0, 0.0, 0.0, 0.0]])
+    feats, _ = body_features(flat, np.zeros((1, 6)), bodies)
+    assert feats[0, 0, FEATURE_NAMES.index("clearance_m")] == pytest.approx(0.2 - HALF_M, abs=1e-12)
+
+
+def test_residual_beats_nominal_on_withheld_drag(nominal_scene: Path, trained: Path) -> None:
+    held_out = _tosses(12, seed=2, fluid_density=DRAG_DENSITY)
+    nominal = Simulator(nominal_scene).rollout(held_out)
+    corrected = Simulator(trained).rollout(held_out)
+    pos_nominal, rot_nominal = _mean_errors(nominal, held_out)
+    pos_residual, rot_residual = _mean_errors(corrected, held_out)
+    assert pos_nominal > 0.02  # the withheld drag matters
+    assert pos_residual < 0.6 * pos_nominal, (pos_residual, pos_nominal)
+    assert rot_residual < rot_nominal + 2.0
+
+
+def test_files_and_metadata(trained: Path) -> None:
+    assert has_residual(trained)
+    assert not has_residual(trained / "missing")
+    meta = json.loads((trained / META_FILE).read_text())
+    assert meta["period_steps"] == PERIOD_STEPS
+    assert meta["bodies"] == ["cube"]
+    assert meta["training"]["selected_gain"] > 0  # the drag is worth correcting on held-out rollouts
+    assert (trained / "scene.xml").is_file() and (trained / WEIGHTS_FILE).is_file()
+    import torch
+
+    state = torch.load(trained / WEIGHTS_FILE, weights_only=True)
+    assert all(isinstance(v, torch.Tensor) for v in state.values())
+
+
+def test_object_at_rest_stays_at_rest(trained: Path) -> None:
+    sim = Simulator(trained)
+    assert sim.residual is not None
+    # settle with MuJoCo alone, then 2 s with the residual on
+    plain = Simulator(trained, use_residual=False)
+    qpos = np.array([0.1, -0.2, HALF_M + 0.002, 1.0, 0.0, 0.0, 0.0])
+    qvel = np.zeros(6)
+    for _ in range(50):
+        qpos, qvel = plain.step(qpos, qvel)
+    start = qpos.copy()
+    feats, _ = body_features(qpos[None], qvel[None], sim.residual.bodies)
+    assert np.all(sim.residual(feats) == 0.0)  # exactly zero at rest
+    steps = round(2.0 / sim.dt_s)
+    for _ in range(steps):
+        qpos, qvel = sim.step(qpos, qvel)
+    assert np.linalg.norm(qpos[:3] - start[:3]) < 1e-3
+    assert np.degrees(quat_angle_rad(qpos[3:], start[3:])) < 0.1
+    # same in a batch, with a little residual speed below the rest threshold
+    batch_q = np.repeat(start[None], 8, 0)
+    batch_v = np.zeros((8, 6))
+    batch_v[:, 0] = np.linspace(0.0, 0.005, 8)
+    for _ in range(steps):
+        batch_q, batch_v = sim.step_batch(batch_q, batch_v)
+    assert np.max(np.linalg.norm(batch_q[:, :3] - start[:3], axis=1)) < 1e-3
+
+
+def test_bounded_and_fades_outside_training(trained: Path) -> None:
+    residual = Simulator(trained).residual
+    assert residual is not None
+    rng = np.random.default_rng(3)
+    feats = rng.normal(size=(2000, 1, len(FEATURE_NAMES))) * 20.0
+    corr = residual(feats)
+    assert np.all(np.abs(corr) <= residual.out_bound[None] + 1e-12)
+    far = np.zeros((1, 1, len(FEATURE_NAMES)))
+    far[..., 0], far[..., 1], far[..., 4] = 5.0, 5.05, 1.0  # 5 m up: never seen in training
+    far[..., 5] = 30.0
+    assert residual.gate(far)[0, 0] == 0.0
+    assert np.all(residual(far) == 0.0)
+    # inside the training states the gate is on for most of them
+    held_out = _tosses(4, seed=7, fluid_density=DRAG_DENSITY)
+    q = np.concatenate([t.qpos[:20] for t in held_out])
+    v = np.concatenate([t.qvel[:20] for t in held_out])
+    feats_in, _ = body_features(q, v, residual.bodies)
+    assert np.mean(residual.gate(feats_in) > 0.5) > 0.8
+
+
+def test_numpy_torch_onnx_agree(trained: Path) -> None:
+    import onnx
+    import torch
+    from onnx.reference import ReferenceEvaluator
+
+    from grounder._residual_torch import ResidualModel
+
+    residual = Simulator(trained).residual
+    assert residual is not None
+    model = ResidualModel(
+        num_bodies=1,
+        hidden=residual.meta.hidden,
+        layers=residual.meta.layers,
+        gate=residual.meta.gate,
+        radius_m=residual.radius_m,
+    )
+    model.load_state_dict(torch.load(trained / WEIGHTS_FILE, weights_only=True))
+    held_out = _tosses(2, seed=8, fluid_density=DRAG_DENSITY)
+    feats, _ = body_features(
+        np.concatenate([t.qpos for t in held_out]), np.concatenate([t.qvel for t in held_out]), residual.bodies
+    )
+    expected = residual(feats)
+    assert np.abs(expected).max() > 0
+    with torch.no_grad():
+        np.testing.assert_allclose(model(torch.as_tensor(feats)).numpy(), expected, rtol=1e-9, atol=1e-12)
+    graph = onnx.load(str(trained / ONNX_FILE))
+    onnx.checker.check_model(graph)
+    assert [i.name for i in graph.graph.input] == ["features"]
+    (out,) = ReferenceEvaluator(graph).run(None, {"features": feats})
+    np.testing.assert_allclose(out, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_batch_of_1024_and_single_agree(trained: Path) -> None:
+    sim = Simulator(trained)
+    tosses = _tosses(1024, seed=9, fluid_density=DRAG_DENSITY, num_samples=2)
+    qpos = np.stack([t.qpos[0] for t in tosses])
+    qvel = np.stack([t.qvel[0] for t in tosses])
+    for _ in range(5):
+        qpos, qvel = sim.step_batch(qpos, qvel)
+    assert qpos.shape == (1024, 7) and np.isfinite(qpos).all() and np.isfinite(qvel).all()
+    q1, v1 = sim.step_batch(qpos[:3], qvel[:3])
+    for i in range(3):
+        qs, vs = sim.step(qpos[i], qvel[i])
+        np.testing.assert_allclose(qs, q1[i], atol=1e-9)
+        np.testing.assert_allclose(vs, v1[i], atol=1e-6)
+
+
+def test_rollout_contract(nominal_scene: Path, trained: Path) -> None:
+    trajs = _tosses(3, seed=4, fluid_density=DRAG_DENSITY, num_samples=30)
+    model = mujoco.MjModel.from_xml_path(str(nominal_scene / "scene.xml"))
+    expected = simulate(model, trajs)
+    got = Simulator(trained, use_residual=False).rollout(trajs)
+    for e, g in zip(expected, got, strict=True):
+        np.testing.assert_array_equal(e.qpos, g.qpos)  # type: ignore[union-attr]
+    preds = Simulator(trained).rollout(trajs)
+    for p, t in zip(preds, trajs, strict=True):
+        assert p.name == t.name and np.array_equal(p.time_s, t.time_s)
+        np.testing.assert_array_equal(p.qpos[0], t.qpos[0])
+    # the hybrid rollout is the same as stepping one period at a time
+    sim = Simulator(trained)
+    qpos, qvel = trajs[0].qpos[0], trajs[0].qvel[0]
+    for k in range(1, 10):
+        qpos, qvel = sim.step(qpos, qvel)
+        np.testing.assert_allclose(qpos, preds[0].qpos[k], atol=1e-7)
+
+
+def test_training_is_reproducible(nominal_scene: Path, tmp_path: Path) -> None:
+    import torch
+
+    trajs = _tosses(6, seed=11, fluid_density=DRAG_DENSITY, num_samples=30)
+    options = ResidualOptions(steps=20, dagger_rounds=1, dagger_horizon=5, hidden=16, seed=3)
+    train_residual(nominal_scene, trajs, tmp_path / "a", options)
+    train_residual(nominal_scene, trajs, tmp_path / "b", options)
+    a = torch.load(tmp_path / "a" / WEIGHTS_FILE, weights_only=True)
+    b = torch.load(tmp_path / "b" / WEIGHTS_FILE, weights_only=True)
+    assert a.keys() == b.keys()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_errors(nominal_scene: Path, trained: Path, tmp_path: Path) -> None:
+    with pytest.raises(GrounderError, match=r"scene\.xml"):
+        Simulator(tmp_path / "nowhere")
+    with pytest.raises(GrounderError, match="not empty"):
+        train_residual(nominal_scene, _tosses(2, seed=1, fluid_density=0.0, num_samples=10), trained, TINY)
+    meta = json.loads((trained / META_FILE).read_text())
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "scene.xml").write_text(_cube_xml().replace('timestep="0.0025"', 'timestep="0.002"'))
+    (broken / WEIGHTS_FILE).write_bytes((trained / WEIGHTS_FILE).read_bytes())
+    (broken / META_FILE).write_text(json.dumps(meta))
+    with pytest.raises(GrounderError, match="timestep"):
+        Simulator(broken)
+
+
+def test_cli_train(nominal_scene: Path, tmp_path: Path) -> None:
+    from grounder.cli import app
+
+    runner = CliRunner()
+    result = runner.invoke(app, ["residual", "train", "--help"])
+    assert result.exit_code == 0 and "residual train" in result.output
+    traj_dir = save_trajectories(_tosses(4, seed=12, fluid_density=DRAG_DENSITY, num_samples=20), tmp_path / "trajs")
+    out = tmp_path / "out"
+    args = ["residual", "train", str(nominal_scene), str(traj_dir), "-o", str(out), "--steps", "20", "--rounds", "0"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert has_residual(out) and (out / ONNX_FILE).is_file()
+    result = runner.invoke(app, ["residual", "train", str(tmp_path / "none"), str(traj_dir), "-o", str(tmp_path / "x")])
+    assert result.exit_code == 2
+    assert "scene.xml" in result.output
