@@ -1,0 +1,62 @@
+"""`image2sim track CLIP --scene SCENE_DIR -o TRAJ_DIR`: object trajectories from a clip, by model-based tracking."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    """Adds the `track` command to the image2sim CLI."""
+    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+
+    @app.command()
+    def track(
+        clip: Annotated[Path, typer.Argument(help="Video (or folder of images) in which the scene's objects move.")],
+        scene: Annotated[Path, typer.Option("--scene", help="Scene folder written by `image2sim ground`.")],
+        out: Annotated[
+            Path, typer.Option("-o", "--out", help="Trajectory folder to write (created; must be new or empty).")
+        ],
+        aruco_size: Annotated[
+            float,
+            typer.Option(help="Side of the ArUco marker's black square in metres (DICT_4X4_50, id 0, on the table)."),
+        ] = 0.12,
+        intrinsics: Annotated[
+            tuple[float, float, float, float] | None,
+            typer.Option(help="FX FY CX CY of the clip's camera in pixels (default: the scan's camera)."),
+        ] = None,
+        static_camera: Annotated[
+            bool | None,
+            typer.Option("--static-camera/--moving-camera", help="Default: decided from the marker's motion."),
+        ] = None,
+        max_frames: Annotated[int | None, typer.Option(help="Track at most this many frames.")] = None,
+        min_segment_frames: Annotated[
+            int, typer.Option(help="Shortest run of fully tracked frames written as a trajectory.")
+        ] = 5,
+        overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once done.")] = False,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """6-DoF pose of every grounded object in every frame; lost frames flagged; trajectories per tracked run."""
+        _setup_logging(verbose)
+        if not aruco_size > 0 or min_segment_frames < 3 or (max_frames is not None and max_frames < 2):
+            fail("--aruco-size must be > 0, --min-segment-frames >= 3 and --max-frames >= 2")
+        with user_errors_exit_2():
+            from grounder._track import TrackOptions
+            from grounder._track import track as run_track
+
+            options = TrackOptions(
+                aruco_size_m=aruco_size,
+                intrinsics_colmap=intrinsics,
+                static_camera=static_camera,
+                max_frames=max_frames,
+                min_segment_frames=min_segment_frames,
+            )
+            with stage_progress() as progress:
+                result = run_track(clip, scene, out, options, overwrite=overwrite, progress=progress)
+        for i, name in enumerate(result.object_names):
+            lost = int((~result.valid[:, i]).sum())
+            typer.echo(f"{name}: tracked {len(result.valid) - lost}/{len(result.valid)} frames")
+        spans = ", ".join(f"{a}-{b}" for a, b in result.segments)
+        typer.echo(f"{len(result.trajectories)} trajectory file(s) (frames {spans}) and track.json in {out}")

@@ -1,0 +1,265 @@
+"""Tracking (`image2sim track`): render conventions, velocity fit, segments, and short tracked runs against the truth.
+
+The tracked runs use the true toss scene as the "grounded" scene (cheap: no reconstruction), so their errors are the
+tracker's own plus the marker-based camera's. The grounded-scene accuracy (the acceptance figure) is measured by
+`benchmarks/track.py`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from grounder import load_trajectories
+from grounder._simulate import quat_angle_rad
+from grounder._track import TrackError, TrackOptions, track, tracked_segments
+from grounder._track_render import PinholeCamera, PoseRenderer, backproject
+from grounder._track_smooth import (
+    SmoothingOptions,
+    free_body_velocities,
+    matrix_from_quat,
+    quat_from_matrix,
+    quat_mul,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+TOSS = REPO / "samples" / "toss"
+OCCLUDED = REPO / "samples" / "toss_occluded"
+
+
+def _truth_camera(clip_dir: Path = TOSS) -> tuple[dict[str, float], np.ndarray]:
+    meta = json.loads((clip_dir / "truth" / "camera.json").read_text())
+    return meta["intrinsics"], np.array(meta["world_from_cam"])
+
+
+def _options(**kwargs: Any) -> TrackOptions:
+    intr, _ = _truth_camera()
+    return TrackOptions(aruco_size_m=0.12, intrinsics_colmap=(intr["fx"], intr["fy"], intr["cx"], intr["cy"]), **kwargs)
+
+
+def _pose(qpos7: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, 3] = qpos7[:3]
+    out[:3, :3] = matrix_from_quat(qpos7[3:])
+    return out
+
+
+@pytest.fixture(scope="module")
+def toss_truth() -> dict[str, np.ndarray]:
+    if not (TOSS / "video.mp4").exists():
+        pytest.skip("samples/toss is missing: run `make samples`")
+    data = np.load(TOSS / "truth" / "trajectory.npz", allow_pickle=False)
+    return {"time": data["time"], "qpos": data["qpos"], "qvel": data["qvel"]}
+
+
+def test_renderer_matches_pinhole_projection_and_depth(toss_truth: dict[str, np.ndarray]) -> None:
+    """Rendered silhouettes sit where K projects the mesh, and rendered depth back-projects onto the object."""
+    intr, world_from_cam = _truth_camera()
+    # An off-centre principal point, to pin down MuJoCo's sign convention for it.
+    camera = PinholeCamera.from_colmap(640, 480, intr["fx"], intr["fy"], intr["cx"] + 7.0, intr["cy"] - 5.0)
+    qpos = toss_truth["qpos"][-1]
+    box_pose = _pose(qpos[0:7])
+    with PoseRenderer(TOSS / "truth" / "scene.xml", camera) as renderer:
+        renderer.set_camera(world_from_cam)
+        assert renderer.names == ("box", "can", "bowl")
+        view = renderer.render([box_pose, None, None])
+    rows, cols = np.nonzero(view.object_id == 0)
+    assert len(rows) > 2000
+    # The box's 8 corners projected with K bound the silhouette: no offset (the mean of the gaps at opposite
+    # sides), and each side within 1.5 px (a silhouette thins to nothing at a corner, so pixel centres miss it).
+    corners = np.array([[sx * 0.06, sy * 0.04, sz * 0.03] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    cam_from_box = np.linalg.inv(world_from_cam) @ box_pose
+    uv = camera.project(corners @ cam_from_box[:3, :3].T + cam_from_box[:3, 3])
+    gaps = np.array(
+        [
+            [cols.min() - uv[:, 0].min(), cols.max() - uv[:, 0].max()],
+            [rows.min() - uv[:, 1].min(), rows.max() - uv[:, 1].max()],
+        ]
+    )
+    assert np.abs(gaps).max() < 1.5, gaps
+    assert np.abs(gaps.mean(axis=1)).max() < 0.3, gaps
+    # Depth: back-projected silhouette pixels lie on the box surface (inside the box, on a face).
+    pixels = np.stack([cols, rows], axis=1).astype(np.float64)
+    points_cam = backproject(camera, pixels, view.depth_m[rows, cols].astype(np.float64))
+    box_from_cam = np.linalg.inv(cam_from_box)
+    points_box = points_cam @ box_from_cam[:3, :3].T + box_from_cam[:3, 3]
+    outside = np.abs(points_box) - np.array([0.06, 0.04, 0.03])
+    assert np.percentile(outside.max(axis=1), 95) < 1e-3  # inside, within 1 mm
+    assert np.percentile(np.abs(outside.max(axis=1)), 50) < 1e-3  # and on a face
+
+
+def test_velocities_from_smoothing_fit_are_exact_on_free_flight() -> None:
+    """Quadratic positions and a constant body spin: the Savitzky-Golay fit recovers both velocities."""
+    time_s = np.arange(15) / 30.0
+    v0, g = np.array([3.0, -0.5, 1.0]), np.array([0.0, 0.0, -9.81])
+    pos = 0.1 + v0 * time_s[:, None] + 0.5 * g * time_s[:, None] ** 2
+    omega_body = np.array([0.3, -0.2, 6.0])
+    angle = np.linalg.norm(omega_body) * time_s
+    axis = omega_body / np.linalg.norm(omega_body)
+    q0 = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
+    delta = np.concatenate([np.cos(angle / 2)[:, None], np.sin(angle / 2)[:, None] * axis], axis=1)
+    quats = quat_mul(q0, delta)  # body-frame rotation: q(t) = q0 * exp(omega_body t / 2)
+    quats[1::2] *= -1  # sign flips must not matter
+    _, _, linvel, angvel = free_body_velocities(time_s, pos, quats, SmoothingOptions(window_frames=7, polyorder=2))
+    np.testing.assert_allclose(linvel, v0 + g * time_s[:, None], atol=1e-9)
+    # A quaternion under constant spin is a sinusoid, not a quadratic: 1% inside, 4% at the segment ends.
+    want = np.tile(omega_body, (len(time_s), 1))
+    np.testing.assert_allclose(angvel[3:-3], want[3:-3], rtol=0.01, atol=0.01)
+    np.testing.assert_allclose(angvel, want, rtol=0.04, atol=0.02)
+
+
+def test_segments_are_runs_where_every_object_is_tracked() -> None:
+    valid = np.ones((20, 2), bool)
+    valid[5:8, 1] = False  # one object hidden
+    valid[15, 0] = False
+    assert tracked_segments(valid, min_frames=5) == [(0, 4), (8, 14)]  # 16..19 is too short
+    assert tracked_segments(valid, min_frames=4) == [(0, 4), (8, 14), (16, 19)]
+
+
+def test_track_first_frames_of_toss(tmp_path: Path, toss_truth: dict[str, np.ndarray]) -> None:
+    """Toss frames 0-7 (objects in flight): detection then tracking, every object found, errors within 3 mm, 1 deg."""
+    out = tmp_path / "traj"
+    result = track(TOSS / "video.mp4", TOSS / "truth", out, _options(max_frames=8, detect_views=20))
+    assert result.static_camera
+    _, world_from_cam = _truth_camera()
+    assert np.linalg.norm(result.world_from_cam[0][:3, 3] - world_from_cam[:3, 3]) < 4e-3
+    assert result.valid.all(), [[s.reason for s in row] for row in result.scores]
+    qpos = toss_truth["qpos"]
+    pos_err, rot_err = [], []
+    for i in range(3):
+        for f in range(8):
+            pose = result.world_from_objects[f, i]
+            pos_err.append(np.linalg.norm(pose[:3, 3] - qpos[f, 7 * i : 7 * i + 3]))
+            rot_err.append(np.rad2deg(quat_angle_rad(quat_from_matrix(pose[:3, :3]), qpos[f, 7 * i + 3 : 7 * i + 7])))
+    assert np.median(pos_err) < 3e-3 and np.median(rot_err) < 1.0, (np.median(pos_err), np.median(rot_err))
+    # Written: one trajectory over all 8 frames, loadable against the scene, with track.json beside it.
+    model = mujoco.MjModel.from_xml_path(str(TOSS / "truth" / "scene.xml"))
+    trajs = load_trajectories(out, model)
+    assert len(trajs) == 1 and trajs[0].qpos.shape == (8, model.nq)
+    np.testing.assert_allclose(trajs[0].time_s, np.arange(8) / 30.0)
+    # The can falls freely until it lands near frame 6: the fitted velocity of frames 0-2 (whose 7-frame windows
+    # end before the impact) is within 0.1 m/s of the truth.
+    assert np.abs(trajs[0].qvel[:3, 6:9] - toss_truth["qvel"][:3, 6:9]).max() < 0.1
+    meta = json.loads((out / "track.json").read_text())
+    assert meta["object_names"] == ["box", "can", "bowl"]
+    assert all(all(o["valid"]) for o in meta["objects"].values())
+
+
+def test_hidden_object_is_flagged_and_excluded_from_trajectories(tmp_path: Path) -> None:
+    """The occluded clip: while the card hides the box it is lost (no pose), and no trajectory covers those frames."""
+    if not (OCCLUDED / "video.mp4").exists():
+        pytest.skip("samples/toss_occluded is missing: run samples/make_toss_occluded.py")
+    occlusion = json.loads((OCCLUDED / "truth" / "occlusion.json").read_text())
+    hidden = set(occlusion["hidden_frames"]["box"])
+    first, count = 18, 18  # frames 18..35 cover the whole occlusion
+    fully_hidden = {k for k, c in enumerate(occlusion["covered"]["box"]) if c >= 0.95}
+    out = tmp_path / "traj"
+    result = track(
+        OCCLUDED / "video.mp4",
+        TOSS / "truth",
+        out,
+        _options(start_frame=first, max_frames=count, detect_views=20, min_segment_frames=3),
+    )
+    box_valid = dict(zip(result.frame_index.tolist(), result.valid[:, 0].tolist(), strict=True))
+    assert not any(box_valid[k] for k in fully_hidden if k in box_valid), box_valid
+    assert result.valid[:, 1:].all()  # the can and the bowl stay tracked
+    qpos = np.load(TOSS / "truth" / "trajectory.npz")["qpos"]
+    for f in np.nonzero(result.valid[:, 0])[0]:  # poses reported for the box are real ones
+        assert np.linalg.norm(result.world_from_objects[f, 0][:3, 3] - qpos[first + f, :3]) < 0.01
+    meta = json.loads((out / "track.json").read_text())
+    covered_frames = {k for seg in meta["segments"] for k in range(seg["first_frame"], seg["last_frame"] + 1)}
+    assert not covered_frames & fully_hidden
+    assert not any(meta["objects"]["box"]["valid"][k - first] for k in fully_hidden if first <= k < first + count)
+    assert hidden  # the sample really hides the box
+
+
+def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
+    from grounder.cli import app
+
+    runner = CliRunner()
+    result = runner.invoke(app, ["track", "--help"])
+    assert result.exit_code == 0 and "--scene" in result.output
+    result = runner.invoke(app, ["track", str(TOSS / "video.mp4"), "--scene", str(tmp_path), "-o", str(tmp_path / "o")])
+    assert result.exit_code == 2
+    assert "image2sim: error:" in result.output and "scene.xml" in result.output
+
+
+def test_options_reject_bad_values() -> None:
+    with pytest.raises(TrackError, match="aruco_size_m"):
+        TrackOptions(aruco_size_m=-1.0)
+    with pytest.raises(TrackError, match="min_segment_frames"):
+        TrackOptions(min_segment_frames=2)
+
+
+def test_windows_cut_tracked_segments_and_drop_still_ones() -> None:
+    from grounder import Trajectory
+    from grounder._interaction import windows
+
+    time_s = np.arange(60) / 30.0
+    qpos = np.zeros((60, 7))
+    qpos[:, 3] = 1.0
+    qvel = np.zeros((60, 6))
+    qvel[:20, 0] = 1.0  # moving for the first 2/3 s, then still
+    traj = Trajectory(time_s=time_s, qpos=qpos, qvel=qvel, name="clip_00")
+    cut = windows([traj], 1.0, 0.5, 0.05)
+    assert [t.name for t in cut] == ["clip_00_w00", "clip_00_w01"]  # the window from 1.0 s shows no motion
+    np.testing.assert_allclose(cut[1].time_s[[0, -1]], [0.5, 1.5])
+    assert [t.name for t in windows([traj], None, 0.5, 0.05)] == ["clip_00"]
+
+
+def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(tmp_path: Path) -> None:
+    """End to end on 6 toss frames with the true scene standing in for the grounded one and a tiny search budget:
+    the output holds the tracks, a calibrated scene and a report naming what was calibrated."""
+    from grounder._interaction import InteractionOptions, calibration_available, ground_with_interaction
+
+    if not calibration_available():
+        pytest.skip("grounder._calibrate is not installed")
+    out = tmp_path / "scene"
+    result = ground_with_interaction(
+        REPO / "samples" / "tabletop" / "video.mp4",
+        TOSS / "video.mp4",
+        out,
+        InteractionOptions(
+            track=_options(max_frames=6, detect_views=16, min_segment_frames=3),
+            calibrate_params=("can.friction.sliding", "can.solref.dampratio"),
+            calibrate_settings={"generations": 0, "local_iterations": 1},
+            window_s=None,
+        ),
+        grounded_scene=TOSS / "truth",
+    )
+    assert result.calibrated and result.track.valid.all()
+    assert (out / "scene.xml").is_file() and (out / "interaction" / "tracks" / "track.json").is_file()
+    report = json.loads((out / "interaction.json").read_text())
+    assert set(report["calibration"]["parameters"]) == {"can.friction.sliding", "can.solref.dampratio"}
+    assert report["tracking"]["segments"] == [{"name": "video_00", "first_frame": 0, "last_frame": 5}]
+    assert "can" in report["match_after"]
+    mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
+
+
+def test_marker_camera_pose_static_and_per_frame(toss_truth: dict[str, np.ndarray]) -> None:
+    """The camera from the marker (ECC-aligned image, grid PnP) is within 3.5 mm and 0.2 deg of the truth, both as
+    one static pose and per frame (the moving-camera path)."""
+    import cv2
+
+    from grounder._track import marker_camera_poses, read_clip
+    from grounder._track_smooth import rotation_angle_deg
+
+    intr, world_from_cam = _truth_camera()
+    camera = PinholeCamera.from_colmap(640, 480, intr["fx"], intr["fy"], intr["cx"], intr["cy"])
+    frames, fps = read_clip(TOSS / "video.mp4", max_frames=4)
+    assert fps == pytest.approx(30.0) and len(frames) == 4
+    grays = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames]
+    for static in (True, False):
+        poses, is_static = marker_camera_poses(grays, camera, _options(static_camera=static))
+        assert is_static == static
+        for pose in poses:
+            assert np.linalg.norm(pose[:3, 3] - world_from_cam[:3, 3]) < 3.5e-3
+            assert rotation_angle_deg(pose[:3, :3], world_from_cam[:3, :3]) < 0.2
+    poses, is_static = marker_camera_poses(grays, camera, _options())
+    assert is_static  # decided from the marker's motion
