@@ -41,11 +41,18 @@ test: lint typecheck pytest
 samples: install
 	$(PY) samples/make_tabletop.py
 	$(PY) samples/make_toss.py
+	$(PY) samples/make_toss_occluded.py
 
 benchmarks: install
 	$(PY) benchmarks/reconstruct.py
 	$(PY) benchmarks/ground.py
 	$(PY) benchmarks/collision.py
+	$(PY) benchmarks/cube_toss.py
+	$(PY) benchmarks/calibrate_throughput.py
+	$(PY) benchmarks/diagnose.py
+	$(PY) benchmarks/residual.py
+	$(PY) benchmarks/residual_step_time.py
+	$(PY) benchmarks/track.py
 
 clean:
 	rm -rf out .pytest_cache .mypy_cache .ruff_cache

@@ -2,7 +2,11 @@
 
 Public API::
 
-    from grounder import load_trajectories, save_trajectories, Trajectory, TrajectoryError
+    from grounder import ground, load_trajectories, save_trajectories, Trajectory, TrajectoryError
+    from grounder import calibrate, diagnose, track, ground_with_interaction, Simulator, load_dair_pll_cube
+
+The later stages are imported on first use (they pull in torch, OpenCV renderers or Ray), so `import grounder`
+stays cheap.
 """
 
 import os as _os
@@ -25,7 +29,40 @@ from grounder._trajectory import (
 )
 from grounder.errors import GrounderError, TrajectoryError
 
+# name -> module that defines it; resolved on first attribute access (PEP 562).
+_LAZY = {
+    "CalibrateOptions": "grounder._calibrate",
+    "CalibrationResult": "grounder._calibrate",
+    "calibrate": "grounder._calibrate",
+    "DiagnoseOptions": "grounder._diagnose",
+    "Diagnosis": "grounder._diagnose",
+    "diagnose": "grounder._diagnose",
+    "diagnose_files": "grounder._diagnose",
+    "TrackOptions": "grounder._track",
+    "TrackResult": "grounder._track",
+    "track": "grounder._track",
+    "InteractionOptions": "grounder._interaction",
+    "InteractionResult": "grounder._interaction",
+    "ground_with_interaction": "grounder._interaction",
+    "Simulator": "grounder._simulator",
+    "has_residual": "grounder._simulator",
+    "ResidualOptions": "grounder._residual_train",
+    "train_residual": "grounder._residual_train",
+    "load_dair_pll_cube": "grounder._import",
+    "simulate": "grounder._simulate",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'grounder' has no attribute {name!r}")
+
+
 __all__ = [
+    *sorted(_LAZY),
     "GroundOptions",
     "GroundResult",
     "GrounderError",

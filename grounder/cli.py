@@ -154,9 +154,18 @@ def ground(
     density: Annotated[float, typer.Option(help="Density (kg/m^3) given to every object.")] = 600.0,
     overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once the scene is ready.")] = False,
     seed: Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")] = 0,
+    interaction: Annotated[
+        Path | None,
+        typer.Option(
+            help="A clip of the same objects moving (pushed, dropped, tossed): track it and calibrate the scene to it."
+        ),
+    ] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
 ) -> None:
-    """Film a tabletop, get a MuJoCo scene: scene.xml, assets/, scene.json, preview.png."""
+    """Film a tabletop, get a MuJoCo scene: scene.xml, assets/, scene.json, preview.png.
+
+    With --interaction CLIP: also track the objects in the clip and calibrate their friction and contact to it.
+    """
     _setup_logging(verbose)
     if density <= 0 or face_budget < 100 or max_hulls < 1:
         fail("--density must be > 0, --face-budget >= 100 and --max-hulls >= 1")
@@ -179,6 +188,17 @@ def ground(
             collision=replace(defaults.collision, max_hulls=max_hulls),
             default_density_kg_m3=density,
         )
+        if interaction is not None:
+            from grounder._interaction import InteractionOptions, ground_with_interaction
+
+            if not interaction.exists():
+                fail(f"interaction clip {interaction} does not exist; give the path of a video of the objects moving")
+            with stage_progress() as progress:
+                calibrated = ground_with_interaction(
+                    source, interaction, out, InteractionOptions(ground=options), overwrite=overwrite, progress=progress
+                )
+            typer.echo(f"calibrated scene: {calibrated.scene_xml}")
+            return
         with stage_progress() as progress:
             result = run_ground(source, out, options, overwrite=overwrite, progress=progress)
     worst = max((d for d, _ in result.settle.values()), default=0.0)

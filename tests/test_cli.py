@@ -33,10 +33,34 @@ def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str)
         assert needle in lines[0], lines[0]
 
 
-@pytest.mark.parametrize("args", [["--help"], ["reconstruct", "--help"], ["ground", "--help"]])
+README_COMMANDS = [
+    ["reconstruct"],
+    ["ground"],
+    ["calibrate"],
+    ["rollout"],
+    ["import-trajectories"],
+    ["batch"],
+    ["diagnose"],
+    ["diagnose-benchmark"],
+    ["track"],
+    ["properties", "train"],
+    ["properties", "evaluate"],
+    ["residual", "train"],
+]
+
+
+@pytest.mark.parametrize("args", [[], *README_COMMANDS], ids=lambda a: " ".join(a) or "image2sim")
 def test_help(args: list[str]) -> None:
-    proc = run_cli(*args)
-    assert proc.returncode == 0 and "Usage" in proc.stdout
+    proc = run_cli(*args, "--help")
+    assert proc.returncode == 0 and "Usage" in proc.stdout, proc.stderr
+
+
+def test_every_readme_command_has_a_help_test() -> None:
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    used = {tuple(line.split()[1:3]) for line in readme.splitlines() if line.startswith("image2sim ")}
+    tested = {tuple(cmd) for cmd in README_COMMANDS} | {("--help",)}
+    for words in used:
+        assert words[:1] in tested or words[:2] in tested, f"README example `image2sim {' '.join(words)}` untested"
 
 
 def test_console_script_installed() -> None:
