@@ -9,6 +9,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -30,6 +31,9 @@ from scene_export import (
     write_preview,
 )
 
+if TYPE_CHECKING:
+    from grounder._properties import ObjectProperties
+
 log = logging.getLogger(__name__)
 
 ProgressFn = Callable[[str, int, int], None]
@@ -40,8 +44,10 @@ class GroundOptions:
     """Every stage of film-a-scene; each field is one stage's options.
 
     Attributes:
-        default_density_kg_m3: density given to every object until the property model assigns one.
-        default_friction: (sliding, torsional, rolling) friction until the property model assigns one.
+        default_density_kg_m3: density given to every object when the property model is off.
+        default_friction: (sliding, torsional, rolling) friction when the property model is off.
+        property_model: predict each object's density, friction and solref with the learned property model
+            (`grounder._properties`) from video crops and shape, and store its embedding and spread in scene.json.
         settle_seconds: simulated time of the stability check written to scene.json.
     """
 
@@ -51,6 +57,7 @@ class GroundOptions:
     collision: CollisionOptions = field(default_factory=CollisionOptions)
     default_density_kg_m3: float = 600.0
     default_friction: tuple[float, float, float] = (0.6, 0.005, 0.0001)
+    property_model: bool = True
     settle_seconds: float = 2.0
 
 
@@ -166,19 +173,25 @@ def ground(
         seconds["texture"] = time.perf_counter() - tick
 
         tick = time.perf_counter()
+        properties = _predict_properties(textured, views, report, warnings) if options.property_model else {}
+        seconds["properties"] = time.perf_counter() - tick
+
+        tick = time.perf_counter()
         specs = []
         for i, obj in enumerate(textured):
             report("collision hulls", i, len(textured))
             source_mesh = next(o for o in scene.objects if o.name == obj.name).mesh
             collision = convex_decomposition(source_mesh.vertices_m, source_mesh.faces, options.collision)
+            physical = properties.get(obj.name)
             specs.append(
                 SceneObjectSpec(
                     name=obj.name,
                     visual=obj.mesh,
                     collision=collision,
                     world_from_object=obj.world_from_object,
-                    density_kg_m3=options.default_density_kg_m3,
-                    friction=options.default_friction,
+                    density_kg_m3=options.default_density_kg_m3 if physical is None else physical.density_kg_m3,
+                    friction=options.default_friction if physical is None else physical.friction,
+                    solref=SceneObjectSpec.solref if physical is None else physical.solref,
                 )
             )
         seconds["collision"] = time.perf_counter() - tick
@@ -188,7 +201,7 @@ def ground(
         preview_frame = rec.frames[0]
         camera = CameraSpec.from_intrinsics("video", preview_frame.world_from_cam, rec.intrinsics)
         table = TableSpec(half_extents_m=scene.table_half_extents)
-        provenance = _provenance(rec, scene, textured, coverage, scale_note, options)
+        provenance = _provenance(rec, scene, textured, coverage, scale_note, options, bool(properties))
         exported = export_scene(specs, table, [camera], stage / "export", manifest_extra=provenance)
         for child in exported.out_dir.iterdir():
             shutil.move(str(child), stage / child.name)
@@ -205,6 +218,8 @@ def ground(
                 n: {"displacement_m": m.displacement_m, "rotation_deg": m.rotation_deg} for n, m in settle.items()
             },
         }
+        for input_name, physical in properties.items():
+            manifest["objects"][exported.body_names[input_name]]["properties"] = physical.to_json()
         manifest["warnings"] = warnings
         manifest_path.write_text(json.dumps(manifest, indent=1) + "\n")
         seconds["export"] = time.perf_counter() - tick
@@ -232,6 +247,7 @@ def _provenance(
     coverage: dict[str, float],
     scale_note: str | None,
     options: GroundOptions,
+    learned_properties: bool = False,
 ) -> dict[str, object]:
     import importlib.metadata as md
 
@@ -253,8 +269,13 @@ def _provenance(
             "dense": {"stereo_pairs": scene.num_stereo_pairs, "voxel_size": scene.voxel_size},
             "assumptions": [
                 "unseen undersides are closed flat where objects meet the table (closed_bottom)",
-                f"density {options.default_density_kg_m3} kg/m^3 and friction {list(options.default_friction)} are "
-                "defaults, not measured",
+                (
+                    "density, friction and solref are the learned property model's prior means (see each "
+                    "object's properties), not measured"
+                )
+                if learned_properties
+                else f"density {options.default_density_kg_m3} kg/m^3 and friction {list(options.default_friction)} "
+                "are defaults, not measured",
             ],
             "versions": {p: version(p) for p in ("image2sim", "pycolmap", "open3d", "coacd", "mujoco", "trimesh")},
         },
@@ -268,6 +289,30 @@ def _provenance(
             for o in objects
         },
     }
+
+
+def _predict_properties(
+    objects: list[ObjectInstance], views: list[TextureView], report: ProgressFn, warnings: list[str]
+) -> dict[str, ObjectProperties]:
+    """The learned property model's prediction for every object, from crops of the frames and the mesh shape.
+
+    When the model cannot run (no weights, an object never fully in view) the defaults are kept with a warning.
+    """
+    from grounder._properties import CropView, PropertyModelError, assign_properties
+
+    report("physical properties", 0, 1)
+    crop_views = [
+        CropView(image_bgr=v.image_bgr, world_from_cam=v.world_from_cam, camera_matrix=v.intrinsics.matrix)
+        for v in views
+    ]
+    meshes = [(o.name, mesh_in_world(o).vertices_m, o.mesh.faces) for o in objects]
+    try:
+        result = assign_properties(meshes, crop_views)
+    except PropertyModelError as exc:
+        warnings.append(f"property model not used, default density and friction kept: {exc}")
+        return {}
+    report("physical properties", 1, 1)
+    return result
 
 
 def mesh_in_world(obj: ObjectInstance) -> TexturedMesh:

@@ -151,7 +151,13 @@ def ground(
     max_frames: Annotated[int, typer.Option(help="Use at most this many frames.")] = 150,
     face_budget: Annotated[int, typer.Option(help="Faces per object mesh after decimation.")] = 4000,
     max_hulls: Annotated[int, typer.Option(help="Convex hulls per object (CoACD).")] = 16,
-    density: Annotated[float, typer.Option(help="Density (kg/m^3) given to every object.")] = 600.0,
+    density: Annotated[
+        float, typer.Option(help="Density (kg/m^3) given to every object when the property model is off.")
+    ] = 600.0,
+    property_model: Annotated[
+        bool,
+        typer.Option(help="Predict density, friction and contact per object with the learned property model."),
+    ] = True,
     overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once the scene is ready.")] = False,
     seed: Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")] = 0,
     interaction: Annotated[
@@ -187,6 +193,7 @@ def ground(
             objects=replace(defaults.objects, mesh=replace(defaults.objects.mesh, face_budget=face_budget)),
             collision=replace(defaults.collision, max_hulls=max_hulls),
             default_density_kg_m3=density,
+            property_model=property_model,
         )
         if interaction is not None:
             from grounder._interaction import InteractionOptions, ground_with_interaction

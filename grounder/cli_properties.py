@@ -1,0 +1,105 @@
+"""`image2sim properties ...`: train, evaluate and sample the learned physical-property model."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    """Adds the `properties` command group to the `image2sim` app."""
+    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+
+    group = typer.Typer(
+        name="properties",
+        help="The learned prior over density, friction and contact of grounded objects.",
+        no_args_is_help=True,
+    )
+
+    @group.command("train")
+    def train(
+        out: Annotated[
+            Path | None,
+            typer.Option("-o", "--out", help="Weights folder (default: the one shipped with the package)."),
+        ] = None,
+        num_train: Annotated[int | None, typer.Option(help="Rendered training objects (default 7000).")] = None,
+        epochs: Annotated[int | None, typer.Option(help="Training epochs (default 20).")] = None,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each epoch.")] = False,
+    ) -> None:
+        """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (10-25 min, 2 cores)."""
+        _setup_logging(verbose)
+        if (num_train is not None and num_train < 100) or (epochs is not None and epochs < 1):
+            fail("--num-train must be >= 100 and --epochs >= 1")
+        with user_errors_exit_2():
+            from grounder._properties import WEIGHTS_DIR
+            from grounder._properties_model import TrainOptions
+            from grounder._properties_model import train as run_train
+
+            target = out or WEIGHTS_DIR
+            with stage_progress() as progress:
+                defaults = TrainOptions()
+                options = replace(defaults, num_train=num_train or defaults.num_train, epochs=epochs or defaults.epochs)
+                meta = run_train(target, options, progress=progress)
+        val = meta["validation"]
+        typer.echo(
+            f"validation: ln density MAE {val['density_mae_log']:.3f} "
+            f"(baseline {val['baseline_density_mae_log']:.3f}),"
+            f" friction MAE {val['friction_mae']:.3f} (baseline {val['baseline_friction_mae']:.3f}); wrote {target}"
+        )
+
+    @group.command("evaluate")
+    def evaluate(
+        weights: Annotated[
+            Path | None, typer.Option(help="Weights folder (default: the one shipped with the package).")
+        ] = None,
+        num_samples: Annotated[int, typer.Option(help="Held-out objects to render.")] = 1000,
+        seed: Annotated[int, typer.Option(help="Held-out data seed (training used 1, calibration 2).")] = 3,
+        as_json: Annotated[bool, typer.Option("--json", help="Print the figures as JSON.")] = False,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v")] = False,
+    ) -> None:
+        """Errors and 90%-interval coverage on held-out shapes and appearances, against a train-mean baseline."""
+        _setup_logging(verbose)
+        if num_samples < 10:
+            fail("--num-samples must be >= 10")
+        if seed in (1, 2):
+            fail(f"--seed {seed} is a training/calibration seed; pick another for held-out data")
+        with user_errors_exit_2():
+            from grounder._properties import WEIGHTS_DIR, load_property_model
+            from grounder._properties_model import evaluate as run_evaluate
+
+            load_property_model(weights or WEIGHTS_DIR)  # a clear error before rendering
+            with stage_progress() as progress:
+                figures = run_evaluate(weights or WEIGHTS_DIR, num_samples=num_samples, seed=seed, progress=progress)
+        if as_json:
+            typer.echo(json.dumps(figures, indent=1))
+            return
+        typer.echo(
+            f"held-out objects: {figures['num_samples']} (seed {seed})\n"
+            f"ln density MAE {figures['density_mae_log']:.3f}   baseline {figures['baseline_density_mae_log']:.3f}\n"
+            f"friction MAE   {figures['friction_mae']:.3f}   baseline {figures['baseline_friction_mae']:.3f}\n"
+            f"90% coverage   {figures['coverage90']:.3f}\n"
+            f"material acc.  {figures['material_accuracy']:.3f}"
+        )
+
+    @group.command("sample")
+    def sample(
+        scene: Annotated[Path, typer.Argument(help="A scene folder written by `image2sim ground`.")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Output folder for variant_NNN.xml + variants.json.")],
+        n: Annotated[int, typer.Option("-n", help="Number of variants.")] = 8,
+        seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+        overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder.")] = False,
+    ) -> None:
+        """Scene variants with densities, frictions and solref drawn from the predicted distributions."""
+        if n < 1:
+            fail("-n must be >= 1")
+        with user_errors_exit_2():
+            from grounder._properties import write_scene_variants
+
+            paths = write_scene_variants(scene, out, n, seed, overwrite=overwrite)
+        typer.echo(f"wrote {len(paths)} variants to {out}")
+
+    app.add_typer(group, name="properties")
