@@ -336,8 +336,18 @@ def mesh_object(
     # the surface without it rather than failing the whole scene.
     decimated = _decimate(mesh, options.face_budget)
     candidates = [_snap_base(decimated, dense.voxel_size), decimated, _snap_base(mesh, dense.voxel_size), mesh]
-    good = [m for m in candidates if m.is_watertight and np.isfinite(m.volume) and m.volume > 0]
+    good = [m for m in candidates if _is_closed(m)]
     if not good:
+        # Rare: marching cubes can leave a non-manifold edge where two lobes of the solid touch; repair, then retry.
+        candidates = [_repaired(m) for m in candidates]
+        good = [m for m in candidates if _is_closed(m)]
+        if good:
+            log.warning("an object's surface needed repair to close (%d faces)", len(good[0].faces))
+    if not good:
+        log.warning(
+            "could not close an object's surface: %s",
+            [(len(m.faces), bool(m.is_watertight), float(m.volume)) for m in candidates],
+        )
         raise SegmentationError(
             "could not build a closed mesh for an object (degenerate surface); film it from more sides"
         )
@@ -345,6 +355,27 @@ def mesh_object(
     return WatertightMesh(
         vertices_world=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), closed_bottom=closed_bottom
     )
+
+
+def _is_closed(mesh: trimesh.Trimesh) -> bool:
+    return bool(mesh.is_watertight) and bool(np.isfinite(mesh.volume)) and float(mesh.volume) > 0
+
+
+def _repaired(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """Drops degenerate and duplicate faces, fills small holes, orients faces outwards, keeps the largest piece."""
+    import trimesh
+
+    fixed = mesh.copy()
+    fixed.merge_vertices()
+    fixed.update_faces(fixed.nondegenerate_faces())
+    fixed.update_faces(fixed.unique_faces())
+    fixed.remove_unreferenced_vertices()
+    trimesh.repair.fill_holes(fixed)
+    trimesh.repair.fix_normals(fixed)
+    fixed = _largest_component(fixed)
+    if fixed.volume < 0:
+        fixed.invert()
+    return fixed
 
 
 def _snap_base(mesh: trimesh.Trimesh, voxel_size: float) -> trimesh.Trimesh:

@@ -45,6 +45,7 @@ README_COMMANDS = [
     ["track"],
     ["properties", "train"],
     ["properties", "evaluate"],
+    ["properties", "sample"],
     ["residual", "train"],
 ]
 

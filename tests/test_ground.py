@@ -26,12 +26,8 @@ def _ground(source: Path, out: Path, *flags: str) -> subprocess.CompletedProcess
 
 
 @pytest.fixture(scope="module")
-def scene_dir(tabletop_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("ground") / "scene"
-    proc = _ground(tabletop_dir / "video.mp4", out, "--aruco-size", "0.12")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert f"MJCF: {out / 'scene.xml'}" in proc.stdout
-    return out
+def scene_dir(grounded_tabletop: Path) -> Path:
+    return grounded_tabletop
 
 
 @pytest.fixture(scope="module")
