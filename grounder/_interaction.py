@@ -5,9 +5,13 @@
 2. **Track** every grounded object through the interaction clip (`grounder._track.track`); frames where an object
    is lost or hidden are flagged and cut out: only segments in which every object is tracked become trajectories.
 3. **Calibrate** (`grounder._calibrate.calibrate`, when present) the objects' contact parameters on those tracked
-   segments only, cut into overlapping windows (open-loop rollouts from a tracked state drift; short windows keep
-   the loss informative, and give the calibration a validation split). Windows in which nothing moves carry no
-   information about friction or restitution and are dropped.
+   segments only, each rolled out open loop from its first tracked state (optionally cut into windows). First a
+   screen (`screen_parameters`) asks, per parameter, whether moving it by 20% changes its object's rollout by more
+   than tracking resolves (3 mm / 2 deg, means over the frames): an object that never slides says nothing about its
+   friction, one that lands without bouncing little about its damping ratio. Only constrained parameters are
+   calibrated; the others keep the prior and are reported as unconstrained (interval = bounds), not as a number
+   the clip never measured. Each calibrated value also gets its resolution range (`indistinguishable_range`).
+   Contact parameters are calibrated as the contact's values (the object's geoms get top priority).
 4. **Report** what was calibrated and how well the scene now matches the clip: `interaction.json` and
    `interaction.md` in the output folder.
 
@@ -55,18 +59,28 @@ class InteractionOptions:
         calibrate_params: parameters to fit (calibration's names); None: per object its sliding friction and its
             contact damping ratio (MuJoCo's restitution knob, `solref` dampratio).
         calibrate_settings: extra `CalibrateOptions` fields (e.g. {"generations": 10}).
-        window_s: length of the calibration windows cut from the tracked segments (None: whole segments).
+        window_s: length of the calibration windows cut from the tracked segments (None, the default: whole
+            segments, each rolled out from its first tracked state: a toss is best told from its start, where the
+            throw's speed meets the table; later windows start from a smoothed, noisier state).
         window_stride_s: start-to-start distance of the windows.
         min_motion_m_s: windows where no object moves faster than this are dropped.
+        identify: screen the parameters first (`screen_parameters`) and calibrate only those the clip constrains;
+            the others keep the prior (the grounded scene's value) and are reported as unconstrained.
+        identify_relative_change, identify_min_position_m, identify_min_rotation_deg: the screen's test: moving
+            the parameter by this fraction must change its body's rollout by at least this much (mean over frames).
     """
 
     ground: GroundOptions = field(default_factory=GroundOptions)
     track: TrackOptions = field(default_factory=TrackOptions)
     calibrate_params: tuple[str, ...] | None = None
     calibrate_settings: dict[str, Any] = field(default_factory=dict)
-    window_s: float | None = 1.0
+    window_s: float | None = None
     window_stride_s: float = 0.5
     min_motion_m_s: float = 0.05
+    identify: bool = True
+    identify_relative_change: float = 0.2
+    identify_min_position_m: float = 0.003
+    identify_min_rotation_deg: float = 2.0
 
     def __post_init__(self) -> None:
         if self.window_s is not None and not self.window_s > 0:
@@ -162,6 +176,95 @@ def _clip_match(scene_xml: Path, trajs: Sequence[Trajectory]) -> dict[str, dict[
     }
 
 
+def calibrate_constrained(
+    scene_xml: Path,
+    trajs: Sequence[Trajectory],
+    params: Sequence[str],
+    options: InteractionOptions,
+    *,
+    out: Path | None = None,
+    progress: ProgressFn | None = None,
+) -> dict[str, Any]:
+    """Screens `params` on `trajs` (unless `options.identify` is off) and calibrates only the constrained ones.
+
+    Returns the report's `calibration` entry: `status`; per parameter (all of `params`) `nominal`, `value`,
+    `interval`, `bounds`, `unit`, `constrained` and the screen's figures; unconstrained parameters keep the prior
+    (`value` = `nominal`, `interval` = `bounds`). Writes the calibrated scene to `out` only if something was
+    calibrated.
+    """
+    import mujoco
+
+    from grounder._calibrate import CalibrateOptions, calibrate
+    from grounder._calibrate_params import resolve_parameters
+
+    base = mujoco.MjModel.from_xml_path(str(scene_xml))
+    resolved = {p.name: p for p in resolve_parameters(base, list(params))}
+    screens: dict[str, ParameterScreen] = {}
+    if options.identify:
+        for screen in screen_parameters(
+            scene_xml,
+            trajs,
+            params,
+            relative_change=options.identify_relative_change,
+            min_position_m=options.identify_min_position_m,
+            min_rotation_deg=options.identify_min_rotation_deg,
+        ):
+            screens[screen.name] = screen
+    fit = [n for n in resolved if not options.identify or screens[n].constrained]
+    entry: dict[str, Any] = {"parameters": {}}
+    for name, p in resolved.items():
+        entry["parameters"][name] = {
+            "nominal": p.nominal,
+            "value": p.nominal,
+            "interval": [p.lower, p.upper],
+            "bounds": [p.lower, p.upper],
+            "unit": p.unit,
+            "constrained": name in fit,
+            **({"screen": screens[name].as_dict()} if name in screens else {}),
+        }
+    if not fit:
+        entry["status"] = "skipped: the clip constrains none of the parameters (prior kept)"
+        return entry
+    settings = {
+        "validation_fraction": 0.3 if len(trajs) >= 3 else 0.0,
+        "rotation_weight": 1.0,
+        **options.calibrate_settings,
+    }
+    result = calibrate(
+        scene_xml.parent if scene_xml.name == "scene.xml" else scene_xml,
+        trajs,
+        options=CalibrateOptions(params=tuple(fit), **settings),
+        out=out,
+        progress=progress,
+    )
+    values = np.array([f.value for f in result.parameters])
+    for i, fitted in enumerate(result.parameters):
+        entry["parameters"][fitted.name].update(
+            value=fitted.value,
+            interval=[fitted.interval_low, fitted.interval_high],
+            indistinguishable=indistinguishable_range(
+                scene_xml,
+                trajs,
+                [f.name for f in result.parameters],
+                values,
+                i,
+                min_position_m=options.identify_min_position_m,
+                min_rotation_deg=options.identify_min_rotation_deg,
+            ),
+        )
+    unconstrained = [n for n in resolved if n not in fit]
+    entry["status"] = "calibrated" + (
+        f"; unconstrained by the clip, prior kept: {unconstrained}" if unconstrained else ""
+    )
+    entry.update(
+        train=list(result.train_names),
+        validation=list(result.validation_names),
+        before={k: v.as_dict() for k, v in result.before.items()},
+        after={k: v.as_dict() for k, v in result.after.items()},
+    )
+    return entry
+
+
 def ground_with_interaction(
     scan: Path,
     clip: Path,
@@ -248,37 +351,19 @@ def ground_with_interaction(
         elif not fit_trajs:
             payload["calibration"] = {"status": "skipped: no tracked window shows motion"}
         else:
-            from grounder._calibrate import CalibrateOptions, calibrate
-
             save_trajectories(fit_trajs, stage / "interaction" / "windows")
             params = options.calibrate_params or default_params(names)
-            settings = {"validation_fraction": 0.3 if len(fit_trajs) >= 3 else 0.0, **options.calibrate_settings}
-            cal_options = CalibrateOptions(params=tuple(params), **settings)
             tick = time.perf_counter()
-            result = calibrate(grounded, fit_trajs, options=cal_options, out=stage / "calibrated", progress=report)
+            payload["calibration"] = calibrate_constrained(
+                grounded / "scene.xml", fit_trajs, params, options, out=stage / "calibrated", progress=report
+            )
             seconds["calibrate"] = time.perf_counter() - tick
-            calibrated = True
-            payload["calibration"] = {
-                "status": "calibrated",
-                "parameters": {
-                    p.name: {
-                        "nominal": p.nominal,
-                        "value": p.value,
-                        "interval": [p.interval_low, p.interval_high],
-                        "bounds": [p.lower, p.upper],
-                        "unit": p.unit,
-                    }
-                    for p in result.parameters
-                },
-                "train": list(result.train_names),
-                "validation": list(result.validation_names),
-                "before": {k: v.as_dict() for k, v in result.before.items()},
-                "after": {k: v.as_dict() for k, v in result.after.items()},
-            }
-            for child in (stage / "calibrated").iterdir():
-                shutil.move(str(child), stage / child.name)
-            (stage / "calibrated").rmdir()
-            payload["match_after"] = _clip_match(stage / "scene.xml", segments)
+            calibrated = (stage / "calibrated" / "scene.xml").is_file()
+            if calibrated:
+                for child in (stage / "calibrated").iterdir():
+                    shutil.move(str(child), stage / child.name)
+                (stage / "calibrated").rmdir()
+                payload["match_after"] = _clip_match(stage / "scene.xml", segments)
         if not calibrated:
             for child in grounded.iterdir():
                 if child.name != "reconstruction":
@@ -310,10 +395,12 @@ def _markdown(payload: dict[str, Any]) -> str:
     lines += ["## Calibration", "", f"Status: {payload['calibration']['status']}.", ""]
     params = payload["calibration"].get("parameters", {})
     if params:
-        lines += ["| parameter | before | after | interval |", "|---|---|---|---|"]
+        lines += ["| parameter | before | after | interval | constrained by the clip |", "|---|---|---|---|---|"]
         for name, p in params.items():
+            seen = "yes" if p.get("constrained", True) else "no: prior kept"
             lines.append(
-                f"| {name} | {p['nominal']:.4g} | {p['value']:.4g} | {p['interval'][0]:.4g} .. {p['interval'][1]:.4g} |"
+                f"| {name} | {p['nominal']:.4g} | {p['value']:.4g} | {p['interval'][0]:.4g} .. "
+                f"{p['interval'][1]:.4g} | {seen} |"
             )
         lines.append("")
     lines += [
@@ -332,3 +419,205 @@ def _markdown(payload: dict[str, Any]) -> str:
             f"{before['mean_rotation_error_deg']} | {a.get('mean_rotation_error_deg', '-')} |"
         )
     return "\n".join(lines) + "\n"
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Identifiability: which parameters the clip constrains
+
+
+@dataclass(frozen=True, kw_only=True)
+class ParameterScreen:
+    """How much one parameter's value shows in the clip.
+
+    Attributes:
+        name: the calibration parameter name (`BODY.friction.sliding`, ...).
+        body: the free body whose motion is compared (the name's first part).
+        nominal: the scene's (prior) value.
+        lower, upper: the search bounds.
+        best: the grid value whose rollout matches the tracked motion best (others at their grid best).
+        change_down, change_up: (mean position change m, mean rotation change deg) of the body's rollout when the
+            parameter moves from `best` to `best * (1 - relative_change)` / `best * (1 + relative_change)`.
+        constrained: both changes exceed the thresholds: the clip tells the parameter to within `relative_change`.
+        curve: (value, mean position error m, mean rotation error deg) against the tracked motion along the grid.
+    """
+
+    name: str
+    body: str
+    nominal: float
+    lower: float
+    upper: float
+    best: float
+    change_down: tuple[float, float]
+    change_up: tuple[float, float]
+    constrained: bool
+    curve: tuple[tuple[float, float, float], ...]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "constrained": self.constrained,
+            "grid_best": round(self.best, 5),
+            "change_down_mm_deg": [round(1e3 * self.change_down[0], 3), round(self.change_down[1], 3)],
+            "change_up_mm_deg": [round(1e3 * self.change_up[0], 3), round(self.change_up[1], 3)],
+            "curve": [[round(v, 5), round(1e3 * p, 3), round(r, 3)] for v, p, r in self.curve],
+        }
+
+
+def _body_errors(
+    model: Any, preds: Sequence[Trajectory], reals: Sequence[Trajectory], body: str | None
+) -> tuple[float, float]:
+    """Mean position error (m) and rotation error (deg) of one free body (None: the worst body) over trajectories."""
+    from grounder._simulate import free_body_errors
+
+    per: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    for pred, real in zip(preds, reals, strict=True):
+        for name, (pos, rot) in free_body_errors(model, pred, real).items():
+            per.setdefault(name, []).append((pos, rot))
+    stats = {
+        name: (
+            float(np.mean(np.concatenate([p for p, _ in errs]))),
+            float(np.rad2deg(np.mean(np.concatenate([r for _, r in errs])))),
+        )
+        for name, errs in per.items()
+    }
+    if body is not None and body in stats:
+        return stats[body]
+    return max(stats.values(), key=lambda s: s[0])
+
+
+def screen_parameters(
+    scene_xml: Path,
+    trajs: Sequence[Trajectory],
+    params: Sequence[str],
+    *,
+    relative_change: float = 0.2,
+    min_position_m: float = 0.003,
+    min_rotation_deg: float = 2.0,
+    grid_points: int = 13,
+    passes: int = 2,
+    nthread: int | None = 1,
+) -> list[ParameterScreen]:
+    """Which parameters the tracked motion constrains to within `relative_change`.
+
+    Each trajectory is rolled out open loop from its first state (as calibration does). Coordinate-wise grid search
+    (`passes` sweeps over `grid_points` values across each parameter's bounds, in its search coordinate, every other
+    parameter at its current grid best) finds where the rollouts match the tracks best; there each parameter is
+    moved by -/+ `relative_change`, and it counts as constrained only if the moved body's rollout changes by at
+    least `min_position_m` (mean over the frames) or `min_rotation_deg` in both directions: a smaller change is
+    below what tracking resolves (a parameter of an object that never slides, or never bounces, leaves no trace).
+
+    Contact parameters are applied as calibration applies them (the body's geoms get top priority), so on a scene
+    whose contacts mix parameters (MuJoCo: the larger friction, the solmix-weighted solref) the values found are the
+    contact's effective ones.
+    """
+    import mujoco
+
+    from grounder._calibrate_params import apply_to_model, resolve_parameters
+    from grounder._simulate import simulate
+
+    base = mujoco.MjModel.from_xml_path(str(scene_xml))
+    resolved = resolve_parameters(base, list(params))
+    data = mujoco.MjData(base)
+    trajs = list(trajs)
+    current = np.array([p.nominal for p in resolved], float)
+
+    def run(rows: np.ndarray) -> list[tuple[Any, list[Trajectory]]]:
+        models = [apply_to_model(base, resolved, row, data=data) for row in rows]
+        preds = simulate(models, trajs, nthread=nthread)
+        return list(zip(models, preds, strict=True))  # type: ignore[arg-type]
+
+    curves: list[list[tuple[float, float, float]]] = [[] for _ in resolved]
+    for _ in range(passes):
+        for i, p in enumerate(resolved):
+            values = [float(v) for v in p.from_unit(np.linspace(0.0, 1.0, grid_points))]
+            rows = np.repeat(current[None], len(values), axis=0)
+            rows[:, i] = values
+            body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
+            curve = []
+            for v, (model, preds) in zip(values, run(rows), strict=True):
+                pos_m, rot_deg = _body_errors(model, preds, trajs, body)
+                curve.append((v, pos_m, rot_deg))
+            score = [pos / min_position_m + rot / min_rotation_deg for _, pos, rot in curve]
+            current[i] = curve[int(np.argmin(score))][0]
+            curves[i] = curve
+    out = []
+    for i, p in enumerate(resolved):
+        best = float(current[i])
+        rows = np.repeat(current[None], 3, axis=0)
+        rows[1, i] = float(np.clip(best * (1.0 - relative_change), p.lower, p.upper))
+        rows[2, i] = float(np.clip(best * (1.0 + relative_change), p.lower, p.upper))
+        body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
+        (_, ref), (model_d, down), (model_u, up) = run(rows)
+        change_down = _body_errors(model_d, down, ref, body)
+        change_up = _body_errors(model_u, up, ref, body)
+
+        def visible(change: tuple[float, float]) -> bool:
+            return change[0] >= min_position_m or change[1] >= min_rotation_deg
+
+        # A bound hit counts as no change in that direction: the clip may not rule out the bound's far side.
+        down_ok = visible(change_down) and rows[1, i] < best
+        up_ok = visible(change_up) and rows[2, i] > best
+        out.append(
+            ParameterScreen(
+                name=p.name,
+                body=body or "",
+                nominal=p.nominal,
+                lower=p.lower,
+                upper=p.upper,
+                best=best,
+                change_down=change_down,
+                change_up=change_up,
+                constrained=bool(down_ok and up_ok),
+                curve=tuple(curves[i]),
+            )
+        )
+    return out
+
+
+def indistinguishable_range(
+    scene_xml: Path,
+    trajs: Sequence[Trajectory],
+    params: Sequence[str],
+    values: np.ndarray,
+    index: int,
+    *,
+    min_position_m: float,
+    min_rotation_deg: float,
+    max_factor: float = 2.0,
+    points: int = 41,
+    nthread: int | None = 1,
+) -> list[float]:
+    """The range of `params[index]` outside which the tracks tell a rollout from the one at `values[index]`.
+
+    The parameter is scanned over `values[index]` times [1 / max_factor, max_factor] (log spaced, within its bounds),
+    the others held at `values`; a value is distinguishable when the body's rollout moves by at least
+    `min_position_m` or `min_rotation_deg` (means over the frames) from the calibrated one. The range runs from the
+    nearest distinguishable value below to the nearest above (an outer bound of the indistinguishable values); a
+    side with none is open: the parameter's bound.
+
+    A resolution interval, not a statistical one: the Laplace interval of the calibration needs many independent
+    trajectories and a smooth loss; a single toss gives one of each object and a kinked loss.
+    """
+    import mujoco
+
+    from grounder._calibrate_params import apply_to_model, resolve_parameters
+    from grounder._simulate import simulate
+
+    base = mujoco.MjModel.from_xml_path(str(scene_xml))
+    resolved = resolve_parameters(base, list(params))
+    p = resolved[index]
+    centre = float(values[index])
+    scan = np.unique(np.clip(centre * np.geomspace(1.0 / max_factor, max_factor, points), p.lower, p.upper))
+    rows = np.repeat(np.asarray(values, float)[None], len(scan) + 1, axis=0)
+    rows[1:, index] = scan
+    data = mujoco.MjData(base)
+    models = [apply_to_model(base, resolved, row, data=data) for row in rows]
+    preds = simulate(models, list(trajs), nthread=nthread)
+    body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
+    ref = preds[0]
+    same = []
+    for model, pred in zip(models[1:], preds[1:], strict=True):
+        pos_m, rot_deg = _body_errors(model, pred, ref, body)  # type: ignore[arg-type]
+        same.append(pos_m < min_position_m and rot_deg < min_rotation_deg)
+    below = [v for v, ok in zip(scan, same, strict=True) if v < centre and not ok]
+    above = [v for v, ok in zip(scan, same, strict=True) if v > centre and not ok]
+    return [float(max(below)) if below else p.lower, float(min(above)) if above else p.upper]

@@ -1,0 +1,100 @@
+"""Identifiability screen and constrained calibration of `grounder._interaction` on a small synthetic scene.
+
+A box is thrown along a table and slides to rest (its friction shows); a second box sits still the whole time (its
+friction leaves no trace). The recorded motion is simulated with known values, so the answers are known.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from grounder._interaction import InteractionOptions, calibrate_constrained, screen_parameters
+from grounder._trajectory import Trajectory
+
+SCENE = """
+<mujoco>
+  <option timestep="0.002"/>
+  <worldbody>
+    <geom name="table" type="plane" size="2 2 0.1"/>
+    <body name="slider" pos="0 0 0.03">
+      <freejoint name="slider_free"/>
+      <geom type="box" size="0.04 0.03 0.03" density="300" friction="{slider}" priority="1"/>
+    </body>
+    <body name="still" pos="0.5 0.5 0.03">
+      <freejoint name="still_free"/>
+      <geom type="box" size="0.04 0.03 0.03" density="300" friction="{still}" priority="1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+TRUE_FRICTION = 0.4
+PARAMS = ("slider.friction.sliding", "still.friction.sliding")
+
+
+def _scene(folder: Path, slider: float, still: float) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    xml = folder / "scene.xml"
+    xml.write_text(SCENE.format(slider=slider, still=still))
+    return xml
+
+
+def _recorded(tmp_path: Path) -> Trajectory:
+    model = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
+    data = mujoco.MjData(model)
+    data.qvel[0] = 1.5  # thrown along +x
+    mujoco.mj_forward(model, data)
+    time_s, qpos, qvel = [], [], []
+    steps_per_frame = round((1 / 30) / model.opt.timestep)
+    for _ in range(24):  # 0.8 s at 30 fps: slides ~0.29 m and stops
+        time_s.append(data.time)
+        qpos.append(data.qpos.copy())
+        qvel.append(data.qvel.copy())
+        for _ in range(steps_per_frame):
+            mujoco.mj_step(model, data)
+    return Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=np.array(qvel), name="toss_00")
+
+
+def test_screen_flags_only_the_parameter_the_motion_shows(tmp_path: Path) -> None:
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    screens = {s.name: s for s in screen_parameters(xml, [traj], PARAMS, grid_points=9, passes=1)}
+    assert screens["slider.friction.sliding"].constrained
+    assert screens["slider.friction.sliding"].best == pytest.approx(TRUE_FRICTION, rel=0.35)  # a coarse grid
+    pos_m, rot_deg = screens["slider.friction.sliding"].change_down
+    assert pos_m > 0.003 or rot_deg > 2.0
+    assert not screens["still.friction.sliding"].constrained
+    assert screens["still.friction.sliding"].change_up[0] < 1e-4  # resting: friction changes (next to) nothing
+
+
+def test_calibrate_constrained_fits_the_shown_parameter_and_keeps_the_prior_of_the_other(tmp_path: Path) -> None:
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    entry = calibrate_constrained(
+        xml,
+        [traj],
+        PARAMS,
+        InteractionOptions(calibrate_settings={"generations": 4, "popsize": 5, "local_iterations": 5}),
+        out=tmp_path / "calibrated",
+    )
+    slider, still = entry["parameters"]["slider.friction.sliding"], entry["parameters"]["still.friction.sliding"]
+    assert entry["status"].startswith("calibrated")
+    assert slider["constrained"] and slider["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+    low, high = slider["indistinguishable"]
+    assert low < TRUE_FRICTION < high and high / low < 1.6
+    assert not still["constrained"]
+    assert still["value"] == 0.8 and still["interval"] == still["bounds"]
+    assert (tmp_path / "calibrated" / "scene.xml").is_file()
+
+
+def test_nothing_constrained_calibrates_nothing(tmp_path: Path) -> None:
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    entry = calibrate_constrained(
+        xml, [traj], ("still.friction.sliding",), InteractionOptions(), out=tmp_path / "calibrated"
+    )
+    assert entry["status"].startswith("skipped")
+    assert not (tmp_path / "calibrated").exists()
