@@ -18,14 +18,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+from scipy.optimize import linprog
+from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 from scene_export._mesh import as_mesh_arrays, mesh_sha256, solid_trimesh
 from scene_export.errors import DecompositionError, InvalidSceneSpecError
 
 log = logging.getLogger(__name__)
 
-_CACHE_FORMAT = 1  # bump when the cached content or its meaning changes
+_CACHE_FORMAT = 2  # bump when the cached content or its meaning changes (2: pieces clipped to the mesh's hull)
 
 
 def default_cache_dir() -> Path:
@@ -190,6 +191,11 @@ def convex_decomposition(
             return CollisionGeometry(hulls=cached, method="cache", seconds=time.perf_counter() - start, mesh_sha256=sha)
 
     parts = _run_coacd(mesh.vertices, mesh.faces, options)
+    # CoACD remeshes its input first, so its pieces can stick out of the mesh by up to a voxel (0.7 mm below the
+    # flat base of an object seen here): a scene placed by its mesh then starts in the table and pops off it.
+    # Every piece of the mesh lies inside the mesh's convex hull, so clip each to that.
+    hull_planes = ConvexHull(mesh.vertices).equations
+    parts = [clipped for clipped in (_clip_to_halfspaces(p, hull_planes) for p in parts) if clipped is not None]
     hulls = _finish_hulls(parts, options)
     if cache_path is not None:
         _save_cache(cache_path, hulls)
@@ -239,6 +245,37 @@ def _hull_vertices(points: np.ndarray) -> np.ndarray | None:
     if hull.volume <= 1e-15:
         return None
     return np.ascontiguousarray(points[hull.vertices], dtype=np.float64)
+
+
+def _clip_to_halfspaces(points: np.ndarray, planes: np.ndarray) -> np.ndarray | None:
+    """Vertices of conv(points) ∩ {x: planes[:, :3] @ x + planes[:, 3] <= 0}, or None when that has no volume.
+
+    Args:
+        points: (K, 3) points whose convex hull is clipped.
+        planes: (P, 4) outward half-space equations (scipy's `ConvexHull.equations`).
+    """
+    hull_vertices = _hull_vertices(points)
+    if hull_vertices is None:
+        return None
+    if np.all(hull_vertices @ planes[:, :3].T + planes[:, 3] <= 1e-12):
+        return hull_vertices  # already inside: the common case
+    halfspaces = np.concatenate([ConvexHull(hull_vertices).equations, planes])
+    # An interior point: the centre of the largest ball inside every half-space (Chebyshev centre, a small LP).
+    norms = np.linalg.norm(halfspaces[:, :3], axis=1, keepdims=True)
+    result = linprog(
+        c=[0.0, 0.0, 0.0, -1.0],
+        A_ub=np.hstack([halfspaces[:, :3], norms]),
+        b_ub=-halfspaces[:, 3],
+        bounds=[(None, None)] * 3 + [(0.0, None)],
+        method="highs",
+    )
+    if not result.success or result.x[3] <= 1e-7:  # empty or thinner than 0.2 micrometres
+        return None
+    try:
+        clipped = HalfspaceIntersection(halfspaces, result.x[:3]).intersections
+    except QhullError:
+        return None
+    return _hull_vertices(clipped)
 
 
 def _farthest_point_subset(points: np.ndarray, count: int) -> np.ndarray:

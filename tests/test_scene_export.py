@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial import ConvexHull
 
 from reconstruction._types import CameraIntrinsics, TexturedMesh
 from scene_export import (
@@ -38,7 +39,7 @@ from scene_export import (
     settle_test,
     write_preview,
 )
-from scene_export._collision import _finish_hulls, _load_cache
+from scene_export._collision import _clip_to_halfspaces, _finish_hulls, _load_cache
 
 TEXTURES = {"box": "cardboard.png", "can": "label.png", "bowl": "ceramic.png"}
 VIDEO_FRAME = 10
@@ -233,6 +234,30 @@ def test_hull_limits_are_enforced_after_coacd() -> None:
     for hull in hulls:
         inside |= Delaunay(hull).find_simplex(all_points, tol=1e-9) >= 0
     assert inside.all()
+
+
+def test_clip_to_halfspaces_is_the_exact_intersection() -> None:
+    """A 2 cm cube centred at the origin clipped by z <= 0.005 and x + y <= 0: known volume and vertices."""
+    cube = np.asarray(trimesh.creation.box(extents=(0.02, 0.02, 0.02)).vertices)
+    planes = np.array([[0.0, 0.0, 1.0, -0.005], [np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0]])
+    clipped = _clip_to_halfspaces(cube, planes)
+    assert clipped is not None
+    assert ConvexHull(clipped).volume == pytest.approx(0.02 * 0.02 / 2 * 0.015, rel=1e-9)
+    assert clipped[:, 2].max() == pytest.approx(0.005) and (clipped[:, 0] + clipped[:, 1]).max() < 1e-12
+    assert _clip_to_halfspaces(cube, np.array([[0.0, 0.0, 1.0, 0.02]])) is None  # z <= -0.02: nothing left
+    np.testing.assert_array_equal(_clip_to_halfspaces(cube, np.array([[0.0, 0.0, 1.0, -1.0]])), cube)
+
+
+def test_coacd_pieces_stay_inside_the_mesh_hull(
+    collisions: dict[str, CollisionGeometry], truth: dict[str, Any]
+) -> None:
+    """CoACD remeshes its input, so its raw pieces stick out of the mesh (below a flat base they would start the
+    object inside the table); the pieces kept are clipped to the mesh's convex hull."""
+    bowl = truth["objects"]["bowl"]["visual"]
+    planes = ConvexHull(bowl.vertices_m).equations
+    for hull in collisions["bowl"].hulls:
+        assert (hull @ planes[:, :3].T + planes[:, 3]).max() < 1e-9
+    assert min(h[:, 2].min() for h in collisions["bowl"].hulls) >= bowl.vertices_m[:, 2].min() - 1e-9
 
 
 # ---------------------------------------------------------------- the exported scene
