@@ -39,9 +39,11 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import mujoco
 import numpy as np
@@ -350,34 +352,6 @@ def correction_targets(
 # --- gate and network, numpy evaluation ------------------------------------------------------------------------
 
 
-def _smoothstep1(x: float) -> float:
-    x = min(max(x, 0.0), 1.0)
-    return x * x * (3.0 - 2.0 * x)
-
-
-def _rotate(rows: tuple[float, ...], x: float, y: float, z: float) -> tuple[float, float, float]:
-    return (
-        rows[0] * x + rows[1] * y + rows[2] * z,
-        rows[3] * x + rows[4] * y + rows[5] * z,
-        rows[6] * x + rows[7] * y + rows[8] * z,
-    )
-
-
-def _energy_py(
-    mass: float,
-    inertia: list[list[float]],
-    gravity: tuple[float, float, float],
-    p3: list[float],
-    v3: list[float],
-    w3: list[float],
-) -> float:
-    iw = [inertia[k][0] * w3[0] + inertia[k][1] * w3[1] + inertia[k][2] * w3[2] for k in range(3)]
-    kinetic = 0.5 * mass * (v3[0] ** 2 + v3[1] ** 2 + v3[2] ** 2) + 0.5 * (
-        w3[0] * iw[0] + w3[1] * iw[1] + w3[2] * iw[2]
-    )
-    return kinetic - mass * (p3[0] * gravity[0] + p3[1] * gravity[1] + p3[2] * gravity[2])
-
-
 def smoothstep(x: np.ndarray) -> np.ndarray:
     """0 for x <= 0, 1 for x >= 1, C1 in between (3x^2 - 2x^3)."""
     x = np.clip(x, 0.0, 1.0)
@@ -495,6 +469,44 @@ class ResidualMeta:
             raise GrounderError(f"{where}: malformed residual metadata ({type(exc).__name__}: {exc})") from exc
 
 
+class _FastBody(NamedTuple):
+    """Per-body constants and scratch buffers of :meth:`NumpyResidual.correct_one`."""
+
+    qpos_adr: int
+    dof_adr: int
+    radius_m: float
+    gain: float
+    box: tuple[float, ...] | None  # (lo xyz, hi xyz) when the collision points are the corners of such a box
+    points: tuple[tuple[float, ...], ...] | None  # collision points as floats (None: many, use points_array)
+    points_array: np.ndarray
+    range_lo: tuple[float, ...]  # per feature
+    range_hi: tuple[float, ...]
+    inv_margin: tuple[float, ...]
+    feats_bytes: bytearray  # the memory of feats, written with pack_feats (faster than assigning a tuple)
+    pack_feats: Callable[..., None]
+    feats: np.ndarray  # (F + 1,) raw features and a trailing 1
+    first: np.ndarray  # (H + F, F + 1): [f, 1] -> first layer pre-activations, z
+    pre: np.ndarray  # (H + F,) first @ [f, 1], a view of a buffer with a trailing 1
+    pre_hidden: np.ndarray  # views of that buffer: [:H]
+    pre_z: np.ndarray  # z, [H : H + F]
+    z_one: np.ndarray  # [z, 1], [H:]
+    centre_rows: np.ndarray  # (K, F + 1): [z, 1] -> -2 z.c + |c|^2 per coverage centre c
+    centre_terms: np.ndarray  # (K,) centre_rows @ [z, 1]
+    centre_list: tuple[tuple[float, ...], ...]  # the centres as floats
+    nearest_hint: list[int]  # the centre nearest to the last state seen (a hint for speed, never changes results)
+    act_first: np.ndarray  # view of the first hidden activations (without their trailing 1)
+    mids: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]  # (weights | bias, input, output view)
+    act_last: np.ndarray  # last hidden activations with a trailing 1
+    last: np.ndarray  # (12, H + 1) output layer (weights | bias) times scale / bound
+    out: np.ndarray  # (12,)
+    out_bound: np.ndarray  # (12,)
+    coverage_dist: float
+    half_mass: float
+    mass: float
+    half_inertia: tuple[float, ...]  # 0.5 * inertia_body, row-major
+    diagonal_inertia: bool  # its off-diagonal entries are all 0
+
+
 class NumpyResidual:
     """The residual evaluated with numpy from a ``state_dict``: features (N, B, 11) -> gated correction (N, B, 12).
 
@@ -530,27 +542,88 @@ class NumpyResidual:
         self._scale_over_bound = self.out_scale / self.out_bound
         self._inv_std = 1.0 / self.feat_std
         self._inv_margin = 1.0 / self._margin
-        # plain-Python copies for correct_one
-        self._lo_list = self.range_lo.tolist()
-        self._hi_list = self.range_hi.tolist()
-        self._inv_margin_list = self._inv_margin.tolist()
-        self._coverage_list = self.coverage_dist.tolist()
-        self._inertia_list = [b.inertia_body.tolist() for b in bodies]
-        self._gravity_list = self.gravity.tolist()
-        self._points_list = [b.points_body_m.tolist() if len(b.points_body_m) <= 16 else None for b in bodies]
-        # correct_one folds the standardisation into one stacked matrix: first-layer pre-activations and the
-        # distances to the coverage centres come from a single matrix-vector product with the raw features.
-        hidden = self.layers[0][0][0].shape[1]
-        self._hidden = hidden
-        self._stacked, self._bias1, self._centre_const = [], [], []
-        for b in range(num_b):
-            w1, b1 = self.layers[b][0]  # (F, H), (H,)
-            mean, inv_std = self.feat_mean[b], self._inv_std[b]
-            centres_raw = mean + self.feat_std[b] * self.centres[b]  # (K, F)
-            self._stacked.append(np.concatenate([(w1 * inv_std[:, None]).T, centres_raw * inv_std**2]))
-            self._bias1.append(b1 - (mean * inv_std) @ w1)
-            self._centre_const.append(np.sum((centres_raw * inv_std) ** 2, axis=1))
-        self._inv_std_sq = self._inv_std**2
+        g = meta.gate
+        gx, gy, gz = self.gravity.tolist()
+        self._fast_constants = (
+            g.rest_speed_m_s[0],
+            g.rest_speed_m_s[1] - g.rest_speed_m_s[0],
+            g.air_clearance_m[0],
+            g.air_clearance_m[1] - g.air_clearance_m[0],
+            g.energy_restore_fraction,
+            gx,
+            gy,
+            gz,
+        )
+        self._fast = [self._fast_body(b) for b in range(num_b)]
+
+    def _fast_body(self, b: int) -> _FastBody:
+        """Constants and scratch buffers of :meth:`correct_one` for body ``b`` (see there)."""
+        body, layers = self.bodies[b], self.layers[b]
+        w1, b1 = layers[0]  # (F, H), (H,)
+        hidden, centres = w1.shape[1], self.centres[b]  # centres (K, F), standardised
+        # One matrix-vector product with the raw features and a trailing 1, [f, 1], gives the first layer's
+        # pre-activations and the standardised features z (both linear in [f, 1] as z = (f - mean) / std); a
+        # second one with [z, 1], only when needed, gives per coverage centre c the -2 z.c + |c|^2 of
+        # |z - c|^2 = |z|^2 - 2 z.c + |c|^2 (the terms of :meth:`gate`).
+        inv_std = self._inv_std[b]
+        standardise = np.column_stack([np.diag(inv_std), -self.feat_mean[b] * inv_std])  # (F, F + 1)
+        first = np.concatenate(
+            [w1.T @ standardise + np.eye(1, NUM_FEATURES + 1, NUM_FEATURES) * b1[:, None], standardise]
+        )
+        pre_buffer = np.ones(len(first) + 1)  # first @ [f, 1], then a 1
+        centre_rows = np.ascontiguousarray(np.column_stack([-2.0 * centres, self._centre_sq[b]]))
+        # hidden activations with a trailing 1 so that every bias is a column of the next matrix
+        acts = [np.ones(w.shape[1] + 1) for w, _ in layers[:-1]]
+        mids = tuple(
+            (np.ascontiguousarray(np.column_stack([w.T, bias])), acts[i], acts[i + 1][:-1])
+            for i, (w, bias) in enumerate(layers[1:-1])
+        )
+        w_out, b_out = layers[-1]
+        last = np.ascontiguousarray(np.column_stack([w_out.T, b_out]) * self._scale_over_bound[b][:, None])
+        inertia = 0.5 * body.inertia_body
+        points_m = body.points_body_m
+        points = tuple(map(tuple, points_m.tolist())) if len(points_m) <= 16 else None
+        lo_m, hi_m = points_m.min(axis=0), points_m.max(axis=0)
+        is_box = len(points_m) == 8 and len({tuple(p) for p in points_m.tolist()}) == 8
+        is_box = is_box and bool(np.all((points_m == lo_m) | (points_m == hi_m)))
+        feats_bytes = bytearray(8 * (NUM_FEATURES + 1))
+        feats = np.frombuffer(feats_bytes, dtype=np.float64)
+        feats[NUM_FEATURES] = 1.0
+        return _FastBody(
+            qpos_adr=body.qpos_adr,
+            dof_adr=body.dof_adr,
+            radius_m=body.radius_m,
+            gain=float(self.out_gain[b]),
+            box=tuple(lo_m.tolist() + hi_m.tolist()) if is_box else None,
+            points=points,
+            points_array=points_m,
+            range_lo=tuple(self.range_lo[b].tolist()),
+            range_hi=tuple(self.range_hi[b].tolist()),
+            inv_margin=tuple(self._inv_margin[b].tolist()),
+            feats_bytes=feats_bytes,
+            pack_feats=struct.Struct(f"{NUM_FEATURES}d").pack_into,
+            feats=feats,
+            first=first,
+            pre=pre_buffer[:-1],
+            pre_hidden=pre_buffer[:hidden],
+            pre_z=pre_buffer[hidden:-1],
+            z_one=pre_buffer[hidden:],
+            centre_rows=centre_rows,
+            centre_terms=np.empty(len(centres)),
+            centre_list=tuple(map(tuple, centres.tolist())),
+            nearest_hint=[0],
+            act_first=acts[0][:-1],
+            mids=mids,
+            act_last=acts[-1],
+            last=last,
+            out=np.empty(NUM_OUTPUTS),
+            out_bound=np.ascontiguousarray(self.out_bound[b], dtype=np.float64),
+            coverage_dist=float(self.coverage_dist[b]),
+            half_mass=0.5 * body.mass_kg,
+            mass=body.mass_kg,
+            half_inertia=tuple(inertia.ravel().tolist()),
+            diagonal_inertia=bool(np.all(inertia == np.diag(np.diag(inertia)))),
+        )
 
     def gate(self, feats: np.ndarray) -> np.ndarray:
         """(N, B, F) raw features -> (N, B) gate in [0, 1] (the output gain not included)."""
@@ -589,70 +662,178 @@ class NumpyResidual:
     ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`correct` for one state ((nq,), (nv,)), written for speed: ``qpos``/``qvel`` are modified in place.
 
-        A single simulation steps MuJoCo in microseconds, where numpy's per-call overhead on 3-vectors would
-        dominate: the 3-vector algebra is plain Python floats, numpy is used for the MLP and the coverage check.
-        Same arithmetic as :meth:`correct` (checked by the tests).
+        ``qpos0``/``qvel0`` (the period's starting state) may also be lists of floats.
         """
-        g = self.meta.gate
-        rest_lo, rest_span = g.rest_speed_m_s[0], g.rest_speed_m_s[1] - g.rest_speed_m_s[0]
-        air_lo, air_span = g.air_clearance_m[0], g.air_clearance_m[1] - g.air_clearance_m[0]
-        gx, gy, gz = self._gravity_list
-        for b, body in enumerate(self.bodies):
-            p, d = body.qpos_adr, body.dof_adr
-            px, py, pz, qw, qx, qy, qz = qpos0[p : p + 7].tolist()
-            vx, vy, vz, wx, wy, wz = qvel0[d : d + 6].tolist()
-            # rotation matrix rows (body -> world)
+        qpos_list, qvel_list = qpos.tolist(), qvel.tolist()
+        self.correct_lists(
+            qpos0.tolist() if isinstance(qpos0, np.ndarray) else list(qpos0),
+            qvel0.tolist() if isinstance(qvel0, np.ndarray) else list(qvel0),
+            qpos_list,
+            qvel_list,
+        )
+        qpos[:], qvel[:] = qpos_list, qvel_list
+        return qpos, qvel
+
+    def correct_lists(self, qpos0: list[float], qvel0: list[float], qpos: list[float], qvel: list[float]) -> None:
+        """:meth:`correct_one` on lists of floats (``ndarray.tolist()``): ``qpos``/``qvel`` are modified in place.
+
+        A single simulation steps MuJoCo in microseconds, where numpy's per-call overhead on 3-vectors would
+        dominate, so: the 3-vector algebra (features, at-rest gate, range check, energy cap, applying the
+        correction) is plain Python floats; numpy does one matrix-vector product per layer into preallocated
+        buffers, the first of which also gives the distances to all coverage centres. The network is not
+        evaluated at all when the gate is already exactly 0 (at rest, outside the feature ranges, or far from the
+        training states): the correction is then exactly zero, as in :meth:`correct` (which still renormalises
+        the quaternion, a change of about 1e-16; here the state is left exactly as MuJoCo made it). Same function
+        as :meth:`correct` up to rounding (the tests check it); the model-specific constants (weights with the
+        standardisation and biases folded in, the collision box, inertia) are set up once, in :meth:`_fast_body`.
+        The scratch buffers are shared, so one residual must not be used from several threads at once (as one
+        :class:`grounder.Simulator` must not).
+        """
+        rest_lo, rest_span, air_lo, air_span, fraction, gx, gy, gz = self._fast_constants
+        tanh, dot = np.tanh, np.dot
+        for (
+            p,
+            d,
+            radius_m,
+            gain,
+            box,
+            points,
+            points_array,
+            range_lo,
+            range_hi,
+            inv_margin,
+            feats_bytes,
+            pack_feats,
+            feats_buf,
+            first,
+            pre,
+            pre_hidden,
+            pre_z,
+            z_one,
+            centre_rows,
+            centre_terms,
+            centre_list,
+            nearest_hint,
+            act_first,
+            mids,
+            act_last,
+            last,
+            out,
+            out_bound,
+            coverage_dist,
+            hm,
+            mass,
+            half_inertia,
+            diagonal,
+        ) in self._fast:  # all fields of _FastBody, in order
+            px, py, pz, qw, qx, qy, qz = qpos0[p : p + 7]
+            vx, vy, vz, wx, wy, wz = qvel0[d : d + 6]
+            # rotation matrix (body -> world)
             r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
             r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
             r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
-            ubx, uby, ubz = r20, r21, r22
-            vbx = r00 * vx + r10 * vy + r20 * vz
-            vby = r01 * vx + r11 * vy + r21 * vz
-            vbz = r02 * vx + r12 * vy + r22 * vz
-            points = self._points_list[b]
-            if points is None:
-                clearance = pz + float((body.points_body_m @ np.array((ubx, uby, ubz))).min())
+            if box is not None:  # the lowest corner of a box: per axis the lower of its two faces
+                lx, ly, lz, hx, hy, hz = box
+                clearance = pz + (
+                    (lx if r20 > 0.0 else hx) * r20 + (ly if r21 > 0.0 else hy) * r21 + (lz if r22 > 0.0 else hz) * r22
+                )
+            elif points is not None:
+                clearance = pz + min([bx * r20 + by * r21 + bz * r22 for bx, by, bz in points])
             else:
-                clearance = pz + min(x * ubx + y * uby + zz * ubz for x, y, zz in points)
-            speed = math.sqrt(vx * vx + vy * vy + vz * vz) + body.radius_m * math.sqrt(wx * wx + wy * wy + wz * wz)
-            moving = _smoothstep1((speed - rest_lo) / rest_span)
-            flying = _smoothstep1((clearance - air_lo) / air_span)
-            gate = (1.0 - (1.0 - moving) * (1.0 - flying)) * float(self.out_gain[b])
+                clearance = pz + float((points_array @ np.array((r20, r21, r22))).min())
+            # at-rest gate: exactly 0 for a slow body near the support
+            moving = (
+                math.sqrt(vx * vx + vy * vy + vz * vz) + radius_m * math.sqrt(wx * wx + wy * wy + wz * wz) - rest_lo
+            ) / rest_span
+            moving = 0.0 if moving <= 0.0 else 1.0 if moving >= 1.0 else moving * moving * (3.0 - 2.0 * moving)
+            flying = (clearance - air_lo) / air_span
+            flying = 0.0 if flying <= 0.0 else 1.0 if flying >= 1.0 else flying * flying * (3.0 - 2.0 * flying)
+            gate = (1.0 - (1.0 - moving) * (1.0 - flying)) * gain
             if gate == 0.0:  # at rest (or switched off): exactly no correction
                 continue
-            feats = (clearance, pz, ubx, uby, ubz, vbx, vby, vbz, wx, wy, wz)
-            for f, lo, hi, inv in zip(feats, self._lo_list[b], self._hi_list[b], self._inv_margin_list[b], strict=True):
-                if f < lo:
-                    gate *= 1.0 - _smoothstep1((lo - f) * inv)
-                elif f > hi:
-                    gate *= 1.0 - _smoothstep1((f - hi) * inv)
-            f = np.array(feats)
-            y = self._stacked[b] @ f
-            d2 = float((self._centre_const[b] - 2.0 * y[self._hidden :]).min() + (f * f) @ self._inv_std_sq[b])
-            gate *= 1.0 - _smoothstep1(math.sqrt(max(d2, 0.0)) / self._coverage_list[b] - 1.0)
+            feats = (
+                clearance,
+                pz,
+                r20,
+                r21,
+                r22,
+                r00 * vx + r10 * vy + r20 * vz,
+                r01 * vx + r11 * vy + r21 * vz,
+                r02 * vx + r12 * vy + r22 * vz,
+                wx,
+                wy,
+                wz,
+            )
+            # feature ranges, and the standardised features
+            for f, lo, hi, inv in zip(feats, range_lo, range_hi, inv_margin, strict=True):
+                if f < lo or f > hi:
+                    x = ((lo - f) if f < lo else (f - hi)) * inv
+                    gate *= 0.0 if x >= 1.0 else 1.0 - x * x * (3.0 - 2.0 * x)
             if gate == 0.0:
                 continue
-            layers = self.layers[b]
-            h = np.tanh(y[: self._hidden] + self._bias1[b])
-            for weight, bias in layers[1:-1]:
-                h = np.tanh(h @ weight + bias)
-            u = h @ layers[-1][0] + layers[-1][1]
-            c = ((gate * self.out_bound[b]) * np.tanh(u * self._scale_over_bound[b])).tolist()
-            mass, inertia = body.mass_kg, self._inertia_list[b]
+            pack_feats(feats_bytes, 0, *feats)
+            dot(first, feats_buf, out=pre)
+            # Distance to the nearest coverage centre. The gate only needs it beyond coverage_dist, so when the
+            # centre nearest to the last state is within that, no other is needed: the factor is exactly 1.
+            z = pre_z.tolist()
+            x = math.dist(z, centre_list[nearest_hint[0]]) / coverage_dist - 1.0
+            if x > 0.0:
+                dot(centre_rows, z_one, out=centre_terms)  # -2 z.c + |c|^2, the same order as |z - c|^2
+                nearest = int(centre_terms.argmin())
+                nearest_hint[0] = nearest
+                x = math.dist(z, centre_list[nearest]) / coverage_dist - 1.0
+            if x > 0.0:
+                gate *= 0.0 if x >= 1.0 else 1.0 - x * x * (3.0 - 2.0 * x)
+                if gate == 0.0:
+                    continue
+            tanh(pre_hidden, out=act_first)
+            for weights, act_in, act_out in mids:
+                tanh(dot(weights, act_in), out=act_out)
+            tanh(dot(last, act_last), out=out)
+            c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11 = (out * out_bound).tolist()
 
-            grav = (gx, gy, gz)
-            e_start = _energy_py(mass, inertia, grav, [px, py, pz], [vx, vy, vz], [wx, wy, wz])
-            sx, sy, sz, sw, sqx, sqy, sqz = qpos[p : p + 7].tolist()
-            svx, svy, svz, swx, swy, swz = qvel[d : d + 6].tolist()
-            e_sim = _energy_py(mass, inertia, grav, [sx, sy, sz], [svx, svy, svz], [swx, swy, swz])
-
-            rows = (r00, r01, r02, r10, r11, r12, r20, r21, r22)
-            dpx, dpy, dpz = _rotate(rows, c[0], c[1], c[2])
-            ax, ay, az = _rotate(rows, c[3], c[4], c[5])
-            dvx, dvy, dvz = _rotate(rows, c[6], c[7], c[8])
-            pos = [sx + dpx, sy + dpy, sz + dpz]
-            vel = [svx + dvx, svy + dvy, svz + dvz]
-            omg = [swx + c[9], swy + c[10], swz + c[11]]
+            i00, i01, i02, i10, i11, i12, i20, i21, i22 = half_inertia
+            e_start = (
+                hm * (vx * vx + vy * vy + vz * vz)
+                + (
+                    (i00 * wx * wx + i11 * wy * wy + i22 * wz * wz)
+                    if diagonal
+                    else (
+                        wx * (i00 * wx + i01 * wy + i02 * wz)
+                        + wy * (i10 * wx + i11 * wy + i12 * wz)
+                        + wz * (i20 * wx + i21 * wy + i22 * wz)
+                    )
+                )
+                - mass * (px * gx + py * gy + pz * gz)
+            )
+            sx, sy, sz, sw, sqx, sqy, sqz = qpos[p : p + 7]
+            vx, vy, vz, wx, wy, wz = qvel[d : d + 6]
+            e_sim = (
+                hm * (vx * vx + vy * vy + vz * vz)
+                + (
+                    (i00 * wx * wx + i11 * wy * wy + i22 * wz * wz)
+                    if diagonal
+                    else (
+                        wx * (i00 * wx + i01 * wy + i02 * wz)
+                        + wy * (i10 * wx + i11 * wy + i12 * wz)
+                        + wz * (i20 * wx + i21 * wy + i22 * wz)
+                    )
+                )
+                - mass * (sx * gx + sy * gy + sz * gz)
+            )
+            # the gated correction, rotated to the world by the starting orientation
+            sx += gate * (r00 * c0 + r01 * c1 + r02 * c2)
+            sy += gate * (r10 * c0 + r11 * c1 + r12 * c2)
+            sz += gate * (r20 * c0 + r21 * c1 + r22 * c2)
+            ax = gate * (r00 * c3 + r01 * c4 + r02 * c5)
+            ay = gate * (r10 * c3 + r11 * c4 + r12 * c5)
+            az = gate * (r20 * c3 + r21 * c4 + r22 * c5)
+            vx += gate * (r00 * c6 + r01 * c7 + r02 * c8)
+            vy += gate * (r10 * c6 + r11 * c7 + r12 * c8)
+            vz += gate * (r20 * c6 + r21 * c7 + r22 * c8)
+            wx += gate * c9
+            wy += gate * c10
+            wz += gate * c11
             angle = math.sqrt(ax * ax + ay * ay + az * az)
             half_sin = 0.5 - angle * angle / 48.0 if angle < 1e-6 else math.sin(0.5 * angle) / angle
             dw, dx, dy, dz = math.cos(0.5 * angle), ax * half_sin, ay * half_sin, az * half_sin
@@ -661,16 +842,23 @@ class NumpyResidual:
             ny = dw * sqy - dx * sqz + dy * sw + dz * sqx
             nz = dw * sqz + dx * sqy - dy * sqx + dz * sw
             norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-            fraction = g.energy_restore_fraction
+            # energy cap (see cap_energy)
             cap = max(e_sim, min(e_start, e_sim + fraction * max(e_start - e_sim, 0.0)))
-            e_new = _energy_py(mass, inertia, grav, pos, vel, omg)
-            if e_new > cap + 1e-12:
-                potential = -mass * (pos[0] * gx + pos[1] * gy + pos[2] * gz)
-                k = math.sqrt(max(cap - potential, 0.0) / max(e_new - potential, 1e-300))
-                vel, omg = [k * x for x in vel], [k * x for x in omg]
-            qpos[p : p + 7] = (*pos, nw / norm, nx / norm, ny / norm, nz / norm)
-            qvel[d : d + 6] = (*vel, *omg)
-        return qpos, qvel
+            potential = -mass * (sx * gx + sy * gy + sz * gz)
+            kinetic = hm * (vx * vx + vy * vy + vz * vz) + (
+                (i00 * wx * wx + i11 * wy * wy + i22 * wz * wz)
+                if diagonal
+                else (
+                    wx * (i00 * wx + i01 * wy + i02 * wz)
+                    + wy * (i10 * wx + i11 * wy + i12 * wz)
+                    + wz * (i20 * wx + i21 * wy + i22 * wz)
+                )
+            )
+            if kinetic + potential > cap + 1e-12:
+                k = math.sqrt(max(cap - potential, 0.0) / max(kinetic, 1e-300))
+                vx, vy, vz, wx, wy, wz = k * vx, k * vy, k * vz, k * wx, k * wy, k * wz
+            qpos[p : p + 7] = (sx, sy, sz, nw / norm, nx / norm, ny / norm, nz / norm)
+            qvel[d : d + 6] = (vx, vy, vz, wx, wy, wz)
 
     def correct(
         self, qpos0: np.ndarray, qvel0: np.ndarray, qpos_sim: np.ndarray, qvel_sim: np.ndarray

@@ -115,13 +115,18 @@ class Simulator:
         if m.nu:
             d.ctrl[:] = 0.0 if ctrl is None else ctrl
         residual = self.residual
-        if residual is not None:
-            q0, v0 = d.qpos.copy(), d.qvel.copy()
+        if residual is None:
+            for _ in range(self.period_steps):
+                mujoco.mj_step(m, d)
+            return d.qpos.copy(), d.qvel.copy()
+        q0, v0 = d.qpos.tolist(), d.qvel.tolist()
         for _ in range(self.period_steps):
             mujoco.mj_step(m, d)
-        if residual is not None:
-            residual.correct_one(q0, v0, d.qpos, d.qvel)  # in place, so the next call starts from it
-        return d.qpos.copy(), d.qvel.copy()
+        # corrected on lists of floats (faster than numpy for a few numbers); the next call sets _data's state
+        # from its arguments, so _data keeps MuJoCo's own (what carries over, warm starts, is the same either way)
+        q1, v1 = d.qpos.tolist(), d.qvel.tolist()
+        residual.correct_lists(q0, v0, q1, v1)
+        return np.array(q1), np.array(v1)
 
     # --- batches -------------------------------------------------------------------------------------------------
 

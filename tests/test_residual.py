@@ -312,3 +312,40 @@ def test_cli_train(nominal_scene: Path, tmp_path: Path) -> None:
     result = runner.invoke(app, ["residual", "train", str(tmp_path / "none"), str(traj_dir), "-o", str(tmp_path / "x")])
     assert result.exit_code == 2
     assert "scene.xml" in result.output
+
+
+def test_fast_single_state_path_equals_reference(trained: Path) -> None:
+    """``correct_one`` (plain-Python floats, fused numpy, skips the network where the gate is 0) is the same
+    function as the vectorised ``correct``: in flight, at rest, near and outside the training ranges, and for
+    every way it finds the lowest collision point."""
+    residual = Simulator(trained).residual
+    assert residual is not None
+    plain = Simulator(trained, use_residual=False)
+    tosses = _tosses(6, seed=11, fluid_density=DRAG_DENSITY)
+    q0 = np.concatenate([t.qpos for t in tosses])
+    v0 = np.concatenate([t.qvel for t in tosses])
+    rng = np.random.default_rng(12)
+    # at rest on the floor (slow, and just below the rest threshold), and partly or far outside training
+    rest_q = np.tile([0.1, -0.2, HALF_M, 1.0, 0.0, 0.0, 0.0], (8, 1))
+    rest_v = np.zeros((8, 6))
+    rest_v[:, 0] = np.linspace(0.0, 0.009, 8)
+    out_q = q0[rng.choice(len(q0), 40)]
+    out_v = v0[rng.choice(len(v0), 40)] * rng.uniform(0.5, 4.0, (40, 1))
+    out_q[:10, 2] += rng.uniform(0.5, 5.0, 10)
+    q0, v0 = np.concatenate([q0, rest_q, out_q]), np.concatenate([v0, rest_v, out_v])
+    q_sim, v_sim = plain.step_batch(q0, v0)
+    feats, _ = body_features(q0, v0, residual.bodies)
+    gate = residual.gate(feats)[:, 0]
+    assert np.sum(gate == 0.0) >= 10 and np.sum((gate > 0.0) & (gate < 1.0)) >= 5 and np.sum(gate == 1.0) >= 100
+    q_ref, v_ref = residual.correct(q0, v0, q_sim, v_sim)
+    assert np.abs(q_ref - q_sim).max() > 1e-5  # the correction is not trivially zero
+    fast = residual._fast
+    assert fast[0].box is not None  # the cube's collision points are a box's corners
+    for variant in (fast, [f._replace(box=None) for f in fast], [f._replace(box=None, points=None) for f in fast]):
+        residual._fast = variant
+        for i in range(len(q0)):
+            q, v = q_sim[i].copy(), v_sim[i].copy()
+            residual.correct_one(q0[i], v0[i], q, v)
+            np.testing.assert_allclose(q, q_ref[i], rtol=0, atol=1e-12)
+            np.testing.assert_allclose(v, v_ref[i], rtol=0, atol=1e-10)
+    residual._fast = fast
