@@ -30,23 +30,24 @@ import make_toss
 
 CARD_HALF_SIZE_M = (0.05, 0.002, 0.06)  # a 10 x 12 cm card, seen face on
 CARD_DEPTH_FRACTION = 0.45  # along the ray from the camera to the box
-SWEEP_FRAMES = (12, 40)  # the card crosses the image between these frames
-SWEEP_HALF_WIDTH_M = 0.12  # from this far left of the box's line of sight to this far right
+SWEEP_FRAMES = (16, 44)  # the card crosses the image between these frames
+SWEEP_HALF_WIDTH_M = 0.1  # from this far below the box's line of sight to this far above
 HIDDEN_FRACTION = 0.5
 
 
 def card_positions(model: mujoco.MjModel, qpos: np.ndarray, world_from_cam: np.ndarray) -> np.ndarray:
-    """(T, 3) card centre per frame: on the line of sight to the box's mid-sweep position, swept along camera x."""
+    """(T, 3) card centre per frame: on the line of sight to the box's mid-sweep position, swept bottom to top
+    (along camera y: across, the card would also hide the can and the bowl, which rest left and right of the box)."""
     box_adr = int(model.joint("box_free").qposadr[0])
     mid = (SWEEP_FRAMES[0] + SWEEP_FRAMES[1]) // 2
     eye = world_from_cam[:3, 3]
     anchor = eye + CARD_DEPTH_FRACTION * (qpos[mid, box_adr : box_adr + 3] - eye)
-    x_axis = world_from_cam[:3, 0]
+    down_axis = world_from_cam[:3, 1]
     out = np.tile(eye - 10.0 * world_from_cam[:3, 2], (len(qpos), 1))  # parked behind the camera
     first, last = SWEEP_FRAMES
     for k in range(first, last + 1):
         s = (k - first) / (last - first)
-        out[k] = anchor + (2 * s - 1) * SWEEP_HALF_WIDTH_M * x_axis
+        out[k] = anchor + (1 - 2 * s) * SWEEP_HALF_WIDTH_M * down_axis
     return out
 
 

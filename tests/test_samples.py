@@ -253,12 +253,39 @@ def test_toss_masses_match_meshes_and_model(toss: Path, toss_model: mujoco.MjMod
 
 
 def test_toss_objects_share_tabletop_parameters(toss_objects: dict, tabletop_objects: dict) -> None:
-    """The toss is an interaction clip of the scanned scene: same objects, same physical parameters."""
-    keys = ("volume_m3", "density_kg_m3", "mass_kg", "friction", "solref", "material", "extents_m")
+    """The toss is an interaction clip of the scanned scene: same objects, same physical parameters, except the
+    contact damping ratio (solref[1]), lowered in the toss so that every object bounces visibly."""
+    keys = ("volume_m3", "density_kg_m3", "mass_kg", "friction", "material", "extents_m")
     for record in toss_objects["objects"]:
         scanned = tabletop_objects[record["name"]]
         for key in keys:
             assert record[key] == scanned[key], (record["name"], key)
+        assert record["solref"][0] == scanned["solref"][0], record["name"]
+        assert 0.1 <= record["solref"][1] < scanned["solref"][1], record["name"]
+
+
+def test_toss_table_contacts_use_the_object_values(
+    toss_model: mujoco.MjModel, toss_traj: Trajectory, toss_objects: dict
+) -> None:
+    """Object geoms outrank the table, so MuJoCo does not mix (max friction, mean solref) with the table's
+    defaults: each object-table contact uses exactly the object's friction and solref (as objects.json says)."""
+    data = mujoco.MjData(toss_model)
+    data.qpos[:] = toss_traj.qpos[-1]
+    mujoco.mj_forward(toss_model, data)
+    records = {r["name"]: r for r in toss_objects["objects"]}
+    seen = set()
+    for contact in data.contact[: data.ncon]:
+        bodies = [toss_model.body(int(toss_model.geom_bodyid[g])).name for g in (contact.geom1, contact.geom2)]
+        assert "world" in bodies, bodies
+        name = next(b for b in bodies if b != "world")
+        record = records[name]
+        assert toss_model.geom(f"{name}_geom").priority[0] == record["priority"] > 0
+        np.testing.assert_allclose(contact.friction[[0, 2, 3]], record["friction"], err_msg=name)
+        np.testing.assert_allclose(contact.solref, record["solref"], err_msg=name)
+        np.testing.assert_allclose(record["table_contact"]["friction"], record["friction"], err_msg=name)
+        np.testing.assert_allclose(record["table_contact"]["solref"], record["solref"], err_msg=name)
+        seen.add(name)
+    assert seen == set(records)
 
 
 def test_toss_resimulation_reproduces_trajectory(toss_model: mujoco.MjModel, toss_traj: Trajectory) -> None:
@@ -282,38 +309,60 @@ def test_toss_resimulation_reproduces_trajectory(toss_model: mujoco.MjModel, tos
 def test_toss_ends_at_rest_on_table(
     toss_model: mujoco.MjModel, toss_traj: Trajectory, toss_vertices: dict[str, np.ndarray]
 ) -> None:
+    """Still for the last 0.5 s: every vertex within 0.5 mm of where it ends. (Not a speed bound: with the toss's
+    low damping ratios a resting object's soft contacts chatter at a few mm/s with hundredths of a mm amplitude,
+    and the box, resting on one contact point at a time, creeps by ~0.5 deg/s: ~0.2 mm at its corners in 0.5 s.)"""
     last = toss_traj.time_s >= toss_traj.time_s[-1] - 0.5
     for name, vertices in toss_vertices.items():
-        speed = np.linalg.norm(_linear_velocity(toss_model, toss_traj, name)[last], axis=1)
-        assert speed.max() < 1e-3, f"{name} still moves at {speed.max():.2e} m/s"
+        drift_m = np.linalg.norm(vertices[last] - vertices[-1], axis=2).max()
+        assert drift_m < 5e-4, f"{name} still moves: {drift_m * 1e3:.3f} mm in the last 0.5 s"
         assert abs(vertices[-1, :, 2].min()) < 2e-3, f"{name}: lowest vertex at z={vertices[-1, :, 2].min():.4f} m"
 
 
-def test_toss_shows_a_slide_and_a_bounce(
+def test_toss_shows_a_bounce(
     toss_model: mujoco.MjModel, toss_traj: Trajectory, toss_vertices: dict[str, np.ndarray]
 ) -> None:
-    """Friction shows as sliding while touching the table; a bounce as rising again after an impact.
-
-    In contact = lowest vertex below 1 mm (MuJoCo's soft contacts sink a few mm into the table on impact).
-    Slide = horizontal travel of the object frame summed over consecutive frames that are both in contact.
-    Bounce = after falling onto the table (vz < -0.5 m/s), vz turns clearly upward (> 0.1 m/s); the strict
-    version also asks the object to leave the table again (lowest vertex above 3 mm), i.e. a flight phase.
-    """
-    slide_m, rebound_m_s, hop_m = {}, {}, {}
+    """Every object falls onto the table and bounces: from one frame to the next its vertical velocity turns from
+    below -0.5 m/s to above +0.2 m/s (no free flight does that: an impact), and afterwards it leaves the table
+    again (lowest vertex above 5 mm): the flight after an impact that shows its restitution."""
     for name, vertices in toss_vertices.items():
         lowest_z = vertices[:, :, 2].min(axis=1)
-        in_contact = lowest_z < 1e-3
-        first = int(np.argmax(in_contact))
-        centre_xy = vertices.mean(axis=1)[:, :2]
-        step_m = np.linalg.norm(np.diff(centre_xy, axis=0), axis=1)
-        slide_m[name] = float(step_m[in_contact[1:] & in_contact[:-1]].sum())
         vz = _linear_velocity(toss_model, toss_traj, name)[:, 2]
-        falling = first > 0 and vz[first - 1] < -0.5
-        rebound_m_s[name] = float(vz[first:].max()) if falling else 0.0
-        hop_m[name] = float(lowest_z[first:].max()) if falling else 0.0
-    assert max(slide_m.values()) > 0.02, f"no object slides 2 cm in contact: {slide_m}"
-    assert max(rebound_m_s.values()) > 0.1, f"no object rebounds after its impact: {rebound_m_s}"
-    assert max(hop_m.values()) > 3e-3, f"no object leaves the table after its first impact: {hop_m}"
+        bounces = np.nonzero((vz[:-1] < -0.5) & (vz[1:] > 0.2))[0]
+        assert len(bounces), f"{name} never bounces off the table: vz {np.round(vz[:15], 2)}"
+        assert lowest_z[bounces[0] + 1 :].max() > 5e-3, f"{name} does not leave the table after its first impact"
+
+
+def _object_rollout(model: mujoco.MjModel, traj: Trajectory) -> np.ndarray:
+    data = mujoco.MjData(model)
+    data.qpos[:], data.qvel[:] = traj.qpos[0], traj.qvel[0]
+    mujoco.mj_forward(model, data)
+    steps = np.rint((traj.time_s - traj.time_s[0]) / model.opt.timestep).astype(int)
+    out, step = [], 0
+    for target in steps:
+        if target > step:
+            mujoco.mj_step(model, data, nstep=int(target - step))
+        step = int(target)
+        out.append(data.qpos.copy())
+    return np.array(out)
+
+
+def test_toss_constrains_every_friction_and_restitution(toss_model: mujoco.MjModel, toss_traj: Trajectory) -> None:
+    """The clip is an identification experiment: moving any object's sliding friction or contact damping ratio by
+    -/+20% moves that object, re-simulated from the first frame, by at least 3 mm on average over the clip (what
+    tracking resolves), so calibration can tell each of the six values to within 20%."""
+    reference = _object_rollout(toss_model, toss_traj)
+    for joint in range(toss_model.njnt):
+        body = toss_model.body(int(toss_model.jnt_bodyid[joint])).name
+        adr = int(toss_model.jnt_qposadr[joint])
+        geom = toss_model.geom(f"{body}_geom").id
+        for field, index in (("geom_friction", 0), ("geom_solref", 1)):
+            for factor in (0.8, 1.2):
+                model = mujoco.MjModel.from_xml_path(str(SAMPLES / "toss" / "truth" / "scene.xml"))
+                getattr(model, field)[geom, index] *= factor
+                moved = _object_rollout(model, toss_traj)
+                change_m = np.linalg.norm(moved[:, adr : adr + 3] - reference[:, adr : adr + 3], axis=1).mean()
+                assert change_m > 3e-3, f"{body} {field}[{index}] x{factor}: rollout moves only {change_m * 1e3:.1f} mm"
 
 
 def test_toss_objects_stay_in_view(toss_camera: dict, toss_vertices: dict[str, np.ndarray]) -> None:
