@@ -61,6 +61,7 @@ from grounder._track_smooth import (
     quat_from_matrix,
     rotation_angle_deg,
 )
+from grounder._track_support import SupportFit, apply_support_scale, collision_points_body, fit_support_scale
 from grounder._trajectory import Trajectory, save_trajectory
 from grounder.errors import GrounderError
 
@@ -135,6 +136,8 @@ class TrackOptions:
     detect_views: int = 26
     min_segment_frames: int = 5
     smoothing: SmoothingOptions = field(default_factory=SmoothingOptions)
+    support_correction: bool = True
+    support_max_gap_m: float = 0.015
 
     def __post_init__(self) -> None:
         if self.aruco_size_m is not None and not self.aruco_size_m > 0:
@@ -177,6 +180,8 @@ class TrackResult:
         trajectories: one per segment, in the scene's joint order.
         out_dir: where they were written (None if not written).
         seconds: wall time per stage.
+        support: per object, the depth correction from the table where it rests (`grounder._track_support`);
+            empty when `support_correction` is off.
     """
 
     object_names: tuple[str, ...]
@@ -191,6 +196,7 @@ class TrackResult:
     trajectories: tuple[Trajectory, ...]
     out_dir: Path | None
     seconds: dict[str, float]
+    support: tuple[SupportFit, ...] = ()
 
 
 # ---------------------------------------------------------------- input
@@ -1025,6 +1031,26 @@ def track(
         model: mujoco.MjModel = renderer.model
         names = renderer.names
     seconds["tracking"] = time.perf_counter() - tick
+    support: list[SupportFit] = []
+    if options.support_correction:
+        for i, name in enumerate(names):
+            fit = fit_support_scale(
+                poses[:, i],
+                valid[:, i],
+                world_from_cam,
+                collision_points_body(model, name),
+                max_gap_m=options.support_max_gap_m,
+            )
+            support.append(fit)
+            if fit.applied:
+                poses[:, i] = apply_support_scale(poses[:, i], valid[:, i], world_from_cam, fit.scale)
+                log.info(
+                    "%s: rests %.1f mm %s the table as tracked; depth along the camera ray scaled by %.4f",
+                    name,
+                    abs(fit.gap_m) * 1e3,
+                    "above" if fit.gap_m > 0 else "inside",
+                    fit.scale,
+                )
 
     time_s = (options.start_frame + np.arange(len(frames))) / fps
     segments = tracked_segments(valid, options.min_segment_frames)
@@ -1056,6 +1082,7 @@ def track(
         trajectories=trajectories,
         out_dir=None if out_dir is None else Path(out_dir),
         seconds=seconds,
+        support=tuple(support),
     )
     if out_dir is not None:
         if not trajectories:
@@ -1112,8 +1139,12 @@ def write_track_output(
                     )
                 else:
                     qpos_rows.append(None)
+            support = asdict(result.support[i]) if i < len(result.support) else None
+            if support is not None and not np.isfinite(support["gap_m"]):
+                support["gap_m"] = None
             objects[name] = {
                 "tracked_fraction": round(float(result.valid[:, i].mean()), 4),
+                "support": support,
                 "valid": result.valid[:, i].astype(bool).tolist(),
                 "qpos": qpos_rows,
                 "scores": [_score_json(row[i]) for row in result.scores],
