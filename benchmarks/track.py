@@ -21,12 +21,12 @@ its interval, whether the clip constrains it, and the relative error (target: wi
 matches the clip before and after. With `--truth`, the same screen + calibration runs on the TRUE trajectory against
 the TRUE scene (no tracking, no grounded mesh): what the clip can tell at best.
 
-"Rendered value" is compared like with like. The toss scene's geoms carry `friction` / `solref` (`objects.json`), but
-the clip shows the CONTACT's values, which MuJoCo mixes from both geoms: the larger friction and the solmix-weighted
-mean solref. The table geom keeps MuJoCo's defaults (friction 1, solref 0.02 1), so every object slid with friction
-1.0 and bounced with dampratio (d + 1) / 2. Calibration gives a calibrated geom top priority (its value is the
-contact's), so the calibrated value estimates the contact value: both are printed, and the error is against the
-contact value. The implied geom value (inverting the mixing) is printed too.
+"Rendered value" is compared like with like: the toss scene gives each object geom priority over the table, so
+each object-table contact uses exactly the object's friction and solref (`objects.json`, `table_contact`), and the
+clip is rendered with the physics settings of every exported scene (timestep, integrator, cone); calibration also
+gives the calibrated geoms priority. Restitution is printed both as MuJoCo's damping ratio (what the clip was
+rendered with) and as the coefficient of restitution e of a linear spring-damper contact with that ratio,
+e = exp(-pi d / sqrt(1 - d^2)) (the property model's mapping, `restitution_to_dampratio`).
 """
 
 from __future__ import annotations
@@ -220,45 +220,51 @@ def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, tuple[float, fl
     return out
 
 
+def restitution(dampratio: float) -> float:
+    """Coefficient of restitution of a linear spring-damper contact with this damping ratio (inverse of
+    `grounder._properties_materials.restitution_to_dampratio`)."""
+    return float(np.exp(-np.pi * dampratio / np.sqrt(1.0 - dampratio**2))) if dampratio < 1.0 else 0.0
+
+
 def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, str]) -> None:
-    """Per calibrated parameter: rendered geom value, rendered contact value, calibrated value, interval, whether
-    the clip constrains it, and the errors."""
-    truth = {o["name"]: o for o in json.loads((clip_dir / "truth/objects.json").read_text())["objects"]}
+    """Per parameter: rendered value, calibrated value, whether the clip constrains it, its resolution range and
+    interval, and the relative error (restitution also as e)."""
     contact = contact_values(clip_dir / "truth/scene.xml", clip_dir)
     print(
-        "| parameter | object | rendered geom value | rendered contact value | calibrated | interval (Laplace) | "
-        "indistinguishable range | constrained by the clip | error vs contact | implied geom value |"
+        "| parameter | object | rendered | calibrated | constrained by the clip | indistinguishable range | "
+        "error | as restitution e: rendered / calibrated / error |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for name, p in params.items():
         body, field = name.split(".", 1)
         true_name = true_names.get(body, body)
-        if field == "friction.sliding":
-            geom, mixed = truth[true_name]["friction"][0], contact[true_name][0]
-            # contact = max(geom, table's 1.0): a geom value below 1 never shows
-            implied = "any <= 1.0 (contact = max(geom, table 1.0))"
-        else:
-            geom, mixed = truth[true_name]["solref"][1], contact[true_name][1]
-            implied = f"{2 * p['value'] - 1:.3f}"  # mixed = (geom + table 1.0) / 2
+        rendered = contact[true_name][0] if field == "friction.sliding" else contact[true_name][1]
         constrained = p.get("constrained", True)
         span = "{:.3f}..{:.3f}".format(*p["indistinguishable"]) if "indistinguishable" in p else "-"
-        error = f"{100 * (p['value'] - mixed) / mixed:+.0f}%" if constrained else "n/a (prior kept)"
+        value = p["value"]
+        error = f"{100 * (value - rendered) / rendered:+.0f}%" if constrained else "n/a (prior kept)"
+        as_e = "-"
+        if field == "solref.dampratio":
+            e_true, e_cal = restitution(rendered), restitution(value)
+            as_e = f"{e_true:.3f} / {e_cal:.3f} / " + (
+                f"{100 * (e_cal - e_true) / e_true:+.0f}%" if constrained else "n/a"
+            )
         print(
-            f"| {name} | {true_name} | {geom:.3f} | {mixed:.3f} | {p['value']:.3f} | {p['interval'][0]:.3f}.."
-            f"{p['interval'][1]:.3f} | {span} | {'yes' if constrained else 'no'} | {error} | "
-            f"{implied if constrained else '-'} |"
+            f"| {name} | {true_name} | {rendered:.3f} | {value:.3f} | {'yes' if constrained else 'no: prior kept'} | "
+            f"{span} | {error} | {as_e} |"
         )
 
 
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:
-    """Screen + calibrate the grounded scene on saved tracks (e.g. `OUT/interaction/tracks` of a `--calibrate` run)."""
-    from grounder._interaction import InteractionOptions, calibrate_constrained, default_params
+    """Screen + calibrate the grounded scene on saved tracks (e.g. `OUT/interaction/tracks` of a `--calibrate` run),
+    per object as `ground --interaction` does."""
+    from grounder._interaction import InteractionOptions, calibrate_per_body, default_params
     from grounder._trajectory import load_trajectories
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
-    entry = calibrate_constrained(
+    entry, _ = calibrate_per_body(
         scene / "scene.xml",
         load_trajectories(tracks),
         default_params(names),
@@ -279,21 +285,36 @@ def print_screens(params: dict) -> None:
 
 
 def truth_benchmark(clip_dir: Path, args: argparse.Namespace) -> None:
-    """Screen + calibrate on the true trajectory against the true scene: what the clip can tell at best."""
-    from grounder._interaction import InteractionOptions, calibrate_constrained, default_params
+    """Screen + calibrate on the true trajectory against the true scene (prior: every object at friction 0.45 and
+    damping ratio 0.4, not the rendered values): what the clip can tell at best, without tracking or meshing."""
+    import shutil
+    import tempfile
+
+    import mujoco
+
+    from grounder._interaction import InteractionOptions, calibrate_per_body, default_params
     from grounder._trajectory import Trajectory
 
     truth = np.load(clip_dir / "truth/trajectory.npz", allow_pickle=False)
     traj = Trajectory(time_s=truth["time"], qpos=truth["qpos"], qvel=truth["qvel"], ctrl=None, name="truth")
     names = json.loads((clip_dir / "truth/objects.json").read_text())["joint_order"]
     bodies = [n.removesuffix("_free") for n in names]
-    tick = time.perf_counter()
-    entry = calibrate_constrained(
-        clip_dir / "truth/scene.xml",
-        [traj],
-        default_params(bodies),
-        InteractionOptions(calibrate_settings={"generations": args.generations, "popsize": args.popsize}),
-    )
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = Path(tmp) / "truth"
+        shutil.copytree(clip_dir / "truth", scene)
+        spec = mujoco.MjSpec.from_file(str(scene / "scene.xml"))
+        for body in bodies:
+            geom = spec.geom(f"{body}_geom")
+            geom.friction[0] = 0.45
+            geom.solref[1] = 0.4
+        (scene / "scene.xml").write_text(spec.to_xml())
+        tick = time.perf_counter()
+        entry, _ = calibrate_per_body(
+            scene / "scene.xml",
+            [traj],
+            default_params(bodies),
+            InteractionOptions(calibrate_settings={"generations": args.generations, "popsize": args.popsize}),
+        )
     print(f"truth screen + calibration: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])
     print_parameter_table(entry["parameters"], clip_dir, {b: b for b in bodies})

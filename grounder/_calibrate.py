@@ -89,6 +89,12 @@ class CalibrateOptions:
         seed: Seed of the global search.
         nthread: Rollout threads; None: the CPU cores this process may use.
         max_batch_mb: Memory cap of one rollout call's recorded states; larger batches are split.
+        initial: Start values by parameter name instead of the scene's (the scene's stay the "nominal" ones that
+            before/after compare with); with no search budget the result is these values, evaluated.
+        separate_bodies: The bodies never touch each other (objects tossed apart): search each body's parameters on
+            its own, one body after another, the others held at their current values. Exact when the loss is a
+            sum over bodies that each depend only on their own parameters; each search is then a few dimensions
+            instead of all of them, which a small budget covers. Raw mode, per-body parameters (``BODY.*``) only.
     """
 
     params: tuple[str, ...] = ()
@@ -105,8 +111,12 @@ class CalibrateOptions:
     seed: int = 0
     nthread: int | None = None
     max_batch_mb: float = 256.0
+    initial: dict[str, float] = field(default_factory=dict)
+    separate_bodies: bool = False
 
     def __post_init__(self) -> None:
+        if self.separate_bodies and self.mode != "raw":
+            raise GrounderError("separate_bodies applies to raw mode only")
         if self.mode not in ("raw", "embedding"):
             raise GrounderError(f"mode must be 'raw' or 'embedding', got {self.mode!r}")
         if not 0.0 <= self.validation_fraction < 1.0:
@@ -425,6 +435,17 @@ def _to_values(params: Sequence[Parameter], unit: np.ndarray) -> np.ndarray:
     return np.stack([p.from_unit(unit[:, i]) for i, p in enumerate(params)], axis=1)
 
 
+def _initial_unit(params: Sequence[Parameter], initial: dict[str, float]) -> np.ndarray:
+    unknown = sorted(set(initial) - {p.name for p in params})
+    if unknown:
+        raise GrounderError(f"initial values given for {unknown}, which are not being calibrated")
+    unit = _nominal_unit(params)
+    for i, p in enumerate(params):
+        if p.name in initial:
+            unit[i] = float(np.clip(p.to_unit(float(initial[p.name])), 0.0, 1.0))
+    return unit
+
+
 def _nominal_unit(params: Sequence[Parameter]) -> np.ndarray:
     return np.array([float(np.clip(p.to_unit(p.nominal), 0.0, 1.0)) for p in params])
 
@@ -554,8 +575,58 @@ def _jacobian(prob: _Problem, u: np.ndarray, step: float) -> tuple[np.ndarray, n
     return res[0], jac.reshape(res.shape[1], len(free))
 
 
-def _search(prob: _Problem, options: CalibrateOptions, report: Progress) -> tuple[np.ndarray, list[float]]:
-    """Global then local search from ``prob.x0``; returns the best point and the loss history."""
+def body_groups(params: Sequence[Parameter]) -> list[list[int]]:
+    """Parameter indices grouped by the body their name starts with (``BODY.friction.sliding`` -> ``BODY``).
+
+    Raises:
+        GrounderError: a parameter is not a body's (``geom:``, ``joint:``, ``actuator:``, ``opt.``).
+    """
+    groups: dict[str, list[int]] = {}
+    for i, p in enumerate(params):
+        head = p.name.split(".", 1)[0]
+        if ":" in head or head == "opt":
+            raise GrounderError(
+                f"separate_bodies needs per-body parameters (BODY.*), got {p.name!r}; leave separate_bodies off"
+            )
+        groups.setdefault(head, []).append(i)
+    return list(groups.values())
+
+
+def _subproblem(prob: _Problem, group: Sequence[int], current: np.ndarray) -> _Problem:
+    """The search over the coordinates in ``group`` only, the others held at ``current``."""
+    index = list(group)
+
+    def values(u_rows: np.ndarray) -> np.ndarray:
+        u_rows = np.atleast_2d(u_rows)
+        full = np.tile(current, (len(u_rows), 1))
+        full[:, index] = u_rows
+        return prob.values(full)
+
+    return _Problem(
+        ev=prob.ev,
+        x0=current[index].copy(),
+        values=values,
+        fixed=tuple(k for k, i in enumerate(index) if i in prob.fixed),
+        prior=None,
+        data_scale=prob.data_scale,
+    )
+
+
+def _search(
+    prob: _Problem, options: CalibrateOptions, report: Progress, groups: Sequence[Sequence[int]] | None = None
+) -> tuple[np.ndarray, list[float]]:
+    """Global then local search from ``prob.x0``; returns the best point and the loss history.
+
+    With ``groups``, the search runs group by group (see ``CalibrateOptions.separate_bodies``).
+    """
+    if groups is not None and len(groups) > 1:
+        current = prob.x0.copy()
+        history = [float(prob.objective(current[None])[0])]
+        for group in groups:
+            sub_u, sub_history = _search(_subproblem(prob, group, current), options, report)
+            current[list(group)] = sub_u
+            history += sub_history[1:]
+        return current, history
     history = [float(prob.objective(prob.x0[None])[0])]
     best_u, best_loss = prob.x0, history[0]
     if options.generations > 0:
@@ -769,11 +840,12 @@ def calibrate(
         ev = Evaluator(base, params, fit_trajs, **common)
         prob = _Problem(
             ev=ev,
-            x0=_nominal_unit(params),
+            x0=_initial_unit(params, options.initial),
             values=lambda u: _to_values(params, u),
             fixed=tuple(i for i, p in enumerate(params) if p.discrete),
         )
-        best_u, history = _search(prob, options, report)
+        groups = body_groups(params) if options.separate_bodies else None
+        best_u, history = _search(prob, options, report, groups)
         values, fits = _raw_fits(prob, params, best_u, options, report)
 
     calibrated_spec = apply_to_spec(spec, base, params, values)

@@ -5,13 +5,16 @@
 2. **Track** every grounded object through the interaction clip (`grounder._track.track`); frames where an object
    is lost or hidden are flagged and cut out: only segments in which every object is tracked become trajectories.
 3. **Calibrate** (`grounder._calibrate.calibrate`, when present) the objects' contact parameters on those tracked
-   segments only, each rolled out open loop from its first tracked state (optionally cut into windows). First a
-   screen (`screen_parameters`) asks, per parameter, whether moving it by 20% changes its object's rollout by more
-   than tracking resolves (3 mm / 2 deg, means over the frames): an object that never slides says nothing about its
-   friction, one that lands without bouncing little about its damping ratio. Only constrained parameters are
-   calibrated; the others keep the prior and are reported as unconstrained (interval = bounds), not as a number
-   the clip never measured. Each calibrated value also gets its resolution range (`indistinguishable_range`).
-   Contact parameters are calibrated as the contact's values (the object's geoms get top priority).
+   segments only. Objects that never touch each other (`separable_bodies`) are calibrated one at a time, each in a
+   scene of its own with the table (`calibrate_per_body`), on short windows (0.3 s) rolled out open loop from
+   states that tracking measures well (`reliable_starts`: in a free flight, or away from impacts); windows keep a
+   bounce's chaos out of the loss. First a screen (`screen_parameters`) asks, per parameter, whether moving it by
+   20% changes its object's rollouts by more than tracking resolves (2 mm / 1.5 deg, root mean square over the
+   frames): an object that never slides says nothing about its friction, one that lands without bouncing little
+   about its damping ratio. Only constrained parameters are calibrated; the others keep the prior and are reported
+   as unconstrained (interval = bounds), not as a number the clip never measured. Each calibrated value also gets
+   its resolution range (`indistinguishable_range`). Contact parameters are calibrated as the contact's values
+   (the object's geoms get top priority).
 4. **Report** what was calibrated and how well the scene now matches the clip: `interaction.json` and
    `interaction.md` in the output folder.
 
@@ -41,6 +44,7 @@ import numpy as np
 
 from grounder._ground import GroundOptions, ground
 from grounder._track import TrackOptions, TrackResult, track
+from grounder._track_smooth import SmoothingOptions
 from grounder._trajectory import Trajectory, save_trajectories
 from grounder.errors import GrounderError
 
@@ -59,28 +63,35 @@ class InteractionOptions:
         calibrate_params: parameters to fit (calibration's names); None: per object its sliding friction and its
             contact damping ratio (MuJoCo's restitution knob, `solref` dampratio).
         calibrate_settings: extra `CalibrateOptions` fields (e.g. {"generations": 10}).
-        window_s: length of the calibration windows cut from the tracked segments (None, the default: whole
-            segments, each rolled out from its first tracked state: a toss is best told from its start, where the
-            throw's speed meets the table; later windows start from a smoothed, noisier state).
+        window_s: length of the calibration windows cut from the tracked segments, each rolled out from its first
+            state (None: whole segments). Short windows keep a bounce's chaos from swamping the fit: rolled out
+            over a whole toss, a 1% change of anything moves a tumbling object by centimetres.
         window_stride_s: start-to-start distance of the windows.
+        per_object: when the objects never touch each other (`separable_bodies`), calibrate each one alone in a
+            scene of its own, on windows that start where its state is well measured (`calibrate_per_body`).
+        rotation_weight: percent of the object's size per degree of rotation error in the loss; low, as tracked
+            orientations and spins are noisier (about 1 degree) than positions.
         min_motion_m_s: windows where no object moves faster than this are dropped.
         identify: screen the parameters first (`screen_parameters`) and calibrate only those the clip constrains;
             the others keep the prior (the grounded scene's value) and are reported as unconstrained.
         identify_relative_change, identify_min_position_m, identify_min_rotation_deg: the screen's test: moving
-            the parameter by this fraction must change its body's rollout by at least this much (mean over frames).
+            the parameter by this fraction must change its body's rollout by at least this much (root mean square
+            over the frames; about twice the tracking error measured on `samples/toss`, 0.9 mm and 1.1 deg median).
     """
 
     ground: GroundOptions = field(default_factory=GroundOptions)
     track: TrackOptions = field(default_factory=TrackOptions)
     calibrate_params: tuple[str, ...] | None = None
     calibrate_settings: dict[str, Any] = field(default_factory=dict)
-    window_s: float | None = None
-    window_stride_s: float = 0.5
+    window_s: float | None = 0.3
+    window_stride_s: float = 0.1
     min_motion_m_s: float = 0.05
+    per_object: bool = True
+    rotation_weight: float = 0.25
     identify: bool = True
     identify_relative_change: float = 0.2
-    identify_min_position_m: float = 0.003
-    identify_min_rotation_deg: float = 2.0
+    identify_min_position_m: float = 0.002
+    identify_min_rotation_deg: float = 1.5
 
     def __post_init__(self) -> None:
         if self.window_s is not None and not self.window_s > 0:
@@ -111,22 +122,62 @@ def calibration_available() -> bool:
     return importlib.util.find_spec("grounder._calibrate") is not None
 
 
+def reliable_starts(traj: Trajectory, smoothing: SmoothingOptions | None = None) -> np.ndarray:
+    """(T,) mask of the samples of a tracked trajectory whose state a rollout can start from.
+
+    A tracked state is only as good as its velocity, which comes from a fit over a piece of smooth motion between
+    impacts (`grounder._track_smooth.impact_pieces`). A sample is a good start for one free body when it lies in
+    a free flight (velocity from the ballistic fit), or in another piece of at least 3 samples but not its first
+    sample after an impact (the body may still be in contact, mid-bounce); a start must be good for every free body
+    of the trajectory (all are simulated from it).
+    """
+    from grounder._track_smooth import impact_pieces
+
+    num = len(traj.time_s)
+    good = np.ones(num, bool)
+    dt_s = float(np.median(np.diff(traj.time_s))) if num > 1 else None
+    for body in range(traj.qvel.shape[1] // 6):
+        pos, quat = traj.qpos[:, 7 * body : 7 * body + 3], traj.qpos[:, 7 * body + 3 : 7 * body + 7]
+        body_good = np.zeros(num, bool)
+        for first, last, flight in impact_pieces(pos, quat, smoothing, dt_s):
+            if flight or last - first + 1 >= 3:
+                body_good[first + (1 if first > 0 and not flight else 0) : last + 1] = True
+        good &= body_good
+    return good
+
+
 def windows(
-    trajs: Sequence[Trajectory], window_s: float | None, stride_s: float, min_motion_m_s: float
+    trajs: Sequence[Trajectory],
+    window_s: float | None,
+    stride_s: float,
+    min_motion_m_s: float,
+    *,
+    starts: Sequence[np.ndarray] | None = None,
 ) -> list[Trajectory]:
-    """Cuts trajectories into overlapping windows (each at least 3 samples); drops windows where nothing moves."""
+    """Cuts trajectories into overlapping windows (each at least 3 samples); drops windows where nothing moves.
+
+    With `starts` ((T,) masks, one per trajectory, e.g. from `reliable_starts`), a window begins at the first
+    allowed sample at or after its nominal start and keeps its length; a window with no allowed start is dropped.
+    """
     out: list[Trajectory] = []
-    for traj in trajs:
+    for index, traj in enumerate(trajs):
         spans: list[tuple[int, int]] = []
+        allowed = None if starts is None else np.asarray(starts[index], bool)
         if window_s is None:
             spans = [(0, len(traj.time_s))]
         else:
             t0 = float(traj.time_s[0])
             start = 0.0
             while True:
-                rows = np.nonzero((traj.time_s >= t0 + start - 1e-9) & (traj.time_s <= t0 + start + window_s + 1e-9))[0]
-                if len(rows) >= 3:
-                    spans.append((int(rows[0]), int(rows[-1]) + 1))
+                first = int(np.searchsorted(traj.time_s, t0 + start - 1e-9))
+                if allowed is not None:
+                    later = np.nonzero(allowed[first:])[0]
+                    first = first + int(later[0]) if len(later) else len(traj.time_s)
+                if first < len(traj.time_s):
+                    t_first = float(traj.time_s[first])
+                    rows = np.nonzero((traj.time_s >= t_first - 1e-9) & (traj.time_s <= t_first + window_s + 1e-9))[0]
+                    if len(rows) >= 3 and (int(rows[0]), int(rows[-1]) + 1) not in spans:
+                        spans.append((int(rows[0]), int(rows[-1]) + 1))
                 if t0 + start + window_s >= traj.time_s[-1] - 1e-9:
                     break
                 start += stride_s
@@ -226,8 +277,9 @@ def calibrate_constrained(
         entry["status"] = "skipped: the clip constrains none of the parameters (prior kept)"
         return entry
     settings = {
-        "validation_fraction": 0.3 if len(trajs) >= 3 else 0.0,
-        "rotation_weight": 1.0,
+        # Windows cut from one clip overlap and share its errors: holding some out would not test anything new.
+        "validation_fraction": 0.0,
+        "rotation_weight": options.rotation_weight,
         **options.calibrate_settings,
     }
     result = calibrate(
@@ -263,6 +315,153 @@ def calibrate_constrained(
         after={k: v.as_dict() for k, v in result.after.items()},
     )
     return entry
+
+
+def separable_bodies(scene_xml: Path, trajs: Sequence[Trajectory], clearance_m: float = 0.005) -> bool:
+    """Whether the scene's free bodies stay at least `clearance_m` apart in every sample of `trajs` (collision
+    geometry), so that each moves as if alone with the table and can be calibrated on its own."""
+    import mujoco
+
+    from grounder._simulate import free_joints
+
+    model = mujoco.MjModel.from_xml_path(str(scene_xml))
+    bodies = [model.body(fj.body).id for fj in free_joints(model)]
+    geoms = {
+        b: [
+            g
+            for g in range(model.ngeom)
+            if model.geom_bodyid[g] == b and (model.geom_contype[g] or model.geom_conaffinity[g])
+        ]
+        for b in bodies
+    }
+    pairs = [(g1, g2) for i, b1 in enumerate(bodies) for b2 in bodies[i + 1 :] for g1 in geoms[b1] for g2 in geoms[b2]]
+    if not pairs:
+        return True
+    data = mujoco.MjData(model)
+    for traj in trajs:
+        for qpos in traj.qpos:
+            data.qpos[:] = qpos
+            mujoco.mj_kinematics(model, data)
+            for g1, g2 in pairs:
+                if mujoco.mj_geomDistance(model, data, g1, g2, clearance_m, None) < clearance_m:
+                    return False
+    return True
+
+
+def _single_body_trajectory(model: Any, traj: Trajectory, body: str) -> Trajectory:
+    """The columns of one free body of a trajectory of a scene with free bodies only."""
+    from grounder._simulate import free_joints
+
+    joint = next(fj for fj in free_joints(model) if fj.body == body)
+    dof = int(model.jnt_dofadr[model.body(body).jntadr[0]])
+    return Trajectory(
+        time_s=traj.time_s,
+        qpos=traj.qpos[:, joint.pos.start : joint.pos.start + 7],
+        qvel=traj.qvel[:, dof : dof + 6],
+        name=traj.name,
+    )
+
+
+def calibrate_per_body(
+    scene_xml: Path,
+    segments: Sequence[Trajectory],
+    params: Sequence[str],
+    options: InteractionOptions,
+    *,
+    out: Path | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[dict[str, Any], list[str]]:
+    """Screens and calibrates each object's parameters in a scene of its own (the object and the table).
+
+    For objects that never touch each other (`separable_bodies`): each object's tracked motion is cut into windows
+    that start only where its state is well measured (`reliable_starts`), and its parameters are screened and fitted
+    on those, alone (a few dimensions, with no other object's tracking errors in the loss). The values found are
+    then written into the whole scene (`out`), evaluated on the whole tracked segments.
+
+    Returns:
+        The report's `calibration` entry (as `calibrate_constrained`'s, with `windows` per object) and the names of
+        all windows used.
+    """
+    import mujoco
+
+    from grounder._calibrate import CalibrateOptions, calibrate
+    from grounder._calibrate_params import resolve_parameters
+    from grounder._simulate import free_joints
+
+    model = mujoco.MjModel.from_xml_path(str(scene_xml))
+
+    bodies = [fj.body for fj in free_joints(model)]
+    by_body: dict[str, list[str]] = {}
+    for name in params:
+        body = name.split(".", 1)[0]
+        if body not in bodies:
+            raise GrounderError(f"{name}: per-object calibration needs parameters of the scene's objects {bodies}")
+        by_body.setdefault(body, []).append(name)
+    entry: dict[str, Any] = {"parameters": {}, "per_object": {}}
+    used: list[str] = []
+    values: dict[str, float] = {}
+    for body, body_params in by_body.items():
+        single = mujoco.MjSpec.from_file(str(scene_xml))
+        for other in bodies:
+            if other != body:
+                single.delete(single.body(other))
+        sub_xml = scene_xml.with_name(f".calibrate_{body}.xml")
+        try:
+            sub_xml.write_text(single.to_xml())
+            body_trajs = [_single_body_trajectory(model, t, body) for t in segments]
+            fit = windows(
+                body_trajs,
+                options.window_s,
+                options.window_stride_s,
+                options.min_motion_m_s,
+                starts=[reliable_starts(t, options.track.smoothing) for t in body_trajs],
+            )
+            used += [f"{body}:{t.name}" for t in fit]
+            sub: dict[str, Any] = {"status": "skipped: no well-measured window shows motion", "parameters": {}}
+            if fit:
+                sub = calibrate_constrained(sub_xml, fit, body_params, options, progress=progress)
+        finally:
+            sub_xml.unlink(missing_ok=True)
+        entry["per_object"][body] = {"status": sub["status"], "windows": [t.name for t in fit]}
+        for name in body_params:
+            record = sub["parameters"].get(name, {})
+            entry["parameters"][name] = record
+            if record.get("constrained"):
+                values[name] = record["value"]
+    resolved = {p.name: p for p in resolve_parameters(model, list(params))}
+    for name, record in entry["parameters"].items():
+        if "value" not in record:  # skipped body: the prior, unconstrained
+            p = resolved[name]
+            record.update(nominal=p.nominal, value=p.nominal, interval=[p.lower, p.upper], bounds=[p.lower, p.upper])
+            record.update(unit=p.unit, constrained=False)
+    unconstrained = [n for n, r in entry["parameters"].items() if not r.get("constrained")]
+    if not values:
+        entry["status"] = "skipped: the clip constrains none of the parameters (prior kept)"
+        return entry, used
+    result = calibrate(
+        scene_xml.parent if scene_xml.name == "scene.xml" else scene_xml,
+        list(segments),
+        options=CalibrateOptions(
+            params=tuple(values),
+            initial=values,
+            generations=0,
+            local_iterations=0,
+            validation_fraction=0.0,
+            rotation_weight=options.rotation_weight,
+        ),
+        out=out,
+        progress=progress,
+    )
+    entry["status"] = "calibrated per object" + (
+        f"; unconstrained by the clip, prior kept: {unconstrained}" if unconstrained else ""
+    )
+    entry.update(
+        train=list(result.train_names),
+        validation=[],
+        before={k: v.as_dict() for k, v in result.before.items()},
+        after={k: v.as_dict() for k, v in result.after.items()},
+    )
+    return entry, used
 
 
 def ground_with_interaction(
@@ -316,7 +515,10 @@ def ground_with_interaction(
         tracked = track(Path(clip), grounded, tracks_dir, track_options, progress=report)
         seconds["track"] = time.perf_counter() - tick
         segments = list(tracked.trajectories)
-        fit_trajs = windows(segments, options.window_s, options.window_stride_s, options.min_motion_m_s)
+        per_body = options.per_object and bool(segments) and separable_bodies(grounded / "scene.xml", segments)
+        fit_trajs = (
+            [] if per_body else windows(segments, options.window_s, options.window_stride_s, options.min_motion_m_s)
+        )
 
         names = tracked.object_names
         payload: dict[str, Any] = {
@@ -342,12 +544,19 @@ def ground_with_interaction(
                 ],
                 "note": "calibration uses only frames in which every object is tracked (the segments)",
             },
-            "windows": [t.name for t in fit_trajs],
+            "windows": [t.name for t in fit_trajs],  # per-object calibration replaces this with its own
         }
         payload["match_before"] = _clip_match(grounded / "scene.xml", segments)
         calibrated = False
         if not calibration_available():
             payload["calibration"] = {"status": "skipped: grounder._calibrate is not installed"}
+        elif per_body:
+            params = options.calibrate_params or default_params(names)
+            tick = time.perf_counter()
+            payload["calibration"], payload["windows"] = calibrate_per_body(
+                grounded / "scene.xml", segments, params, options, out=stage / "calibrated", progress=report
+            )
+            seconds["calibrate"] = time.perf_counter() - tick
         elif not fit_trajs:
             payload["calibration"] = {"status": "skipped: no tracked window shows motion"}
         else:
@@ -358,12 +567,12 @@ def ground_with_interaction(
                 grounded / "scene.xml", fit_trajs, params, options, out=stage / "calibrated", progress=report
             )
             seconds["calibrate"] = time.perf_counter() - tick
-            calibrated = (stage / "calibrated" / "scene.xml").is_file()
-            if calibrated:
-                for child in (stage / "calibrated").iterdir():
-                    shutil.move(str(child), stage / child.name)
-                (stage / "calibrated").rmdir()
-                payload["match_after"] = _clip_match(stage / "scene.xml", segments)
+        calibrated = (stage / "calibrated" / "scene.xml").is_file()
+        if calibrated:
+            for child in (stage / "calibrated").iterdir():
+                shutil.move(str(child), stage / child.name)
+            (stage / "calibrated").rmdir()
+            payload["match_after"] = _clip_match(stage / "scene.xml", segments)
         if not calibrated:
             for child in grounded.iterdir():
                 if child.name != "reconstruction":
@@ -463,19 +672,24 @@ class ParameterScreen:
 
 
 def _body_errors(
-    model: Any, preds: Sequence[Trajectory], reals: Sequence[Trajectory], body: str | None
+    model: Any, preds: Sequence[Trajectory], reals: Sequence[Trajectory], body: str | None, *, rms: bool = False
 ) -> tuple[float, float]:
-    """Mean position error (m) and rotation error (deg) of one free body (None: the worst body) over trajectories."""
+    """Position error (m) and rotation error (deg) of one free body (None: the worst body) over trajectories: the
+    mean over all samples, or with `rms` the root mean square (a change confined to a bounce counts fully)."""
     from grounder._simulate import free_body_errors
 
     per: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     for pred, real in zip(preds, reals, strict=True):
         for name, (pos, rot) in free_body_errors(model, pred, real).items():
             per.setdefault(name, []).append((pos, rot))
+
+    def reduce(values: np.ndarray) -> float:
+        return float(np.sqrt(np.mean(values**2))) if rms else float(np.mean(values))
+
     stats = {
         name: (
-            float(np.mean(np.concatenate([p for p, _ in errs]))),
-            float(np.rad2deg(np.mean(np.concatenate([r for _, r in errs])))),
+            reduce(np.concatenate([p for p, _ in errs])),
+            float(np.rad2deg(reduce(np.concatenate([r for _, r in errs])))),
         )
         for name, errs in per.items()
     }
@@ -502,8 +716,9 @@ def screen_parameters(
     (`passes` sweeps over `grid_points` values across each parameter's bounds, in its search coordinate, every other
     parameter at its current grid best) finds where the rollouts match the tracks best; there each parameter is
     moved by -/+ `relative_change`, and it counts as constrained only if the moved body's rollout changes by at
-    least `min_position_m` (mean over the frames) or `min_rotation_deg` in both directions: a smaller change is
-    below what tracking resolves (a parameter of an object that never slides, or never bounces, leaves no trace).
+    least `min_position_m` (root mean square over the frames) or `min_rotation_deg` in both directions: a smaller
+    change is below what tracking resolves (a parameter of an object that never slides, or never bounces, leaves no
+    trace).
 
     Contact parameters are applied as calibration applies them (the body's geoms get top priority), so on a scene
     whose contacts mix parameters (MuJoCo: the larger friction, the solmix-weighted solref) the values found are the
@@ -547,8 +762,8 @@ def screen_parameters(
         rows[2, i] = float(np.clip(best * (1.0 + relative_change), p.lower, p.upper))
         body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
         (_, ref), (model_d, down), (model_u, up) = run(rows)
-        change_down = _body_errors(model_d, down, ref, body)
-        change_up = _body_errors(model_u, up, ref, body)
+        change_down = _body_errors(model_d, down, ref, body, rms=True)
+        change_up = _body_errors(model_u, up, ref, body, rms=True)
 
         def visible(change: tuple[float, float]) -> bool:
             return change[0] >= min_position_m or change[1] >= min_rotation_deg
@@ -616,7 +831,7 @@ def indistinguishable_range(
     ref = preds[0]
     same = []
     for model, pred in zip(models[1:], preds[1:], strict=True):
-        pos_m, rot_deg = _body_errors(model, pred, ref, body)  # type: ignore[arg-type]
+        pos_m, rot_deg = _body_errors(model, pred, ref, body, rms=True)  # type: ignore[arg-type]
         same.append(pos_m < min_position_m and rot_deg < min_rotation_deg)
     below = [v for v, ok in zip(scan, same, strict=True) if v < centre and not ok]
     above = [v for v, ok in zip(scan, same, strict=True) if v > centre and not ok]

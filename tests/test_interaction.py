@@ -98,3 +98,60 @@ def test_nothing_constrained_calibrates_nothing(tmp_path: Path) -> None:
     )
     assert entry["status"].startswith("skipped")
     assert not (tmp_path / "calibrated").exists()
+
+
+def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scene(tmp_path: Path) -> None:
+    """The two boxes never touch: each is calibrated in a scene of its own on windows of its own motion; the values
+    found are written into the whole scene (its calibration.json says so) and no helper file is left behind."""
+    from grounder._interaction import calibrate_per_body, separable_bodies
+
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    assert separable_bodies(xml, [traj])
+    entry, used = calibrate_per_body(
+        xml,
+        [traj],
+        PARAMS,
+        InteractionOptions(calibrate_settings={"generations": 4, "popsize": 5, "local_iterations": 5}),
+        out=tmp_path / "calibrated",
+    )
+    slider, still = entry["parameters"]["slider.friction.sliding"], entry["parameters"]["still.friction.sliding"]
+    assert entry["status"].startswith("calibrated per object")
+    assert slider["constrained"] and slider["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+    assert not still["constrained"] and still["value"] == 0.8
+    assert used and all(name.startswith("slider:") for name in used)  # the still box shows no motion to fit
+    calibrated = mujoco.MjModel.from_xml_path(str(tmp_path / "calibrated" / "scene.xml"))
+    assert calibrated.geom_friction[calibrated.body("slider").geomadr[0], 0] == pytest.approx(slider["value"])
+    assert calibrated.geom_friction[calibrated.body("still").geomadr[0], 0] == pytest.approx(0.8)
+    assert sorted(p.name for p in (tmp_path / "prior").iterdir()) == ["scene.xml"]
+
+
+def test_touching_objects_are_not_separable(tmp_path: Path) -> None:
+    from grounder._interaction import separable_bodies
+
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    touching = traj.qpos.copy()
+    touching[5, 7:10] = touching[5, 0:3] + np.array([0.081, 0.0, 0.0])  # 1 mm from the slider's side
+    assert not separable_bodies(xml, [Trajectory(time_s=traj.time_s, qpos=touching, qvel=traj.qvel, name="t")])
+
+
+def test_reliable_starts_skip_the_frame_after_an_impact() -> None:
+    """A box thrown onto the floor lands between two frames and slides (30 fps, known motion): every
+    sample of the flight is a good start (its velocity comes from the ballistic fit); the first sample after the
+    landing is not (it may still be mid-impact); the rest of the slide is."""
+    from grounder._interaction import reliable_starts
+
+    dt, g = 1 / 30, 9.81
+    time_s = np.arange(24) * dt
+    landing = 7.5 * dt  # between samples 7 and 8
+    x = np.where(
+        time_s < landing, 1.0 * time_s, 1.0 * landing + 0.6 * (time_s - landing) - 0.5 * 2.0 * (time_s - landing) ** 2
+    )
+    z = np.where(time_s < landing, 0.03 + 0.5 * g * (landing**2 - time_s**2), 0.03)
+    qpos = np.zeros((24, 7))
+    qpos[:, 0], qpos[:, 2], qpos[:, 3] = x, z, 1.0
+    good = reliable_starts(Trajectory(time_s=time_s, qpos=qpos, qvel=np.zeros((24, 6)), name="throw"))
+    assert good[:8].all()
+    assert not good[8]
+    assert good[9:].all()
