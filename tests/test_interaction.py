@@ -155,3 +155,27 @@ def test_reliable_starts_skip_the_frame_after_an_impact() -> None:
     assert good[:8].all()
     assert not good[8]
     assert good[9:].all()
+
+
+def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
+    """`CalibrateOptions.separate_bodies` searches each body's parameters on its own (here the slider's friction is
+    found from a prior of 0.8 while the still box's stays put); `initial` with no search budget returns exactly
+    the given values, evaluated; a non-body parameter is refused."""
+    from grounder._calibrate import CalibrateOptions, calibrate
+    from grounder.errors import GrounderError
+
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    settings = {"generations": 4, "popsize": 5, "local_iterations": 5, "validation_fraction": 0.0}
+    result = calibrate(xml, [traj], options=CalibrateOptions(params=PARAMS, separate_bodies=True, **settings))
+    assert result.values["slider.friction.sliding"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+    fixed = calibrate(
+        xml,
+        [traj],
+        options=CalibrateOptions(
+            params=PARAMS, initial={"slider.friction.sliding": 0.5}, generations=0, local_iterations=0
+        ),
+    )
+    assert fixed.values == {"slider.friction.sliding": pytest.approx(0.5), "still.friction.sliding": pytest.approx(0.8)}
+    with pytest.raises(GrounderError, match="per-body parameters"):
+        calibrate(xml, [traj], options=CalibrateOptions(params=("opt.gravity_scale",), separate_bodies=True))
