@@ -137,9 +137,8 @@ def reliable_starts(traj: Trajectory, smoothing: SmoothingOptions | None = None)
     good = np.ones(num, bool)
     dt_s = float(np.median(np.diff(traj.time_s))) if num > 1 else None
     for body in range(traj.qvel.shape[1] // 6):
-        pos, quat = traj.qpos[:, 7 * body : 7 * body + 3], traj.qpos[:, 7 * body + 3 : 7 * body + 7]
         body_good = np.zeros(num, bool)
-        for first, last, flight in impact_pieces(pos, quat, smoothing, dt_s):
+        for first, last, flight in impact_pieces(traj.qpos[:, 7 * body : 7 * body + 3], smoothing, dt_s):
             if flight or last - first + 1 >= 3:
                 body_good[first + (1 if first > 0 and not flight else 0) : last + 1] = True
         good &= body_good

@@ -131,9 +131,7 @@ class Piece(NamedTuple):
     ballistic: bool
 
 
-def impact_pieces(
-    pos_m: np.ndarray, quat_wxyz: np.ndarray, options: SmoothingOptions | None = None, dt_s: float | None = None
-) -> list[Piece]:
+def impact_pieces(pos_m: np.ndarray, options: SmoothingOptions | None = None, dt_s: float | None = None) -> list[Piece]:
     """Cuts one body's uniformly sampled track into pieces of smooth motion, where its velocity jumps (impacts).
 
     Within a piece the positions are either a free flight (a line plus the gravity term, given `dt_s`) or any
@@ -145,7 +143,6 @@ def impact_pieces(
 
     Args:
         pos_m: (T, 3) world positions, gravity-aligned frame.
-        quat_wxyz: (T, 4) orientations (not used for the cut; kept for symmetry with the fits).
         options: noise floor, the longest piece and gravity.
         dt_s: sample interval; None: no free-flight model.
 
@@ -275,7 +272,7 @@ def free_body_velocities(
         raise GrounderError(f"a segment needs at least 3 samples for velocities, got {num}")
     quats = sign_continuous(quat_wxyz)
     dt_s = float(np.median(np.diff(time_s)))
-    pieces = impact_pieces(pos_m, quats, options, dt_s) if options.split_at_impacts else [Piece(0, num - 1, False)]
+    pieces = impact_pieces(pos_m, options, dt_s) if options.split_at_impacts else [Piece(0, num - 1, False)]
     pos_fit, quat_fit = np.empty_like(pos_m), np.empty_like(quats)
     linvel, quat_dot = np.empty_like(pos_m), np.empty_like(quats)
     for first, last, ballistic in pieces:

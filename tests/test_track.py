@@ -284,7 +284,7 @@ def test_velocity_fit_is_cut_at_impacts_and_reads_the_throw_speed() -> None:
     after = at_landing + v_up * tb + 0.5 * np.array([0, 0, -g]) * tb**2
     pos = np.where(time_s[:, None] < landing, before, after) + np.random.default_rng(3).normal(0, 5e-4, (16, 3))
     quat = np.tile([1.0, 0.0, 0.0, 0.0], (16, 1))
-    pieces = impact_pieces(pos, quat, dt_s=dt)
+    pieces = impact_pieces(pos, dt_s=dt)
     assert [(p.first, p.last) for p in pieces] == [(0, 3), (4, 15)]
     assert pieces[1].ballistic  # (4 noisy samples, as the first piece, do not always tell a flight from a curve)
     _, _, linvel, _ = free_body_velocities(time_s, pos, quat)
