@@ -226,6 +226,19 @@ def _clip_match(scene_xml: Path, trajs: Sequence[Trajectory]) -> dict[str, dict[
     }
 
 
+def _prior_record(p: Any) -> dict[str, Any]:
+    """A parameter's report entry when the prior stands: value = nominal, interval = bounds, unconstrained."""
+    bounds = [p.lower, p.upper]
+    return {
+        "nominal": p.nominal,
+        "value": p.nominal,
+        "interval": bounds,
+        "bounds": list(bounds),
+        "unit": p.unit,
+        "constrained": False,
+    }
+
+
 def calibrate_constrained(
     scene_xml: Path,
     trajs: Sequence[Trajectory],
@@ -264,11 +277,7 @@ def calibrate_constrained(
     entry: dict[str, Any] = {"parameters": {}}
     for name, p in resolved.items():
         entry["parameters"][name] = {
-            "nominal": p.nominal,
-            "value": p.nominal,
-            "interval": [p.lower, p.upper],
-            "bounds": [p.lower, p.upper],
-            "unit": p.unit,
+            **_prior_record(p),
             "constrained": name in fit,
             **({"screen": screens[name].as_dict()} if name in screens else {}),
         }
@@ -430,9 +439,7 @@ def calibrate_per_body(
     resolved = {p.name: p for p in resolve_parameters(model, list(params))}
     for name, record in entry["parameters"].items():
         if "value" not in record:  # skipped body: the prior, unconstrained
-            p = resolved[name]
-            record.update(nominal=p.nominal, value=p.nominal, interval=[p.lower, p.upper], bounds=[p.lower, p.upper])
-            record.update(unit=p.unit, constrained=False)
+            record.update(_prior_record(resolved[name]))
     unconstrained = [n for n, r in entry["parameters"].items() if not r.get("constrained")]
     if not values:
         entry["status"] = "skipped: the clip constrains none of the parameters (prior kept)"

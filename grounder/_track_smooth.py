@@ -229,23 +229,6 @@ def _piece_velocities(
     return pos_fit, quat_fit, linvel, quat_dot
 
 
-def _savgol_only(
-    time_s: np.ndarray, pos: np.ndarray, quats: np.ndarray, options: SmoothingOptions
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One Savitzky-Golay fit across the whole segment (impacts smeared): `split_at_impacts=False`."""
-    from scipy.signal import savgol_filter
-
-    dt_s = float(np.median(np.diff(time_s)))
-    window, order = _window(len(time_s), options)
-    kwargs = {"window_length": window, "polyorder": order, "axis": 0, "mode": "interp"}
-    return (
-        savgol_filter(pos, deriv=0, **kwargs),
-        savgol_filter(quats, deriv=0, **kwargs),
-        savgol_filter(pos, deriv=1, delta=dt_s, **kwargs),
-        savgol_filter(quats, deriv=1, delta=dt_s, **kwargs),
-    )
-
-
 def free_body_velocities(
     time_s: np.ndarray, pos_m: np.ndarray, quat_wxyz: np.ndarray, options: SmoothingOptions | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -277,10 +260,7 @@ def free_body_velocities(
     linvel, quat_dot = np.empty_like(pos_m), np.empty_like(quats)
     for first, last, ballistic in pieces:
         rows = slice(first, last + 1)
-        if options.split_at_impacts:
-            fitted = _piece_velocities(time_s[rows], pos_m[rows], quats[rows], options, ballistic)
-        else:
-            fitted = _savgol_only(time_s[rows], pos_m[rows], quats[rows], options)
+        fitted = _piece_velocities(time_s[rows], pos_m[rows], quats[rows], options, ballistic)
         pos_fit[rows], quat_fit[rows], linvel[rows], quat_dot[rows] = fitted
     norm = np.linalg.norm(quat_fit, axis=1, keepdims=True)
     unit = quat_fit / norm
