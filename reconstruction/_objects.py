@@ -6,8 +6,9 @@ evidence (it must project inside enough registered frames) and problems are repo
 the region of interest or seen in few frames, and footprints that look like several touching objects.
 
 Meshing: the object's surface is voxelised, its footprint on the table is capped (the unseen underside is
-assumed flat where the object meets the table: recorded as `closed_bottom`), enclosed space is filled, and
-marching cubes gives a watertight surface, corrected by half a voxel inwards, smoothed and decimated.
+assumed flat where the object meets the table: recorded as `closed_bottom`), enclosed space is filled, space the
+depth maps see through is carved away (the visible part of an undercut, stereo bumps), and marching cubes gives a
+watertight surface, corrected by half a voxel inwards, smoothed and decimated.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import ndimage
 
-from reconstruction._dense import DenseResult, RegionOfInterest
+from reconstruction._dense import DenseResult, DepthMap, RegionOfInterest
 from reconstruction.errors import ReconstructionError
 
 if TYPE_CHECKING:
@@ -67,6 +68,12 @@ class MeshOptions:
         skirt_height_voxels: layers above the table cleared of protrusions thinner than 5 voxels.
         grid_refinement: inside/outside grid cells per fusion voxel.
         smooth_iterations: Taubin smoothing steps after marching cubes.
+        carve_min_views: a voxel of the filled solid is removed when at least this many depth maps see a surface
+            behind it (0: no carving).
+        carve_margin_voxels: how far behind the voxel (fusion voxels) that surface must be.
+        carve_edge_px: depth pixels this close to a depth jump or a hole are not trusted for carving (stereo
+            fattens silhouettes).
+        carve_jump_fraction: a depth jump is a change over 3 x 3 pixels larger than this fraction of the depth.
     """
 
     face_budget: int = 4000
@@ -74,6 +81,10 @@ class MeshOptions:
     skirt_height_voxels: float = 6.0
     grid_refinement: int = 2
     smooth_iterations: int = 10
+    carve_min_views: int = 3
+    carve_margin_voxels: float = 2.0
+    carve_edge_px: int = 1
+    carve_jump_fraction: float = 0.03
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -316,6 +327,21 @@ def mesh_object(
     layers = np.arange(shape[2])[None, None, :]
     extrude = footprint[..., None] & (layers >= z0) & (layers < first[..., None])
     solid |= extrude
+    # The fill above is an assumption; where depth maps see the table or the far side of the object through it
+    # (under a bowl's flared wall, past a stereo bump), it is wrong: carve it, keep the largest piece.
+    if options.carve_min_views > 0 and dense.depth_maps:
+        margin = options.carve_margin_voxels * dense.voxel_size
+        solid &= ~_seen_through(dense.depth_maps, solid, lo, voxel, margin, options)
+        # Within `margin` of the table no depth map can tell the object from the table behind it: there the object
+        # keeps the cross-section it has just above (a flared wall's carved undercut reaches down to the table).
+        above = min(shape[2] - 1, z0 + int(np.ceil(margin / voxel)))
+        solid[:, :, z0:above] &= ndimage.binary_fill_holes(solid[:, :, above])[:, :, None]
+        labels, count = ndimage.label(solid)
+        if count == 0:
+            raise SegmentationError("the depth maps see through the whole object; film it from more sides")
+        sizes = np.bincount(labels.ravel())
+        sizes[0] = 0
+        solid = ndimage.binary_fill_holes(labels == int(sizes.argmax()))
     # Shadowed table next to an object is poorly matched and leaves thin skirts at its base: open the lowest
     # layers in the table plane (walls higher up are left alone, however thin).
     refine = options.grid_refinement
@@ -357,6 +383,49 @@ def mesh_object(
     )
 
 
+def _seen_through(
+    depth_maps: tuple[DepthMap, ...],
+    solid: np.ndarray,
+    lo: np.ndarray,
+    voxel: float,
+    margin: float,
+    options: MeshOptions,
+) -> np.ndarray:
+    """Voxels of `solid` (grid origin `lo`, spacing `voxel`) that enough depth maps see a surface behind.
+
+    Space carving: a depth map that measures a surface more than `margin` behind a voxel, along the ray through
+    it, sees through it. Depth next to depth jumps and holes is left out: block matching drags background depth
+    across silhouettes, which would eat into objects.
+    """
+    index = np.argwhere(solid)
+    centres = lo + index * voxel
+    votes = np.zeros(len(index), np.int32)
+    for depth_map in depth_maps:
+        depth = depth_map.depth
+        valid = depth > 0
+        if options.carve_edge_px > 0:
+            near = ndimage.maximum_filter(np.where(valid, depth, 0.0), size=3)
+            far = ndimage.minimum_filter(np.where(valid, depth, np.inf), size=3)
+            jump = (near - far) > options.carve_jump_fraction * depth
+            valid &= ~ndimage.binary_dilation(jump | ~valid, iterations=options.carve_edge_px)
+        cam_from_world = np.linalg.inv(depth_map.world_from_cam)
+        cam = centres @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        z = cam[:, 2]
+        ahead = z > 1e-6
+        u = np.full(len(z), -1)
+        v = np.full(len(z), -1)
+        u[ahead] = np.round(depth_map.k[0, 0] * cam[ahead, 0] / z[ahead] + depth_map.k[0, 2]).astype(int)
+        v[ahead] = np.round(depth_map.k[1, 1] * cam[ahead, 1] / z[ahead] + depth_map.k[1, 2]).astype(int)
+        height, width = depth.shape
+        inside = ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+        hit = np.flatnonzero(inside)
+        seen = valid[v[hit], u[hit]] & (depth[v[hit], u[hit]] > z[hit] + margin)
+        votes[hit[seen]] += 1
+    out = np.zeros_like(solid)
+    out[tuple(index[votes >= options.carve_min_views].T)] = True
+    return out
+
+
 def _is_closed(mesh: trimesh.Trimesh) -> bool:
     return bool(mesh.is_watertight) and bool(np.isfinite(mesh.volume)) and float(mesh.volume) > 0
 
@@ -390,7 +459,12 @@ def _snap_base(mesh: trimesh.Trimesh, voxel_size: float) -> trimesh.Trimesh:
 
 def _largest_component(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     parts = mesh.split(only_watertight=False)
-    return max(parts, key=lambda m: abs(m.volume) if m.is_watertight else len(m.faces)) if len(parts) > 1 else mesh
+    # Closed pieces first (by volume), then open ones by face count: volumes in m^3 are far below any face count.
+    return (
+        max(parts, key=lambda m: (1, abs(m.volume)) if m.is_watertight else (0, len(m.faces)))
+        if len(parts) > 1
+        else mesh
+    )
 
 
 def _decimate(mesh: trimesh.Trimesh, face_budget: int) -> trimesh.Trimesh:

@@ -70,9 +70,19 @@ def region_of_interest(result: ReconstructionResult, margin_fraction: float) -> 
     lo = np.percentile(members, 1, axis=0)
     hi = np.percentile(members, 99, axis=0)
     margin = margin_fraction * scene_size
+    # Glossy or plain tops give few sparse points (the real apple's came to half its height), so the box reaches
+    # above each cluster's highest points by as much as the cluster is wide: clipping the fused surface there
+    # left the apple an open, half-height shell.
+    top = max(_cluster_top_m(points[c]) for c in clusters)
     lo = np.array([lo[0] - margin, lo[1] - margin, -0.03 * scene_size])
-    hi = np.array([hi[0] + margin, hi[1] + margin, hi[2] + margin])
+    hi = np.array([hi[0] + margin, hi[1] + margin, max(hi[2], top) + margin])
     return _dense.RegionOfInterest(min_world=lo, max_world=hi)
+
+
+def _cluster_top_m(points: np.ndarray) -> float:
+    """Height a cluster of sparse points may reach: its highest points plus its width."""
+    width = float(np.ptp(np.percentile(points[:, :2], [1, 99], axis=0), axis=0).max())
+    return float(np.percentile(points[:, 2], 99)) + width
 
 
 def find_objects(

@@ -1,0 +1,112 @@
+"""Meshing pieces of film-a-scene with known answers: free-space carving, the region of interest, the kept piece."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from reconstruction._dense import DepthMap
+from reconstruction._objects import MeshOptions, _largest_component, _seen_through
+
+VOXEL_M = 0.01
+
+
+def _looking_down(height_m: float, x_m: float = 0.0) -> np.ndarray:
+    """world_from_cam of a camera at (x, 0, height) looking straight down (OpenCV axes: z forward, y down)."""
+    pose = np.eye(4)
+    pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    pose[:3, 3] = [x_m, 0.0, height_m]
+    return pose
+
+
+def _table_and_block_depth(world_from_cam: np.ndarray, k: np.ndarray, size: int) -> np.ndarray:
+    """Depth a downward camera measures of a table at z = 0 and a block top at z = 0.3 m over |x|, |y| < 0.1 m."""
+    v, u = np.mgrid[0:size, 0:size].astype(float)
+    height = world_from_cam[2, 3]
+    depth = np.full((size, size), height, np.float32)  # the table
+    # Rays whose hit on the block top (z = 0.3) lies inside it see the block, 0.3 m nearer.
+    top = height - 0.3
+    xt = world_from_cam[0, 3] + (u - k[0, 2]) / k[0, 0] * top
+    yt = -(v - k[1, 2]) / k[1, 1] * top
+    depth[(np.abs(xt) < 0.1) & (np.abs(yt) < 0.1)] = top
+    return depth
+
+
+def test_space_carving_removes_what_the_depth_maps_see_through() -> None:
+    """A filled box of voxels 0.4 m wide, 0.2 m high; the cameras see a block top (z = 0.3) over its middle and the
+    table elsewhere: voxels beside the block are carved, those under it (hidden) are kept."""
+    size = 200
+    k = np.array([[150.0, 0, size / 2 - 0.5], [0, 150.0, size / 2 - 0.5], [0, 0, 1]])
+    maps = []
+    for x_m in (-0.02, 0.0, 0.02):
+        pose = _looking_down(1.0, x_m)
+        maps.append(DepthMap(depth=_table_and_block_depth(pose, k, size), k=k, world_from_cam=pose))
+    lo = np.array([-0.2, -0.2, 0.0]) + VOXEL_M / 2
+    solid = np.zeros((40, 40, 20), bool)
+    solid[:, :, 5:] = True  # z from 0.055 m up: clear of the table by more than the margin
+    carved = _seen_through(tuple(maps), solid, lo, VOXEL_M, 0.02, MeshOptions(carve_min_views=3, carve_edge_px=1))
+    centres = lo + np.argwhere(solid) * VOXEL_M
+    got = carved[tuple(np.argwhere(solid).T)]
+    hidden = (np.abs(centres[:, 0]) < 0.07) & (np.abs(centres[:, 1]) < 0.07)  # well under the block top
+    beside = (np.abs(centres[:, 0]) > 0.165) | (np.abs(centres[:, 1]) > 0.165)  # clear of the edge bands
+    assert not got[hidden].any(), "voxels hidden under the block were carved"
+    assert got[beside].all(), f"only {got[beside].mean():.0%} of the voxels beside the block were carved"
+
+
+def test_space_carving_distrusts_depth_at_jumps() -> None:
+    """A single depth map with the block edge: with a wide edge band, voxels next to the edge are not carved."""
+    size = 200
+    k = np.array([[150.0, 0, size / 2 - 0.5], [0, 150.0, size / 2 - 0.5], [0, 0, 1]])
+    pose = _looking_down(1.0)
+    depth_map = DepthMap(depth=_table_and_block_depth(pose, k, size), k=k, world_from_cam=pose)
+    lo = np.array([-0.2, -0.2, 0.0]) + VOXEL_M / 2
+    solid = np.zeros((40, 40, 20), bool)
+    solid[:, :, 5:15] = True
+    index = np.argwhere(solid)
+    centres = lo + index * VOXEL_M
+    near_edge = (np.abs(np.abs(centres[:, 0]) - 0.13) < 0.012) & (np.abs(centres[:, 1]) < 0.05)
+    trusting = _seen_through((depth_map,), solid, lo, VOXEL_M, 0.02, MeshOptions(carve_min_views=1, carve_edge_px=0))
+    careful = _seen_through((depth_map,), solid, lo, VOXEL_M, 0.02, MeshOptions(carve_min_views=1, carve_edge_px=8))
+    assert trusting[tuple(index[near_edge].T)].any()
+    assert not careful[tuple(index[near_edge].T)].any()
+
+
+def test_largest_component_prefers_the_closed_piece() -> None:
+    """Volumes in m^3 are tiny next to face counts: a closed 5 cm sphere must still beat a loose open fragment."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.025)
+    fragment = trimesh.Trimesh(
+        np.array([[1.0, 0, 0], [1.01, 0, 0], [1.0, 0.01, 0], [1.01, 0.01, 0]]), [[0, 1, 2], [1, 3, 2]]
+    )
+    kept = _largest_component(trimesh.util.concatenate([sphere, fragment]))
+    assert kept.is_watertight and kept.volume == pytest.approx(sphere.volume)
+
+
+def test_region_of_interest_reaches_above_a_sparse_top() -> None:
+    """Sparse points often miss a glossy top: the fused region must still reach above the highest ones, here by
+    the cluster's width."""
+    from reconstruction import CameraIntrinsics, ReconstructionResult, RegisteredFrame, ScaleSource, WorldFrame
+    from reconstruction._scene_objects import region_of_interest
+
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-0.4, 0.4, (3000, 2)), rng.normal(0, 0.0005, 3000)]
+    # An 8 cm object whose sparse points stop at 4 cm (the true top is higher, unseen by SfM).
+    side = np.c_[rng.uniform(-0.04, 0.04, (800, 2)), rng.uniform(0.005, 0.04, 800)]
+    points = np.concatenate([table, side])
+    cam = np.eye(4)
+    cam[:3, 3] = [0, -0.6, 0.4]
+    result = ReconstructionResult(
+        out_dir=Path("."), source=Path("."), num_source_frames=1, selected_frame_indices=(0,),
+        dropped_blurred=(), dropped_duplicate=(),
+        intrinsics=CameraIntrinsics(width_px=640, height_px=480, fx_px=500, fy_px=500, cx_px=320, cy_px=240),
+        frames=(RegisteredFrame(frame_index=0, image_name="a.jpg", world_from_cam=cam),),
+        world=WorldFrame(world_from_sfm=np.eye(4), scale_source=ScaleSource.ARUCO, scale=1.0, plane_inlier_ratio=1.0),
+        points_world_m=points, points_rgb=np.zeros((len(points), 3), np.uint8), mean_reprojection_error_px=0.3,
+        stage_seconds={},
+    )  # fmt: skip
+    roi = region_of_interest(result, 0.08)
+    assert roi.max_world[2] >= 0.04 + 0.075  # the highest points plus (nearly) the cluster's 8 cm width
+    assert roi.min_world[2] < 0 < roi.max_world[2]
