@@ -14,13 +14,14 @@ watertight surface, corrected by half a voxel inwards, smoothed and decimated.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import ndimage
 
-from reconstruction._dense import DenseResult, DepthMap, RegionOfInterest
+from reconstruction._dense import DenseResult, DepthMap, RegionOfInterest, _voxel_keys
 from reconstruction.errors import ReconstructionError
 
 if TYPE_CHECKING:
@@ -82,7 +83,7 @@ class MeshOptions:
     grid_refinement: int = 2
     smooth_iterations: int = 10
     carve_min_views: int = 3
-    carve_margin_voxels: float = 2.0
+    carve_margin_voxels: float = 3.0
     carve_edge_px: int = 1
     carve_jump_fraction: float = 0.03
 
@@ -331,11 +332,13 @@ def mesh_object(
     # (under a bowl's flared wall, past a stereo bump), it is wrong: carve it, keep the largest piece.
     if options.carve_min_views > 0 and dense.depth_maps:
         margin = options.carve_margin_voxels * dense.voxel_size
-        solid &= ~_seen_through(dense.depth_maps, solid, lo, voxel, margin, options)
+        on_surface, inside = _fused_tests(dense)
+        solid &= ~_seen_through(dense.depth_maps, solid, lo, voxel, margin, options, on_surface, inside)
         # Within `margin` of the table no depth map can tell the object from the table behind it: there the object
         # keeps the cross-section it has just above (a flared wall's carved undercut reaches down to the table).
         above = min(shape[2] - 1, z0 + int(np.ceil(margin / voxel)))
-        solid[:, :, z0:above] &= ndimage.binary_fill_holes(solid[:, :, above])[:, :, None]
+        reference = solid[:, :, above : above + 4].any(axis=2)  # a few layers: one may be broken by carving
+        solid[:, :, z0:above] &= ndimage.binary_fill_holes(reference)[:, :, None]
         labels, count = ndimage.label(solid)
         if count == 0:
             raise SegmentationError("the depth maps see through the whole object; film it from more sides")
@@ -383,6 +386,35 @@ def mesh_object(
     )
 
 
+def _fused_tests(
+    dense: DenseResult,
+) -> tuple[Callable[[np.ndarray], np.ndarray] | None, Callable[[np.ndarray], np.ndarray] | None]:
+    """Tests of world points (N, 3) against the fused TSDF: on its surface (|TSDF| <= half the truncation), and
+    clearly inside an object (TSDF <= -0.3, fused from at least 2 depth maps). None without a TSDF."""
+    if len(dense.tsdf_voxels) == 0:
+        return None, None
+    keys = _voxel_keys(dense.tsdf_voxels)
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    values, weights = dense.tsdf_values[order], dense.tsdf_weights[order]
+
+    def lookup(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        query = _voxel_keys(np.round(points_world / dense.voxel_size).astype(np.int64))
+        pos = np.clip(np.searchsorted(sorted_keys, query), 0, len(sorted_keys) - 1)
+        found = sorted_keys[pos] == query
+        return np.where(found, values[pos], 1.0), np.where(found, weights[pos], 0.0)
+
+    def on_surface(points_world: np.ndarray) -> np.ndarray:
+        value, weight = lookup(points_world)
+        return (np.abs(value) <= 0.5) & (weight > 0)
+
+    def inside(points_world: np.ndarray) -> np.ndarray:
+        value, weight = lookup(points_world)
+        return (value <= -0.3) & (weight >= 2)
+
+    return on_surface, inside
+
+
 def _seen_through(
     depth_maps: tuple[DepthMap, ...],
     solid: np.ndarray,
@@ -390,12 +422,17 @@ def _seen_through(
     voxel: float,
     margin: float,
     options: MeshOptions,
+    on_surface: Callable[[np.ndarray], np.ndarray] | None = None,
+    inside_fused: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Voxels of `solid` (grid origin `lo`, spacing `voxel`) that enough depth maps see a surface behind.
 
     Space carving: a depth map that measures a surface more than `margin` behind a voxel, along the ray through
     it, sees through it. Depth next to depth jumps and holes is left out: block matching drags background depth
-    across silhouettes, which would eat into objects.
+    across silhouettes, which would eat into objects. With `on_surface`, the surface a depth map measures must also
+    be one the fusion of all depth maps agrees on: one view's depth that falls through a plain bowl floor does not
+    carve the floor. With `inside_fused`, voxels the fusion holds to be inside an object (a thin wall between two
+    seen surfaces) are kept, whatever a few views say.
     """
     index = np.argwhere(solid)
     centres = lo + index * voxel
@@ -419,10 +456,19 @@ def _seen_through(
         height, width = depth.shape
         inside = ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height)
         hit = np.flatnonzero(inside)
-        seen = valid[v[hit], u[hit]] & (depth[v[hit], u[hit]] > z[hit] + margin)
+        measured = depth[v[hit], u[hit]]
+        seen = valid[v[hit], u[hit]] & (measured > z[hit] + margin)
+        if on_surface is not None and seen.any():
+            # The measured point lies on the ray through the voxel, `measured / z` times as far from the camera.
+            origin = depth_map.world_from_cam[:3, 3]
+            behind = origin + (centres[hit[seen]] - origin) * (measured[seen] / z[hit[seen]])[:, None]
+            seen[seen] = on_surface(behind)
         votes[hit[seen]] += 1
+    carve = votes >= options.carve_min_views
+    if inside_fused is not None and carve.any():
+        carve[carve] = ~inside_fused(centres[carve])
     out = np.zeros_like(solid)
-    out[tuple(index[votes >= options.carve_min_views].T)] = True
+    out[tuple(index[carve].T)] = True
     return out
 
 

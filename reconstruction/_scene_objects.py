@@ -27,6 +27,7 @@ class ObjectsOptions:
     segment: _objects.SegmentOptions = field(default_factory=_objects.SegmentOptions)
     mesh: _objects.MeshOptions = field(default_factory=_objects.MeshOptions)
     roi_margin_fraction: float = 0.08  # margin around the objects' sparse points, x the median camera distance
+    min_object_voxels: float = 3.0  # a meshed object smaller than a cube this many fused voxels wide is dropped
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,12 +114,17 @@ def find_objects(
     for index, segment in enumerate(segments):
         report("meshing objects", index, len(segments))
         mesh = _objects.mesh_object(dense, segment, cam_centres, options.mesh)
+        volume = _mesh_volume(mesh.vertices_world, mesh.faces)
+        if volume < (options.min_object_voxels * dense.voxel_size) ** 3:
+            # A cluster whose solid the depth maps see through almost entirely (a shadow, a reflection): not an object.
+            log.warning("dropped a candidate object of %.2g m^3: too small to be an object", volume)
+            continue
         centre = (mesh.vertices_world.min(axis=0) + mesh.vertices_world.max(axis=0)) / 2
         world_from_object = np.eye(4)
         world_from_object[:3, 3] = centre
         instances.append(
             ObjectInstance(
-                name=f"object_{index}",
+                name=f"object_{len(instances)}",
                 mesh=TexturedMesh(vertices_m=mesh.vertices_world - centre, faces=mesh.faces),
                 world_from_object=world_from_object,
                 num_views=segment.num_views,
@@ -127,6 +133,10 @@ def find_objects(
             )
         )
     report("meshing objects", len(segments), len(segments))
+    if not instances:
+        raise _objects.SegmentationError(
+            "no object found: every cluster above the table meshed to almost nothing; film the objects from more sides"
+        )
     table = points_table_extent(result)
     return SceneObjects(
         objects=tuple(instances),
@@ -135,6 +145,12 @@ def find_objects(
         num_stereo_pairs=dense.num_pairs,
         table_half_extents=table,
     )
+
+
+def _mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Enclosed volume of a closed, outward-oriented triangle mesh (divergence theorem)."""
+    a, b, c = (vertices[faces[:, i]] for i in range(3))
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
 
 
 def points_table_extent(result: ReconstructionResult) -> tuple[float, float]:

@@ -2,7 +2,8 @@
 
 Acceptance per object on the sample: bounding-box centre within 5 mm of the truth, Chamfer distance <= 3 mm,
 extents within 8%; after 2 s of simulation every object within 2 mm and 1 deg of where it started; the concave
-object's collision hulls keep its cavity. Targets not met yet are strict xfails carrying the measured numbers.
+object's collision hulls keep its cavity. Targets not met yet are xfails carrying the measured numbers, each
+with a looser hard guard against regressions.
 """
 
 from __future__ import annotations
@@ -39,13 +40,7 @@ def test_object_count_and_centres(errors: dict[str, ObjectError], tabletop_dir: 
     truth = json.loads((tabletop_dir / "truth" / "objects.json").read_text())["objects"]
     assert sorted(errors) == sorted(o["name"] for o in truth)  # exactly one grounded object per true object
     for name, err in errors.items():
-        limit_m = 0.008 if name == "bowl" else 0.005  # bowl: see the xfail below
-        assert err.centre_error_m <= limit_m, f"{name}: centre off by {err.centre_error_m * 1000:.1f} mm"
-
-
-@pytest.mark.xfail(strict=False, reason="not reliably yet: bowl centre measured 3.1-5.6 mm over runs (its undercut)")
-def test_bowl_centre_within_5mm(errors: dict[str, ObjectError]) -> None:
-    assert errors["bowl"].centre_error_m <= 0.005
+        assert err.centre_error_m <= 0.005, f"{name}: centre off by {err.centre_error_m * 1000:.1f} mm"
 
 
 @pytest.mark.parametrize("name", ["box", "can"])
@@ -54,22 +49,27 @@ def test_chamfer_within_3mm(errors: dict[str, ObjectError], name: str) -> None:
 
 
 @pytest.mark.xfail(
-    strict=True,
-    reason="not yet: bowl Chamfer measured 3.9-4.0 mm; the orbit never sees under its flared wall, which the "
-    "closed-bottom assumption fills (volume x2)",
+    strict=False,  # measured 3.05-3.26 mm over 6 reconstructions: it may pass on a lucky one
+    reason="not yet: bowl Chamfer 3.05-3.26 mm; its hidden undercut stays filled down to the table and the thin "
+    "rim's top 4-5 mm is lost at depth edges",
 )
 def test_bowl_chamfer_within_3mm(errors: dict[str, ObjectError]) -> None:
     assert errors["bowl"].chamfer_m <= 0.003
 
 
-@pytest.mark.parametrize("name", ["box"])
+def test_bowl_chamfer_within_3_5mm(errors: dict[str, ObjectError]) -> None:
+    """A guard against regressions while the 3 mm target is open (3.95 mm before free-space carving)."""
+    assert errors["bowl"].chamfer_m <= 0.0035, f"bowl: Chamfer {errors['bowl'].chamfer_m * 1000:.2f} mm"
+
+
+@pytest.mark.parametrize("name", ["box", "bowl"])
 def test_extents_within_8_percent(errors: dict[str, ObjectError], name: str) -> None:
     assert errors[name].extent_error <= 0.08, f"{name}: extents off by {errors[name].extent_error:.1%}"
 
 
 @pytest.mark.xfail(
-    strict=False,  # multi-threaded SfM varies run to run: bowl 8.3-11.0%, can 7.0-8.6% measured
-    reason="not yet: bowl extents measured 8-11% over (can 7-9%): stereo bumps on shadowed sides",
+    strict=False,  # multi-threaded SfM varies run to run: can 7.4-8.8% measured (bowl 5.0-7.0%, box 1.1-4.1%)
+    reason="not reliably yet: can extents 7.4-8.8% over: its wall comes out about 3 mm fat along x",
 )
 def test_all_extents_within_8_percent(errors: dict[str, ObjectError]) -> None:
     assert all(e.extent_error <= 0.08 for e in errors.values())

@@ -110,3 +110,30 @@ def test_region_of_interest_reaches_above_a_sparse_top() -> None:
     roi = region_of_interest(result, 0.08)
     assert roi.max_world[2] >= 0.04 + 0.075  # the highest points plus (nearly) the cluster's 8 cm width
     assert roi.min_world[2] < 0 < roi.max_world[2]
+
+
+def test_space_carving_trusts_the_fusion_over_single_views() -> None:
+    """Depth that lands off the fused surface does not carve, and voxels the fusion holds inside are kept."""
+    size = 200
+    k = np.array([[150.0, 0, size / 2 - 0.5], [0, 150.0, size / 2 - 0.5], [0, 0, 1]])
+    maps = []
+    for x_m in (-0.02, 0.0, 0.02):
+        pose = _looking_down(1.0, x_m)
+        maps.append(DepthMap(depth=_table_and_block_depth(pose, k, size), k=k, world_from_cam=pose))
+    lo = np.array([-0.2, -0.2, 0.0]) + VOXEL_M / 2
+    solid = np.zeros((40, 40, 20), bool)
+    solid[:, :, 5:] = True
+    options = MeshOptions(carve_min_views=3, carve_edge_px=1)
+    # The fusion saw no table for x > 0: depth measured there is an outlier and must not carve.
+    only_left = _seen_through(tuple(maps), solid, lo, VOXEL_M, 0.02, options, on_surface=lambda p: p[:, 0] < 0)
+    # The fusion holds everything with y > 0.15 to be inside an object.
+    kept = _seen_through(tuple(maps), solid, lo, VOXEL_M, 0.02, options, inside_fused=lambda p: p[:, 1] > 0.15)
+    index = np.argwhere(solid)
+    centres = lo + index * VOXEL_M
+    beside = (np.abs(centres[:, 0]) > 0.165) | (np.abs(centres[:, 1]) > 0.165)
+    carved_left = only_left[tuple(index.T)]
+    assert carved_left[beside & (centres[:, 0] < -0.165)].all()
+    assert not carved_left[centres[:, 0] > 0.165].any()
+    carved_kept = kept[tuple(index.T)]
+    assert not carved_kept[centres[:, 1] > 0.15].any()
+    assert carved_kept[beside & (centres[:, 1] < -0.165)].all()
