@@ -110,7 +110,7 @@ def find_objects(
     report("segmenting objects", 0, 1)
     segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
     cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
-    instances = []
+    instances: list[ObjectInstance] = []
     for index, segment in enumerate(segments):
         report("meshing objects", index, len(segments))
         mesh = _objects.mesh_object(dense, segment, cam_centres, options.mesh)
