@@ -315,15 +315,10 @@ def mesh_object(
     solid = winding > 0.5
     z0 = int(np.ceil(-lo[2] / voxel))  # first voxel layer at or above the table top z = 0
     solid[:, :, :z0] = False
-    labels, count = ndimage.label(solid)
-    if count == 0:
-        raise SegmentationError("an object's surface encloses no volume; film it from more sides")
-    sizes = np.bincount(labels.ravel())
-    sizes[0] = 0
-    solid = ndimage.binary_fill_holes(labels == int(sizes.argmax()))
+    solid = _largest_piece(solid, "an object's surface encloses no volume; film it from more sides")
     # Objects rest on the table: below what the cameras saw, each column of the footprint is filled down to the
     # table (an apple seen only from above becomes solid to the table instead of floating). An assumption.
-    footprint = solid.any(axis=2)
+    footprint = np.asarray(solid.any(axis=2))
     first = np.where(footprint, solid.argmax(axis=2), 0)
     layers = np.arange(shape[2])[None, None, :]
     extrude = footprint[..., None] & (layers >= z0) & (layers < first[..., None])
@@ -339,12 +334,7 @@ def mesh_object(
         above = min(shape[2] - 1, z0 + int(np.ceil(margin / voxel)))
         reference = solid[:, :, above : above + 4].any(axis=2)  # a few layers: one may be broken by carving
         solid[:, :, z0:above] &= ndimage.binary_fill_holes(reference)[:, :, None]
-        labels, count = ndimage.label(solid)
-        if count == 0:
-            raise SegmentationError("the depth maps see through the whole object; film it from more sides")
-        sizes = np.bincount(labels.ravel())
-        sizes[0] = 0
-        solid = ndimage.binary_fill_holes(labels == int(sizes.argmax()))
+        solid = _largest_piece(solid, "the depth maps see through the whole object; film it from more sides")
     # Shadowed table next to an object is poorly matched and leaves thin skirts at its base: open the lowest
     # layers in the table plane (walls higher up are left alone, however thin).
     refine = options.grid_refinement
@@ -384,6 +374,20 @@ def mesh_object(
     return WatertightMesh(
         vertices_world=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), closed_bottom=closed_bottom
     )
+
+
+def _largest_piece(solid: np.ndarray, empty_message: str) -> np.ndarray:
+    """The largest connected piece of a voxel solid, its enclosed holes filled.
+
+    Raises:
+        SegmentationError: `empty_message`, when the solid is empty.
+    """
+    labels, count = ndimage.label(solid)
+    if count == 0:
+        raise SegmentationError(empty_message)
+    sizes = np.bincount(labels.ravel())
+    sizes[0] = 0
+    return np.asarray(ndimage.binary_fill_holes(labels == int(sizes.argmax())))
 
 
 def _fused_tests(

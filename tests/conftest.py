@@ -5,9 +5,13 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
+
+from reconstruction import CameraIntrinsics, ReconstructionResult, RegisteredFrame, ScaleSource, WorldFrame
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
@@ -40,3 +44,25 @@ def grounded_tabletop(tabletop_dir: Path, tmp_path_factory: pytest.TempPathFacto
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert f"MJCF: {out / 'scene.xml'}" in proc.stdout
     return out
+
+
+@pytest.fixture
+def reconstruction_of_points() -> Callable[[np.ndarray], ReconstructionResult]:
+    """Factory: a minimal ReconstructionResult (one camera at (0, -0.6, 0.4) m) holding the given sparse points."""
+
+    def make(points_world_m: np.ndarray) -> ReconstructionResult:
+        cam = np.eye(4)
+        cam[:3, 3] = [0, -0.6, 0.4]
+        return ReconstructionResult(
+            out_dir=Path("."), source=Path("."), num_source_frames=1, selected_frame_indices=(0,),
+            dropped_blurred=(), dropped_duplicate=(),
+            intrinsics=CameraIntrinsics(width_px=640, height_px=480, fx_px=500, fy_px=500, cx_px=320, cy_px=240),
+            frames=(RegisteredFrame(frame_index=0, image_name="a.jpg", world_from_cam=cam),),
+            world=WorldFrame(
+                world_from_sfm=np.eye(4), scale_source=ScaleSource.ARUCO, scale=1.0, plane_inlier_ratio=1.0
+            ),
+            points_world_m=points_world_m, points_rgb=np.zeros((len(points_world_m), 3), np.uint8),
+            mean_reprojection_error_px=0.3, stage_seconds={},
+        )  # fmt: skip
+
+    return make

@@ -12,6 +12,7 @@ import json
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
@@ -19,6 +20,7 @@ import numpy as np
 import pytest
 
 from grounder._evaluate import ObjectError, compare_to_truth
+from reconstruction import ReconstructionResult
 
 
 def _ground(source: Path, out: Path, *flags: str) -> subprocess.CompletedProcess[str]:
@@ -162,23 +164,13 @@ def test_ground_bad_input_exits_2(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists()
 
 
-def test_no_object_on_the_table_is_reported() -> None:
-    from reconstruction import CameraIntrinsics, ReconstructionResult, RegisteredFrame, ScaleSource, WorldFrame
+def test_no_object_on_the_table_is_reported(
+    reconstruction_of_points: Callable[[np.ndarray], ReconstructionResult],
+) -> None:
     from reconstruction._objects import SegmentationError
     from reconstruction._scene_objects import region_of_interest
 
     rng = np.random.default_rng(0)
     table = np.c_[rng.uniform(-0.4, 0.4, (3000, 2)), rng.normal(0, 0.0005, 3000)]  # only a flat table
-    cam = np.eye(4)
-    cam[:3, 3] = [0, -0.6, 0.4]
-    result = ReconstructionResult(
-        out_dir=Path("."), source=Path("."), num_source_frames=1, selected_frame_indices=(0,),
-        dropped_blurred=(), dropped_duplicate=(),
-        intrinsics=CameraIntrinsics(width_px=640, height_px=480, fx_px=500, fy_px=500, cx_px=320, cy_px=240),
-        frames=(RegisteredFrame(frame_index=0, image_name="a.jpg", world_from_cam=cam),),
-        world=WorldFrame(world_from_sfm=np.eye(4), scale_source=ScaleSource.ARUCO, scale=1.0, plane_inlier_ratio=1.0),
-        points_world_m=table, points_rgb=np.zeros((3000, 3), np.uint8), mean_reprojection_error_px=0.3,
-        stage_seconds={},
-    )  # fmt: skip
     with pytest.raises(SegmentationError, match="no object found"):
-        region_of_interest(result, 0.08)
+        region_of_interest(reconstruction_of_points(table), 0.08)

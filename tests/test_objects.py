@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+from collections.abc import Callable
 
 import numpy as np
 import pytest
 
+from reconstruction import ReconstructionResult
 from reconstruction._dense import DepthMap
 from reconstruction._objects import MeshOptions, _largest_component, _seen_through
 
@@ -34,20 +35,24 @@ def _table_and_block_depth(world_from_cam: np.ndarray, k: np.ndarray, size: int)
     return depth
 
 
+LO_M = np.array([-0.2, -0.2, 0.0]) + VOXEL_M / 2  # voxel grid origin: 0.4 x 0.4 m around the block
+SIZE_PX = 200
+K = np.array([[150.0, 0, SIZE_PX / 2 - 0.5], [0, 150.0, SIZE_PX / 2 - 0.5], [0, 0, 1]])
+
+
+def _three_views() -> tuple[DepthMap, ...]:
+    """Depth maps of the table and block from three downward cameras 2 cm apart."""
+    poses = [_looking_down(1.0, x_m) for x_m in (-0.02, 0.0, 0.02)]
+    return tuple(DepthMap(depth=_table_and_block_depth(p, K, SIZE_PX), k=K, world_from_cam=p) for p in poses)
+
+
 def test_space_carving_removes_what_the_depth_maps_see_through() -> None:
     """A filled box of voxels 0.4 m wide, 0.2 m high; the cameras see a block top (z = 0.3) over its middle and the
     table elsewhere: voxels beside the block are carved, those under it (hidden) are kept."""
-    size = 200
-    k = np.array([[150.0, 0, size / 2 - 0.5], [0, 150.0, size / 2 - 0.5], [0, 0, 1]])
-    maps = []
-    for x_m in (-0.02, 0.0, 0.02):
-        pose = _looking_down(1.0, x_m)
-        maps.append(DepthMap(depth=_table_and_block_depth(pose, k, size), k=k, world_from_cam=pose))
-    lo = np.array([-0.2, -0.2, 0.0]) + VOXEL_M / 2
     solid = np.zeros((40, 40, 20), bool)
     solid[:, :, 5:] = True  # z from 0.055 m up: clear of the table by more than the margin
-    carved = _seen_through(tuple(maps), solid, lo, VOXEL_M, 0.02, MeshOptions(carve_min_views=3, carve_edge_px=1))
-    centres = lo + np.argwhere(solid) * VOXEL_M
+    carved = _seen_through(_three_views(), solid, LO_M, VOXEL_M, 0.02, MeshOptions(carve_min_views=3, carve_edge_px=1))
+    centres = LO_M + np.argwhere(solid) * VOXEL_M
     got = carved[tuple(np.argwhere(solid).T)]
     hidden = (np.abs(centres[:, 0]) < 0.07) & (np.abs(centres[:, 1]) < 0.07)  # well under the block top
     beside = (np.abs(centres[:, 0]) > 0.165) | (np.abs(centres[:, 1]) > 0.165)  # clear of the edge bands
@@ -57,18 +62,14 @@ def test_space_carving_removes_what_the_depth_maps_see_through() -> None:
 
 def test_space_carving_distrusts_depth_at_jumps() -> None:
     """A single depth map with the block edge: with a wide edge band, voxels next to the edge are not carved."""
-    size = 200
-    k = np.array([[150.0, 0, size / 2 - 0.5], [0, 150.0, size / 2 - 0.5], [0, 0, 1]])
-    pose = _looking_down(1.0)
-    depth_map = DepthMap(depth=_table_and_block_depth(pose, k, size), k=k, world_from_cam=pose)
-    lo = np.array([-0.2, -0.2, 0.0]) + VOXEL_M / 2
+    depth_map = _three_views()[1]  # the middle camera
     solid = np.zeros((40, 40, 20), bool)
     solid[:, :, 5:15] = True
     index = np.argwhere(solid)
-    centres = lo + index * VOXEL_M
+    centres = LO_M + index * VOXEL_M
     near_edge = (np.abs(np.abs(centres[:, 0]) - 0.13) < 0.012) & (np.abs(centres[:, 1]) < 0.05)
-    trusting = _seen_through((depth_map,), solid, lo, VOXEL_M, 0.02, MeshOptions(carve_min_views=1, carve_edge_px=0))
-    careful = _seen_through((depth_map,), solid, lo, VOXEL_M, 0.02, MeshOptions(carve_min_views=1, carve_edge_px=8))
+    trusting = _seen_through((depth_map,), solid, LO_M, VOXEL_M, 0.02, MeshOptions(carve_min_views=1, carve_edge_px=0))
+    careful = _seen_through((depth_map,), solid, LO_M, VOXEL_M, 0.02, MeshOptions(carve_min_views=1, carve_edge_px=8))
     assert trusting[tuple(index[near_edge].T)].any()
     assert not careful[tuple(index[near_edge].T)].any()
 
@@ -85,28 +86,18 @@ def test_largest_component_prefers_the_closed_piece() -> None:
     assert kept.is_watertight and kept.volume == pytest.approx(sphere.volume)
 
 
-def test_region_of_interest_reaches_above_a_sparse_top() -> None:
+def test_region_of_interest_reaches_above_a_sparse_top(
+    reconstruction_of_points: Callable[[np.ndarray], ReconstructionResult],
+) -> None:
     """Sparse points often miss a glossy top: the fused region must still reach above the highest ones, here by
     half the cluster's width plus the margin."""
-    from reconstruction import CameraIntrinsics, ReconstructionResult, RegisteredFrame, ScaleSource, WorldFrame
     from reconstruction._scene_objects import region_of_interest
 
     rng = np.random.default_rng(0)
     table = np.c_[rng.uniform(-0.4, 0.4, (3000, 2)), rng.normal(0, 0.0005, 3000)]
     # An 8 cm object whose sparse points stop at 4 cm (the true top is higher, unseen by SfM).
     side = np.c_[rng.uniform(-0.04, 0.04, (800, 2)), rng.uniform(0.005, 0.04, 800)]
-    points = np.concatenate([table, side])
-    cam = np.eye(4)
-    cam[:3, 3] = [0, -0.6, 0.4]
-    result = ReconstructionResult(
-        out_dir=Path("."), source=Path("."), num_source_frames=1, selected_frame_indices=(0,),
-        dropped_blurred=(), dropped_duplicate=(),
-        intrinsics=CameraIntrinsics(width_px=640, height_px=480, fx_px=500, fy_px=500, cx_px=320, cy_px=240),
-        frames=(RegisteredFrame(frame_index=0, image_name="a.jpg", world_from_cam=cam),),
-        world=WorldFrame(world_from_sfm=np.eye(4), scale_source=ScaleSource.ARUCO, scale=1.0, plane_inlier_ratio=1.0),
-        points_world_m=points, points_rgb=np.zeros((len(points), 3), np.uint8), mean_reprojection_error_px=0.3,
-        stage_seconds={},
-    )  # fmt: skip
+    result = reconstruction_of_points(np.concatenate([table, side]))
     roi = region_of_interest(result, 0.08)
     assert roi.max_world[2] >= 0.04 + 0.075  # highest points + half the 8 cm width + a 0.058 m margin (old: 0.098)
     assert roi.min_world[2] < 0 < roi.max_world[2]
@@ -114,22 +105,16 @@ def test_region_of_interest_reaches_above_a_sparse_top() -> None:
 
 def test_space_carving_trusts_the_fusion_over_single_views() -> None:
     """Depth that lands off the fused surface does not carve, and voxels the fusion holds inside are kept."""
-    size = 200
-    k = np.array([[150.0, 0, size / 2 - 0.5], [0, 150.0, size / 2 - 0.5], [0, 0, 1]])
-    maps = []
-    for x_m in (-0.02, 0.0, 0.02):
-        pose = _looking_down(1.0, x_m)
-        maps.append(DepthMap(depth=_table_and_block_depth(pose, k, size), k=k, world_from_cam=pose))
-    lo = np.array([-0.2, -0.2, 0.0]) + VOXEL_M / 2
+    maps = _three_views()
     solid = np.zeros((40, 40, 20), bool)
     solid[:, :, 5:] = True
     options = MeshOptions(carve_min_views=3, carve_edge_px=1)
     # The fusion saw no table for x > 0: depth measured there is an outlier and must not carve.
-    only_left = _seen_through(tuple(maps), solid, lo, VOXEL_M, 0.02, options, on_surface=lambda p: p[:, 0] < 0)
+    only_left = _seen_through(maps, solid, LO_M, VOXEL_M, 0.02, options, on_surface=lambda p: p[:, 0] < 0)
     # The fusion holds everything with y > 0.15 to be inside an object.
-    kept = _seen_through(tuple(maps), solid, lo, VOXEL_M, 0.02, options, inside_fused=lambda p: p[:, 1] > 0.15)
+    kept = _seen_through(maps, solid, LO_M, VOXEL_M, 0.02, options, inside_fused=lambda p: p[:, 1] > 0.15)
     index = np.argwhere(solid)
-    centres = lo + index * VOXEL_M
+    centres = LO_M + index * VOXEL_M
     beside = (np.abs(centres[:, 0]) > 0.165) | (np.abs(centres[:, 1]) > 0.165)
     carved_left = only_left[tuple(index.T)]
     assert carved_left[beside & (centres[:, 0] < -0.165)].all()
