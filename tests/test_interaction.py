@@ -33,6 +33,8 @@ SCENE = """
 """
 TRUE_FRICTION = 0.4
 PARAMS = ("slider.friction.sliding", "still.friction.sliding")
+# A short differential evolution: enough for one friction value on a clean recording.
+QUICK = InteractionOptions(calibrate_settings={"generations": 4, "popsize": 5, "local_iterations": 5})
 
 
 def _scene(folder: Path, slider: float, still: float) -> Path:
@@ -77,7 +79,7 @@ def test_calibrate_constrained_fits_the_shown_parameter_and_keeps_the_prior_of_t
         xml,
         [traj],
         PARAMS,
-        InteractionOptions(calibrate_settings={"generations": 4, "popsize": 5, "local_iterations": 5}),
+        QUICK,
         out=tmp_path / "calibrated",
     )
     slider, still = entry["parameters"]["slider.friction.sliding"], entry["parameters"]["still.friction.sliding"]
@@ -112,7 +114,7 @@ def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scen
         xml,
         [traj],
         PARAMS,
-        InteractionOptions(calibrate_settings={"generations": 4, "popsize": 5, "local_iterations": 5}),
+        QUICK,
         out=tmp_path / "calibrated",
     )
     slider, still = entry["parameters"]["slider.friction.sliding"], entry["parameters"]["still.friction.sliding"]
