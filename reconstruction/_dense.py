@@ -95,21 +95,27 @@ class DenseResult:
     tsdf_values: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (K,) in [-1, 1], + in front
     tsdf_weights: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (K,) depth maps fused
 
-    def tsdf_lookup(self, voxel_ijk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """TSDF value and weight at integer voxel coordinates (M, 3); weight 0 where never observed."""
-        values = np.zeros(len(voxel_ijk), np.float32)
-        weights = np.zeros(len(voxel_ijk), np.float32)
-        if len(self.tsdf_voxels) == 0:
-            return values, weights
+    def tsdf_sampler(self) -> Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]:
+        """A lookup of the TSDF value and weight at world points (M, 3) (nearest voxel; weight 0 where never
+        observed). The voxel index is sorted once, so many lookups stay cheap."""
         keys = _voxel_keys(self.tsdf_voxels)
         order = np.argsort(keys)
         sorted_keys = keys[order]
-        query = _voxel_keys(voxel_ijk)
-        pos = np.clip(np.searchsorted(sorted_keys, query), 0, len(sorted_keys) - 1)
-        found = sorted_keys[pos] == query
-        values[found] = self.tsdf_values[order[pos[found]]]
-        weights[found] = self.tsdf_weights[order[pos[found]]]
-        return values, weights
+        values, weights = self.tsdf_values[order], self.tsdf_weights[order]
+
+        def sample(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            out_values = np.zeros(len(points_world), np.float32)
+            out_weights = np.zeros(len(points_world), np.float32)
+            if len(sorted_keys) == 0:
+                return out_values, out_weights
+            query = _voxel_keys(np.round(points_world / self.voxel_size).astype(np.int64))
+            pos = np.clip(np.searchsorted(sorted_keys, query), 0, len(sorted_keys) - 1)
+            found = sorted_keys[pos] == query
+            out_values[found] = values[pos[found]]
+            out_weights[found] = weights[pos[found]]
+            return out_values, out_weights
+
+        return sample
 
 
 def _voxel_keys(ijk: np.ndarray) -> np.ndarray:

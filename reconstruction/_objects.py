@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy import ndimage
 
-from reconstruction._dense import DenseResult, DepthMap, RegionOfInterest, _voxel_keys
+from reconstruction._dense import DenseResult, DepthMap, RegionOfInterest
 from reconstruction.errors import ReconstructionError
 
 if TYPE_CHECKING:
@@ -397,16 +397,7 @@ def _fused_tests(
     clearly inside an object (TSDF <= -0.3, fused from at least 2 depth maps). None without a TSDF."""
     if len(dense.tsdf_voxels) == 0:
         return None, None
-    keys = _voxel_keys(dense.tsdf_voxels)
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
-    values, weights = dense.tsdf_values[order], dense.tsdf_weights[order]
-
-    def lookup(points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        query = _voxel_keys(np.round(points_world / dense.voxel_size).astype(np.int64))
-        pos = np.clip(np.searchsorted(sorted_keys, query), 0, len(sorted_keys) - 1)
-        found = sorted_keys[pos] == query
-        return np.where(found, values[pos], 1.0), np.where(found, weights[pos], 0.0)
+    lookup = dense.tsdf_sampler()
 
     def on_surface(points_world: np.ndarray) -> np.ndarray:
         value, weight = lookup(points_world)

@@ -122,3 +122,17 @@ def test_space_carving_trusts_the_fusion_over_single_views() -> None:
     carved_kept = kept[tuple(index.T)]
     assert not carved_kept[centres[:, 1] > 0.15].any()
     assert carved_kept[beside & (centres[:, 1] < -0.165)].all()
+
+
+def test_tsdf_sampler_reads_the_nearest_fused_voxel() -> None:
+    from reconstruction._dense import DenseResult
+
+    dense = DenseResult(
+        vertices_world=np.zeros((0, 3)), faces=np.zeros((0, 3), np.int64), vertex_rgb=np.zeros((0, 3), np.uint8),
+        vertex_normals=np.zeros((0, 3)), voxel_size=0.01, num_pairs=0,
+        tsdf_voxels=np.array([[0, 0, 0], [3, -2, 5]]), tsdf_values=np.array([-0.4, 0.7], np.float32),
+        tsdf_weights=np.array([5.0, 2.0], np.float32),
+    )  # fmt: skip
+    values, weights = dense.tsdf_sampler()(np.array([[0.003, -0.004, 0.0], [0.031, -0.019, 0.052], [0.5, 0.5, 0.5]]))
+    np.testing.assert_allclose(values, [-0.4, 0.7, 0.0])
+    np.testing.assert_allclose(weights, [5.0, 2.0, 0.0])  # never observed: weight 0
