@@ -92,7 +92,7 @@ class DiagnoseOptions:
     holdout_fraction: float = 0.3
     seed: int = 0
     horizon_s: float = 0.25
-    robust_scale: float | None = 0.1
+    robust_scale: float | None = 1.0
     max_effects: int = 3
     min_gain: float = 0.1
     complexity_penalty: float = 0.02

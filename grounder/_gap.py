@@ -8,10 +8,14 @@ normalised squared error:
 - a free or ball joint's rotation: the squared geodesic angle in radians (``q`` and ``-q`` are the same rotation);
 - a hinge joint: the squared angle error (radians); a slide joint: ``(dx / L)^2``.
 
-Each squared error ``e^2`` passes through the Cauchy function ``c^2 log(1 + e^2 / c^2)`` (``c`` = 0.1 by default:
-6 degrees, a tenth of a body size), which is ``e^2`` for small errors and grows only logarithmically for large ones,
-so that a few windows that diverge after a chaotic impact (a cube landing on another face) cannot dominate the
-gap. The sample's error is the mean over groups, and the gap is the root of the mean over samples. It is measured
+Each squared error ``e^2`` passes through the Cauchy function ``c^2 log(1 + e^2 / c^2)`` (``c`` = 1.0 by default:
+57 degrees, one body size), which is ``e^2`` for small errors and grows only logarithmically for large ones, so
+that a few windows that diverge after a chaotic impact (a cube landing on another face, 90 degrees off) cannot
+dominate the gap. The scale sits above the errors a missing effect itself causes: with ``c`` = 0.1 (6 degrees) a
+wrong bounce height or spin was already counted logarithmically, and the gap a restitution change explains drowned
+in the restart noise of a tumbling box (held-out reduction 44%, the true model 47%; with 1.0: 71%).
+
+The sample's error is the mean over groups, and the gap is the root of the mean over samples. It is measured
 **short-horizon**: each trajectory is cut into windows of ``horizon_s`` and every window is re-started from the
 recorded state at its start, so that chaotic divergence (a cube landing on another edge) is not mistaken for model
 error; ``open_loop`` variants roll out from the first state only. Velocities are never compared (they are the
