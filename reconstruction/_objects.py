@@ -75,6 +75,11 @@ class MeshOptions:
         carve_edge_px: depth pixels this close to a depth jump or a hole are not trusted for carving (stereo
             fattens silhouettes).
         carve_jump_fraction: a depth jump is a change over 3 x 3 pixels larger than this fraction of the depth.
+        underside: how the unseen space under an overhang (a bowl's flared wall) is closed: "taper" runs a straight
+            slope from where the object sits on the table out to the lowest wall the depth maps saw (see
+            `_tapered_bottom`); "fill" fills every column down to the table.
+        seen_wall_voxels: a column's lowest solid cell counts as a seen wall when a surface point of the object
+            lies this close (fusion voxels).
     """
 
     face_budget: int = 4000
@@ -86,6 +91,8 @@ class MeshOptions:
     carve_margin_voxels: float = 3.0
     carve_edge_px: int = 1
     carve_jump_fraction: float = 0.03
+    underside: str = "taper"
+    seen_wall_voxels: float = 1.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -321,7 +328,13 @@ def mesh_object(
     footprint = np.asarray(solid.any(axis=2))
     first = np.where(footprint, solid.argmax(axis=2), 0)
     layers = np.arange(shape[2])[None, None, :]
-    extrude = footprint[..., None] & (layers >= z0) & (layers < first[..., None])
+    bottom = np.full(footprint.shape, z0)
+    if options.underside == "taper":
+        margin_layers = int(np.ceil(options.carve_margin_voxels * dense.voxel_size / voxel))
+        bottom = _tapered_bottom(
+            footprint, first, z0, margin_layers, _seen_lowest(segment, lo, voxel, first, footprint, options, dense)
+        )
+    extrude = footprint[..., None] & (layers >= bottom[..., None]) & (layers < first[..., None])
     solid |= extrude
     # The fill above is an assumption; where depth maps see the table or the far side of the object through it
     # (under a bowl's flared wall, past a stereo bump), it is wrong: carve it, keep the largest piece.
@@ -374,6 +387,55 @@ def mesh_object(
     return WatertightMesh(
         vertices_world=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), closed_bottom=closed_bottom
     )
+
+
+def _seen_lowest(
+    segment: ObjectSegment,
+    lo: np.ndarray,
+    voxel: float,
+    first: np.ndarray,
+    footprint: np.ndarray,
+    options: MeshOptions,
+    dense: DenseResult,
+) -> np.ndarray:
+    """(X, Y) columns whose lowest solid cell lies on a surface the depth maps saw (an object point within
+    `seen_wall_voxels`), rather than where the inside test bridged a hole in the fused surface."""
+    from scipy.spatial import cKDTree
+
+    ij = np.argwhere(footprint)
+    centres = lo + np.column_stack([ij, first[ij[:, 0], ij[:, 1]]]) * voxel
+    reach = options.seen_wall_voxels * dense.voxel_size
+    dist, _ = cKDTree(segment.points_world).query(centres, distance_upper_bound=1.01 * reach)
+    seen = np.zeros_like(footprint)
+    seen[ij[:, 0], ij[:, 1]] = dist <= reach
+    return seen
+
+
+def _tapered_bottom(
+    footprint: np.ndarray, first: np.ndarray, z0: int, margin_layers: int, seen_lowest: np.ndarray
+) -> np.ndarray:
+    """(X, Y) layer from which each column of the footprint is filled up to its lowest solid cell `first`.
+
+    Where an object reaches the table (its lowest solid cell within `margin_layers` of the table layer `z0`) it
+    stands on it: filled to the table. Under an overhang, the space between the table and the lowest wall the
+    cameras saw was never seen (a camera above the table cannot look up under a bowl's flare). Filling it all down
+    to the table turns a bowl into a bucket; instead the fill runs a straight slope from the edge of where the object
+    stands (table height) up to the nearest seen lowest wall: per column, the height of that wall times its distance
+    from the standing part over the wall's distance from it. Without a standing part or a seen wall, every column
+    is filled down to the table, as before (an apple seen only from above).
+    """
+    bottom = np.full(footprint.shape, z0)
+    standing = footprint & (first <= z0 + margin_layers)
+    anchors = footprint & ~standing & seen_lowest
+    if not standing.any() or not anchors.any():
+        return bottom
+    from_standing = ndimage.distance_transform_edt(~standing)
+    _, nearest = ndimage.distance_transform_edt(~anchors, return_indices=True)
+    ai, aj = nearest[0], nearest[1]
+    anchor_height = first[ai, aj] - z0
+    anchor_reach = np.maximum(from_standing[ai, aj], 1.0)
+    slope_bottom = z0 + np.floor(anchor_height * np.minimum(from_standing / anchor_reach, 1.0)).astype(int)
+    return np.where(footprint & ~standing, slope_bottom, z0)
 
 
 def _largest_piece(solid: np.ndarray, empty_message: str) -> np.ndarray:

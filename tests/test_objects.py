@@ -9,7 +9,7 @@ import pytest
 
 from reconstruction import ReconstructionResult
 from reconstruction._dense import DepthMap
-from reconstruction._objects import MeshOptions, _largest_component, _seen_through
+from reconstruction._objects import MeshOptions, _largest_component, _seen_through, _tapered_bottom
 
 VOXEL_M = 0.01
 
@@ -136,3 +136,37 @@ def test_tsdf_sampler_reads_the_nearest_fused_voxel() -> None:
     values, weights = dense.tsdf_sampler()(np.array([[0.003, -0.004, 0.0], [0.031, -0.019, 0.052], [0.5, 0.5, 0.5]]))
     np.testing.assert_allclose(values, [-0.4, 0.7, 0.0])
     np.testing.assert_allclose(weights, [5.0, 2.0, 0.0])  # never observed: weight 0
+
+
+def _bowl_columns(n: int = 61) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A bowl's columns: it stands on a disc of radius 10 cells; its wall flares out to radius 20, where the
+    cameras saw its lowest point 20 layers above the table (layer 0). Between the two the inside test bridged the
+    unseen underside at 2 layers up. Returns footprint, lowest solid layer, radius."""
+    ij = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1) - n // 2
+    radius = np.hypot(ij[..., 0], ij[..., 1])
+    footprint = radius <= 20.5
+    first = np.where(radius <= 10, 1, 2)
+    first = np.where(radius > 19.5, 20, first)
+    return footprint, first, radius
+
+
+def test_tapered_underside_runs_a_straight_slope_from_the_stand_to_the_lowest_seen_wall() -> None:
+    footprint, first, radius = _bowl_columns()
+    seen = footprint & (radius > 19.5)
+    bottom = _tapered_bottom(footprint, first, z0=0, margin_layers=1, seen_lowest=seen)
+    assert np.all(bottom[radius <= 10] == 0)  # where it stands: filled to the table
+    # Half-way out (radius 15) the fill starts half-way up (layer 10 of 20), within a layer of rounding.
+    half = footprint & (np.abs(radius - 15) < 0.5)
+    assert np.all(np.abs(bottom[half] - 10) <= 1.5)
+    assert np.all(bottom[seen] == 20)  # nothing under the seen wall
+    ray = bottom[30, 41:51]  # along +y from radius 11 to 20: rises monotonically
+    assert np.all(np.diff(ray) >= 0) and ray[0] <= 3 and ray[-1] == 20
+
+
+def test_tapered_underside_falls_back_to_a_full_fill_without_a_seen_wall() -> None:
+    footprint, first, radius = _bowl_columns()
+    unseen = np.zeros_like(footprint)
+    assert np.all(_tapered_bottom(footprint, first, z0=3, margin_layers=1, seen_lowest=unseen) == 3)
+    nowhere_standing = np.where(footprint, 20, 0)
+    seen = footprint & (radius > 19.5)
+    assert np.all(_tapered_bottom(footprint, nowhere_standing, z0=0, margin_layers=1, seen_lowest=seen) == 0)
