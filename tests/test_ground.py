@@ -51,36 +51,25 @@ def test_chamfer_within_3mm(errors: dict[str, ObjectError], name: str) -> None:
 
 
 @pytest.mark.xfail(
-    strict=False,  # measured 3.05-3.26 mm over 8 reconstructions: it may pass on a lucky one
-    reason="not yet: bowl Chamfer 3.05-3.26 mm; its hidden undercut stays filled down to the table and the thin "
+    strict=False,  # met in 5 of 5 end-to-end runs, 2.84-3.00 mm: too close to the line for a hard test
+    reason="marginal: bowl Chamfer 2.84-3.00 mm over 5 runs (3.02-3.12 on four older reconstructions); the thin "
     "rim's top 4-5 mm is lost at depth edges",
 )
 def test_bowl_chamfer_within_3mm(errors: dict[str, ObjectError]) -> None:
     assert errors["bowl"].chamfer_m <= 0.003
 
 
-def test_bowl_chamfer_within_3_5mm(errors: dict[str, ObjectError]) -> None:
-    """A guard against regressions while the 3 mm target is open (3.95 mm before free-space carving)."""
-    assert errors["bowl"].chamfer_m <= 0.0035, f"bowl: Chamfer {errors['bowl'].chamfer_m * 1000:.2f} mm"
+def test_bowl_chamfer_within_3_3mm(errors: dict[str, ObjectError]) -> None:
+    """A guard against regressions next to the marginal 3 mm target (3.95 mm before free-space carving, 3.05-3.26
+    before the tapered underside)."""
+    assert errors["bowl"].chamfer_m <= 0.0033, f"bowl: Chamfer {errors['bowl'].chamfer_m * 1000:.2f} mm"
 
 
-@pytest.mark.parametrize("name", ["box"])
+@pytest.mark.parametrize("name", ["box", "can", "bowl"])
 def test_extents_within_8_percent(errors: dict[str, ObjectError], name: str) -> None:
+    """Measured over 5 runs: box 0.6-1.3%, can 5.9-7.2%, bowl 6.2-6.8% (can up to 8.8% and bowl up to 8.3% before
+    the tapered underside)."""
     assert errors[name].extent_error <= 0.08, f"{name}: extents off by {errors[name].extent_error:.1%}"
-
-
-@pytest.mark.xfail(
-    strict=False,  # multi-threaded SfM varies run to run: can 7.4-8.8%, bowl 5.0-8.3% measured (box 1.1-4.1%)
-    reason="not reliably yet: can extents 7.4-8.8% over (its wall about 3 mm fat along x), bowl 5.0-8.3%",
-)
-def test_all_extents_within_8_percent(errors: dict[str, ObjectError]) -> None:
-    assert all(e.extent_error <= 0.08 for e in errors.values())
-
-
-def test_extents_within_15_percent(errors: dict[str, ObjectError]) -> None:
-    """A looser guard against regressions while the 8% target is open (see the xfail above)."""
-    for name, err in errors.items():
-        assert err.extent_error <= 0.15, f"{name}: extents off by {err.extent_error:.1%}"
 
 
 def test_scene_is_self_contained_and_stays_put(scene_dir: Path, tmp_path: Path) -> None:
