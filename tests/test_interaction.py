@@ -138,10 +138,11 @@ def test_touching_objects_are_not_separable(tmp_path: Path) -> None:
     assert not separable_bodies(xml, [Trajectory(time_s=traj.time_s, qpos=touching, qvel=traj.qvel, name="t")])
 
 
-def test_reliable_starts_skip_the_frame_after_an_impact() -> None:
-    """A box thrown onto the floor lands between two frames and slides (30 fps, known motion): every
-    sample of the flight is a good start (its velocity comes from the ballistic fit); the first sample after the
-    landing is not (it may still be mid-impact); the rest of the slide is."""
+def test_reliable_starts_skip_the_frames_next_to_an_impact() -> None:
+    """A box thrown onto the floor lands between two frames and slides (30 fps, known motion): the samples of the
+    flight are good starts (their velocity comes from the ballistic fit) except the last before the landing
+    (impacts are resolved to a frame: it may already be past it); the first sample after the landing is not (it may
+    still be mid-impact); the rest of the slide is, to the end of the trajectory."""
     from grounder._interaction import reliable_starts
 
     dt, g = 1 / 30, 9.81
@@ -154,9 +155,13 @@ def test_reliable_starts_skip_the_frame_after_an_impact() -> None:
     qpos = np.zeros((24, 7))
     qpos[:, 0], qpos[:, 2], qpos[:, 3] = x, z, 1.0
     good = reliable_starts(Trajectory(time_s=time_s, qpos=qpos, qvel=np.zeros((24, 6)), name="throw"))
-    assert good[:8].all()
-    assert not good[8]
+    assert good[:7].all()
+    assert not good[7] and not good[8]
     assert good[9:].all()
+    # A segment that begins mid-slide: what came before its first sample is unknown.
+    sliding = Trajectory(time_s=time_s[10:], qpos=qpos[10:], qvel=np.zeros((14, 6)), name="slide")
+    good = reliable_starts(sliding)
+    assert not good[0] and good[1:].all()
 
 
 def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
