@@ -229,7 +229,10 @@ def restitution(dampratio: float) -> float:
 def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, str]) -> None:
     """Per parameter: rendered value, calibrated value, whether the clip constrains it, its resolution range and
     interval, and the relative error (restitution also as e)."""
-    contact = contact_values(clip_dir / "truth/scene.xml", clip_dir)
+    truth_xml = clip_dir / "truth/scene.xml"
+    if not truth_xml.exists():  # samples/toss_occluded: the same simulated toss, re-rendered with a card in front
+        truth_xml = ROOT / "samples/toss/truth/scene.xml"
+    contact = contact_values(truth_xml, clip_dir)
     print(
         "| parameter | object | rendered | calibrated | constrained by the clip | indistinguishable range | "
         "error | as restitution e: rendered / calibrated / error |"

@@ -129,10 +129,10 @@ def reliable_starts(traj: Trajectory, smoothing: SmoothingOptions | None = None)
     impacts (`grounder._track_smooth.impact_pieces`). A sample is a good start for one free body when it lies in
     a free flight (velocity from the ballistic fit), or in another piece of at least 3 samples, and is not next to
     an impact: impacts are only resolved to a frame, so the last sample before a detected impact may already be
-    past it, and the first sample of a piece in contact may still be mid-bounce (also at the start of a segment,
-    where what came before is unknown). On `samples/toss` those samples carried 6-30 cm/s of velocity error against
-    under 3 cm/s elsewhere, and the calibration absorbed it into friction and damping. A start must be good for
-    every free body of the trajectory (all are simulated from it).
+    past it and the first sample after one may still be mid-bounce (nor is the first sample of a segment that
+    begins in contact a start: what came before it is unknown). On `samples/toss` those samples carried 6-38 cm/s
+    of velocity error against under 3 cm/s elsewhere, and the calibration absorbed it into friction and damping.
+    A start must be good for every free body of the trajectory (all are simulated from it).
     """
     from grounder._track_smooth import impact_pieces
 
@@ -144,7 +144,7 @@ def reliable_starts(traj: Trajectory, smoothing: SmoothingOptions | None = None)
         pieces = impact_pieces(traj.qpos[:, 7 * body : 7 * body + 3], smoothing, dt_s)
         for k, (first, last, flight) in enumerate(pieces):
             if flight or last - first + 1 >= 3:
-                start = first + (0 if flight else 1)
+                start = first + (1 if k > 0 or not flight else 0)
                 stop = last if k == len(pieces) - 1 else last - 1
                 body_good[start : stop + 1] = True
         good &= body_good

@@ -186,3 +186,21 @@ def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
     assert fixed.values == {"slider.friction.sliding": pytest.approx(0.5), "still.friction.sliding": pytest.approx(0.8)}
     with pytest.raises(GrounderError, match="per-body parameters"):
         calibrate(xml, [traj], options=CalibrateOptions(params=("opt.gravity_scale",), separate_bodies=True))
+
+
+def test_reliable_starts_skip_the_frame_after_a_bounce() -> None:
+    """A ball dropped from 20 cm bounces (restitution 0.6) between two frames at 30 fps and flies again: both
+    flights are good starts except the two samples around the bounce."""
+    from grounder._interaction import reliable_starts
+
+    dt, g = 1 / 30, 9.81
+    time_s = np.arange(20) * dt
+    bounce = np.sqrt(2 * 0.2 / g)  # 0.202 s, between samples 6 and 7
+    after = time_s - bounce
+    z = np.where(time_s < bounce, 0.2 - 0.5 * g * time_s**2, 0.6 * g * bounce * after - 0.5 * g * after**2)
+    qpos = np.zeros((20, 7))
+    qpos[:, 0], qpos[:, 2], qpos[:, 3] = 0.3 * time_s, 0.02 + z, 1.0
+    good = reliable_starts(Trajectory(time_s=time_s, qpos=qpos, qvel=np.zeros((20, 6)), name="bounce"))
+    assert good[:6].all()
+    assert not good[6] and not good[7]
+    assert good[8:].all()
