@@ -89,7 +89,13 @@ def test_phases_of_a_sliding_box() -> None:
 
 @pytest.mark.parametrize(
     ("case_name", "expected"),
-    [("slide_box/sliding_friction", "sliding_friction"), ("arm/actuator_delay", "actuator_delay")],
+    [
+        ("slide_box/sliding_friction", "sliding_friction"),
+        ("arm/actuator_delay", "actuator_delay"),
+        # The tumbling box amplifies restart noise; with the gap metric's old Cauchy scale (0.1) its held-out
+        # reduction stayed below 60% even for the true model.
+        ("toss_box/restitution", "restitution"),
+    ],
 )
 def test_withheld_effect_is_found(case_name: str, expected: str) -> None:
     spec = _spec(case_name)
