@@ -6,9 +6,10 @@ evidence (it must project inside enough registered frames) and problems are repo
 the region of interest or seen in few frames, and footprints that look like several touching objects.
 
 Meshing: the object's surface is voxelised, its footprint on the table is capped (the unseen underside is
-assumed flat where the object meets the table: recorded as `closed_bottom`), enclosed space is filled, space the
-depth maps see through is carved away (the visible part of an undercut, stereo bumps), and marching cubes gives a
-watertight surface, corrected by half a voxel inwards, smoothed and decimated.
+assumed flat where the object meets the table: recorded as `closed_bottom`), enclosed space is filled, the unseen
+space under each column is filled to the table where the object stands on it and along a slope under an overhang,
+space the depth maps see through is carved away (the visible part of an undercut, stereo bumps), and marching
+cubes gives a watertight surface, corrected by half a voxel inwards, smoothed and decimated.
 """
 
 from __future__ import annotations
@@ -324,7 +325,8 @@ def mesh_object(
     solid[:, :, :z0] = False
     solid = _largest_piece(solid, "an object's surface encloses no volume; film it from more sides")
     # Objects rest on the table: below what the cameras saw, each column of the footprint is filled down to the
-    # table (an apple seen only from above becomes solid to the table instead of floating). An assumption.
+    # table (an apple seen only from above becomes solid to the table instead of floating), or, under an overhang,
+    # down to a slope from where the object stands to the lowest wall seen (`_tapered_bottom`). An assumption.
     footprint = np.asarray(solid.any(axis=2))
     first = np.where(footprint, solid.argmax(axis=2), 0)
     layers = np.arange(shape[2])[None, None, :]
