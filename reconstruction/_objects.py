@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from scipy import ndimage
@@ -92,7 +92,7 @@ class MeshOptions:
     carve_margin_voxels: float = 3.0
     carve_edge_px: int = 1
     carve_jump_fraction: float = 0.03
-    underside: str = "taper"
+    underside: Literal["taper", "fill"] = "taper"
     seen_wall_voxels: float = 1.5
 
 
@@ -333,9 +333,9 @@ def mesh_object(
     bottom = np.full(footprint.shape, z0)
     if options.underside == "taper":
         margin_layers = int(np.ceil(options.carve_margin_voxels * dense.voxel_size / voxel))
-        bottom = _tapered_bottom(
-            footprint, first, z0, margin_layers, _seen_lowest(segment, lo, voxel, first, footprint, options, dense)
-        )
+        reach_m = options.seen_wall_voxels * dense.voxel_size
+        seen = _seen_lowest(segment.points_world, lo, voxel, first, footprint, reach_m)
+        bottom = _tapered_bottom(footprint, first, z0, margin_layers, seen)
     extrude = footprint[..., None] & (layers >= bottom[..., None]) & (layers < first[..., None])
     solid |= extrude
     # The fill above is an assumption; where depth maps see the table or the far side of the object through it
@@ -392,24 +392,17 @@ def mesh_object(
 
 
 def _seen_lowest(
-    segment: ObjectSegment,
-    lo: np.ndarray,
-    voxel: float,
-    first: np.ndarray,
-    footprint: np.ndarray,
-    options: MeshOptions,
-    dense: DenseResult,
+    points_world: np.ndarray, lo: np.ndarray, voxel: float, first: np.ndarray, footprint: np.ndarray, reach_m: float
 ) -> np.ndarray:
     """(X, Y) columns whose lowest solid cell lies on a surface the depth maps saw (an object point within
-    `seen_wall_voxels`), rather than where the inside test bridged a hole in the fused surface."""
+    `reach_m`), rather than where the inside test bridged a hole in the fused surface."""
     from scipy.spatial import cKDTree
 
     ij = np.argwhere(footprint)
     centres = lo + np.column_stack([ij, first[ij[:, 0], ij[:, 1]]]) * voxel
-    reach = options.seen_wall_voxels * dense.voxel_size
-    dist, _ = cKDTree(segment.points_world).query(centres, distance_upper_bound=1.01 * reach)
+    dist, _ = cKDTree(points_world).query(centres, distance_upper_bound=1.01 * reach_m)
     seen = np.zeros_like(footprint)
-    seen[ij[:, 0], ij[:, 1]] = dist <= reach
+    seen[ij[:, 0], ij[:, 1]] = dist <= reach_m
     return seen
 
 
