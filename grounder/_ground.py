@@ -7,6 +7,7 @@ import logging
 import shutil
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -33,6 +34,7 @@ from scene_export import (
 
 if TYPE_CHECKING:
     from grounder._properties import ObjectProperties
+    from scene_export import CollisionGeometry
 
 log = logging.getLogger(__name__)
 
@@ -151,50 +153,36 @@ def ground(
         for obj in scene.objects:
             warnings.extend(f"{obj.name}: {w}" for w in obj.warnings)
 
-        tick = time.perf_counter()
-        views = [
-            TextureView(
-                image_bgr=_read_image(rec.out_dir / "images" / f.image_name),
-                world_from_cam=f.world_from_cam,
-                intrinsics=rec.intrinsics,
-            )
-            for f in rec.frames
-        ]
-        textured: list[ObjectInstance] = []
-        coverage: dict[str, float] = {}
-        world_meshes = [(o.mesh.vertices_m + o.world_from_object[:3, 3], o.mesh.faces) for o in scene.objects]
-        for i, obj in enumerate(scene.objects):
-            report("baking textures", i, len(scene.objects))
-            others = [m for j, m in enumerate(world_meshes) if j != i]
-            bake = bake_texture_report(world_meshes[i][0], obj.mesh.faces, views, options.texture, occluders=others)
-            mesh = bake.mesh
-            textured.append(replace(obj, mesh=replace(mesh, vertices_m=mesh.vertices_m - obj.world_from_object[:3, 3])))
-            coverage[obj.name] = bake.coverage
-        seconds["texture"] = time.perf_counter() - tick
+        # CoACD runs in C++ without holding the GIL and keeps ~1.4 of 2 cores busy: the meshes are decomposed in the
+        # background while textures are baked and properties predicted.
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="coacd") as pool:
+            hull_jobs = {
+                o.name: pool.submit(convex_decomposition, o.mesh.vertices_m, o.mesh.faces, options.collision)
+                for o in scene.objects
+            }
+            try:
+                tick = time.perf_counter()
+                views = [
+                    TextureView(
+                        image_bgr=_read_image(rec.out_dir / "images" / f.image_name),
+                        world_from_cam=f.world_from_cam,
+                        intrinsics=rec.intrinsics,
+                    )
+                    for f in rec.frames
+                ]
+                textured, coverage = _bake_textures(scene, views, options, report)
+                seconds["texture"] = time.perf_counter() - tick
 
-        tick = time.perf_counter()
-        properties = _predict_properties(textured, views, report, warnings) if options.property_model else {}
-        seconds["properties"] = time.perf_counter() - tick
+                tick = time.perf_counter()
+                properties = _predict_properties(textured, views, report, warnings) if options.property_model else {}
+                seconds["properties"] = time.perf_counter() - tick
 
-        tick = time.perf_counter()
-        specs = []
-        for i, obj in enumerate(textured):
-            report("collision hulls", i, len(textured))
-            source_mesh = next(o for o in scene.objects if o.name == obj.name).mesh
-            collision = convex_decomposition(source_mesh.vertices_m, source_mesh.faces, options.collision)
-            physical = properties.get(obj.name)
-            specs.append(
-                SceneObjectSpec(
-                    name=obj.name,
-                    visual=obj.mesh,
-                    collision=collision,
-                    world_from_object=obj.world_from_object,
-                    density_kg_m3=options.default_density_kg_m3 if physical is None else physical.density_kg_m3,
-                    friction=options.default_friction if physical is None else physical.friction,
-                    solref=SceneObjectSpec.solref if physical is None else physical.solref,
-                )
-            )
-        seconds["collision"] = time.perf_counter() - tick
+                tick = time.perf_counter()
+                specs = _object_specs(textured, hull_jobs, properties, options, report)
+                seconds["collision"] = time.perf_counter() - tick  # what is left of the decomposition by then
+            finally:
+                for job in hull_jobs.values():
+                    job.cancel()  # after an error: the decompositions not started yet
 
         tick = time.perf_counter()
         report("writing MJCF", 0, 1)
@@ -238,6 +226,50 @@ def ground(
         warnings=tuple(warnings),
         stage_seconds=seconds,
     )
+
+
+def _bake_textures(
+    scene: SceneObjects, views: list[TextureView], options: GroundOptions, report: ProgressFn
+) -> tuple[list[ObjectInstance], dict[str, float]]:
+    """Each object's mesh with a colour texture baked from the views (the other objects occlude), and the share of
+    its surface the views covered."""
+    textured: list[ObjectInstance] = []
+    coverage: dict[str, float] = {}
+    world_meshes = [(o.mesh.vertices_m + o.world_from_object[:3, 3], o.mesh.faces) for o in scene.objects]
+    for i, obj in enumerate(scene.objects):
+        report("baking textures", i, len(scene.objects))
+        others = [m for j, m in enumerate(world_meshes) if j != i]
+        bake = bake_texture_report(world_meshes[i][0], obj.mesh.faces, views, options.texture, occluders=others)
+        mesh = bake.mesh
+        textured.append(replace(obj, mesh=replace(mesh, vertices_m=mesh.vertices_m - obj.world_from_object[:3, 3])))
+        coverage[obj.name] = bake.coverage
+    return textured, coverage
+
+
+def _object_specs(
+    textured: list[ObjectInstance],
+    hull_jobs: dict[str, Future[CollisionGeometry]],
+    properties: dict[str, ObjectProperties],
+    options: GroundOptions,
+    report: ProgressFn,
+) -> list[SceneObjectSpec]:
+    """The export spec of each object: its textured mesh, its collision hulls (waited for) and its physics."""
+    specs = []
+    for i, obj in enumerate(textured):
+        report("collision hulls", i, len(textured))
+        physical = properties.get(obj.name)
+        specs.append(
+            SceneObjectSpec(
+                name=obj.name,
+                visual=obj.mesh,
+                collision=hull_jobs[obj.name].result(),
+                world_from_object=obj.world_from_object,
+                density_kg_m3=options.default_density_kg_m3 if physical is None else physical.density_kg_m3,
+                friction=options.default_friction if physical is None else physical.friction,
+                solref=SceneObjectSpec.solref if physical is None else physical.solref,
+            )
+        )
+    return specs
 
 
 def _provenance(
