@@ -9,7 +9,7 @@ import pytest
 
 from reconstruction import ReconstructionResult
 from reconstruction._dense import DepthMap
-from reconstruction._objects import MeshOptions, _largest_component, _seen_through, _tapered_bottom
+from reconstruction._objects import MeshOptions, _largest_component, _measured, _seen_through, _tapered_bottom
 
 VOXEL_M = 0.01
 
@@ -170,3 +170,22 @@ def test_tapered_underside_falls_back_to_a_full_fill_without_a_seen_wall() -> No
     nowhere_standing = np.where(footprint, 20, 0)
     seen = footprint & (radius > 19.5)
     assert np.all(_tapered_bottom(footprint, nowhere_standing, z0=0, margin_layers=1, seen_lowest=seen) == 0)
+
+
+def test_measured_counts_the_depth_maps_that_saw_a_surface_there() -> None:
+    """Three downward cameras over the table and a block top (z = 0.3): points on the table beside the block and on
+    its top are measured by all three; points in the air beside the block, or on a wall no downward camera sees,
+    by none (a TSDF can still put a surface there: the edge of space no camera saw)."""
+    views = _three_views()
+    table = np.array([[0.18, 0.0, 0.0], [0.0, -0.16, 0.0]])  # clear of the block's shadow in every view
+    top = np.array([[0.0, 0.0, 0.3], [0.05, 0.05, 0.3]])
+    air = np.array([[0.15, 0.0, 0.15], [0.0, -0.16, 0.2]])
+    wall = np.array([[0.1, 0.0, 0.1], [-0.1, 0.05, 0.2]])
+    tolerance_m = 0.015
+    assert _measured(table, views, tolerance_m).tolist() == [3, 3]
+    assert _measured(top, views, tolerance_m).tolist() == [3, 3]
+    assert _measured(air, views, tolerance_m).tolist() == [0, 0]
+    assert _measured(wall, views, tolerance_m).tolist() == [0, 0]
+    # Within the tolerance along the ray still counts; beyond it not.
+    assert _measured(top + np.array([0, 0, 0.01]), views, tolerance_m).tolist() == [3, 3]
+    assert _measured(top + np.array([0, 0, 0.03]), views, tolerance_m).tolist() == [0, 0]
