@@ -522,19 +522,9 @@ def _seen_through(
             far = ndimage.minimum_filter(np.where(valid, depth, np.inf), size=3)
             jump = (near - far) > options.carve_jump_fraction * depth
             valid &= ~ndimage.binary_dilation(jump | ~valid, iterations=options.carve_edge_px)
-        cam_from_world = np.linalg.inv(depth_map.world_from_cam)
-        cam = centres @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-        z = cam[:, 2]
-        ahead = z > 1e-6
-        u = np.full(len(z), -1)
-        v = np.full(len(z), -1)
-        u[ahead] = np.round(depth_map.k[0, 0] * cam[ahead, 0] / z[ahead] + depth_map.k[0, 2]).astype(int)
-        v[ahead] = np.round(depth_map.k[1, 1] * cam[ahead, 1] / z[ahead] + depth_map.k[1, 2]).astype(int)
-        height, width = depth.shape
-        inside = ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-        hit = np.flatnonzero(inside)
-        measured = depth[v[hit], u[hit]]
-        seen = valid[v[hit], u[hit]] & (measured > z[hit] + margin)
+        hit, u, v, z = _pixels(depth_map, centres)
+        measured = depth[v, u]
+        seen = valid[v, u] & (measured > z[hit] + margin)
         if on_surface is not None and seen.any():
             # The measured point lies on the ray through the voxel, `measured / z` times as far from the camera.
             origin = depth_map.world_from_cam[:3, 3]
@@ -553,20 +543,27 @@ def _measured(points_world: np.ndarray, depth_maps: tuple[DepthMap, ...], tolera
     """(N,) how many depth maps measured a surface within `tolerance_m` (along the ray) of each point."""
     count = np.zeros(len(points_world), np.int32)
     for depth_map in depth_maps:
-        cam_from_world = np.linalg.inv(depth_map.world_from_cam)
-        cam = points_world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-        z = cam[:, 2]
-        ahead = z > 1e-6
-        u = np.full(len(z), -1)
-        v = np.full(len(z), -1)
-        u[ahead] = np.round(depth_map.k[0, 0] * cam[ahead, 0] / z[ahead] + depth_map.k[0, 2]).astype(int)
-        v[ahead] = np.round(depth_map.k[1, 1] * cam[ahead, 1] / z[ahead] + depth_map.k[1, 2]).astype(int)
-        height, width = depth_map.depth.shape
-        inside = np.flatnonzero(ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height))
-        measured = depth_map.depth[v[inside], u[inside]]
-        near = (measured > 0) & (np.abs(measured - z[inside]) <= tolerance_m)
-        count[inside[near]] += 1
+        hit, u, v, z = _pixels(depth_map, points_world)
+        measured = depth_map.depth[v, u]
+        near = (measured > 0) & (np.abs(measured - z[hit]) <= tolerance_m)
+        count[hit[near]] += 1
     return count
+
+
+def _pixels(depth_map: DepthMap, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where world points (N, 3) fall in a depth map: the indices of those in front of the camera and inside the
+    image, their pixel columns and rows (nearest pixel), and the camera depth z of all N points."""
+    cam_from_world = np.linalg.inv(depth_map.world_from_cam)
+    cam = points_world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = cam[:, 2]
+    ahead = z > 1e-6
+    u = np.full(len(z), -1)
+    v = np.full(len(z), -1)
+    u[ahead] = np.round(depth_map.k[0, 0] * cam[ahead, 0] / z[ahead] + depth_map.k[0, 2]).astype(int)
+    v[ahead] = np.round(depth_map.k[1, 1] * cam[ahead, 1] / z[ahead] + depth_map.k[1, 2]).astype(int)
+    height, width = depth_map.depth.shape
+    hit = np.flatnonzero(ahead & (u >= 0) & (u < width) & (v >= 0) & (v < height))
+    return hit, u[hit], v[hit], z
 
 
 def _is_closed(mesh: trimesh.Trimesh) -> bool:
