@@ -10,11 +10,11 @@
    states that tracking measures well (`reliable_starts`: in a free flight, or away from impacts); windows keep a
    bounce's chaos out of the loss. First a screen (`screen_parameters`) asks, per parameter, whether moving it by
    20% changes its object's rollouts by more than tracking resolves (1 mm / 0.75 deg, root mean square over the
-   frames, about the median tracking error): an object that never slides says nothing about its friction, one that lands without bouncing little
-   about its damping ratio. Only constrained parameters are calibrated; the others keep the prior and are reported
-   as unconstrained (interval = bounds), not as a number the clip never measured. Each calibrated value also gets
-   its resolution range (`indistinguishable_range`). Contact parameters are calibrated as the contact's values
-   (the object's geoms get top priority).
+   frames, about the median tracking error): an object that never slides says nothing about its friction, one that
+   lands without bouncing little about its damping ratio. Only constrained parameters are calibrated; the others
+   keep the prior and are reported as unconstrained (interval = bounds), not as a number the clip never measured.
+   Each calibrated value also gets its resolution range (`indistinguishable_range`). Contact parameters are
+   calibrated as the contact's values (the object's geoms get top priority).
 4. **Report** what was calibrated and how well the scene now matches the clip: `interaction.json` and
    `interaction.md` in the output folder.
 

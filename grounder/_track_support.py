@@ -45,9 +45,9 @@ def resting_frames(
 
     Both are loose: a nearly symmetric object (a bowl, a can) is tracked with up to 1.5 deg of jitter about its
     axis while it rests, and a can's depth jitters by 1-2 mm from frame to frame; at 1 mm / 0.5 deg a scan of
-    `samples/tabletop` got no resting frames for either on `samples/toss`, so no depth correction (the bowl stayed
-    3 mm off). Looser is safe here: 5 frames in flight move far more (gravity alone: 1.6 m/s over 5 frames at 30
-    fps), and the correction also checks that the object touches the table.
+    `samples/tabletop` got no resting frames for either on `samples/toss`, so no depth correction (the bowl was
+    tracked 4.2 mm off, median). Looser is safe here: 5 frames in flight move far more (gravity alone: 1.6 m/s
+    over 5 frames at 30 fps), and the correction also checks that the object touches the table.
 
     Args:
         poses: (F, 4, 4) world-from-body poses of one object (NaN where lost).
