@@ -329,7 +329,7 @@ def mesh_object(
         else:
             log.warning(
                 "only %.0f%% of an object's fused surface is backed by %d depth maps: kept all of it",
-                100 * face_ok.mean(),
+                100 * min(face_ok.mean(), point_ok.mean()),
                 options.support_min_views,
             )
     cap_v, cap_f = _footprint_cap(points, dense.voxel_size, options.cap_height_voxels * dense.voxel_size)
