@@ -81,6 +81,11 @@ class CalibrateOptions:
         split_seed: Seed of the train/validation shuffle.
         max_train_trajectories: Fit on at most this many training trajectories (a seeded subset); None: all.
         rotation_weight: Percent-of-size per degree of rotation error in the loss (0: position only).
+        view_point_m: World position (metres) of the camera that measured the trajectories (tracked from video);
+            with ``along_view_weight`` the loss weighs the position error along the camera's viewing ray by that
+            factor (`grounder._simulate.along_view_weighted`): tracked depth is far noisier than the position
+            across the image. None: every direction counts alike (motion capture, simulation).
+        along_view_weight: Weight of the along-ray position error, in (0, 1]; used only with ``view_point_m``.
         popsize: Differential-evolution population per parameter (SciPy's ``popsize``).
         generations: Differential-evolution generations (0 skips the global search).
         local_iterations: `mujoco.minimize.least_squares` iterations (0 skips the local refinement).
@@ -103,6 +108,8 @@ class CalibrateOptions:
     split_seed: int = 0
     max_train_trajectories: int | None = None
     rotation_weight: float = 0.0
+    view_point_m: tuple[float, float, float] | None = None
+    along_view_weight: float = 1.0
     popsize: int = 8
     generations: int = 20
     local_iterations: int = 10
@@ -125,6 +132,10 @@ class CalibrateOptions:
             raise GrounderError("max_train_trajectories must be >= 1")
         if self.popsize < 1 or self.generations < 0 or self.local_iterations < 0:
             raise GrounderError("popsize must be >= 1, generations and local_iterations >= 0")
+        if not 0.0 < self.along_view_weight <= 1.0:
+            raise GrounderError(f"along_view_weight must be in (0, 1], got {self.along_view_weight}")
+        if self.view_point_m is not None and len(self.view_point_m) != 3:
+            raise GrounderError(f"view_point_m must be 3 numbers (x, y, z in metres), got {self.view_point_m}")
         if not 0.0 < self.interval_level < 1.0:
             raise GrounderError(f"interval_level must be in (0, 1), got {self.interval_level}")
 
@@ -332,6 +343,8 @@ class Evaluator:
         trajs: Sequence[Trajectory],
         *,
         rotation_weight: float,
+        view_point_m: Sequence[float] | None = None,
+        along_view_weight: float = 1.0,
         nthread: int | None = None,
         max_batch_mb: float = 256.0,
         group_size: int = 16,
@@ -342,6 +355,8 @@ class Evaluator:
         self.params = list(params)
         self.trajs = list(trajs)
         self.rotation_weight = rotation_weight
+        self.view_point_m = None if view_point_m is None else np.asarray(view_point_m, np.float64)
+        self.along_view_weight = along_view_weight
         self.nthread = nthread or sim.default_nthread()
         self.max_batch_bytes = max_batch_mb * 2**20
         self._data = mujoco.MjData(base)
@@ -391,7 +406,13 @@ class Evaluator:
                     p_err = np.zeros(len(sub))
                     r_err = np.zeros(len(sub))
                     for fj, size in zip(self.free, self.sizes, strict=True):
-                        dpos = np.linalg.norm(rows[:, :, fj.pos] - traj.qpos[None, :, fj.pos], axis=2)
+                        seen_m = traj.qpos[None, :, fj.pos]
+                        dpos = np.linalg.norm(
+                            sim.along_view_weighted(
+                                rows[:, :, fj.pos] - seen_m, seen_m, self.view_point_m, self.along_view_weight
+                            ),
+                            axis=2,
+                        )
                         p_err += 100.0 * dpos.mean(axis=1) / size
                         ang = sim.quat_angle_rad(
                             rows[:, :, fj.quat], np.broadcast_to(traj.qpos[:, fj.quat], rows[:, :, fj.quat].shape)
@@ -829,6 +850,8 @@ def calibrate(
     fit_trajs = [by_name[n] for n in fit_names]
     common: dict[str, Any] = {
         "rotation_weight": options.rotation_weight,
+        "view_point_m": options.view_point_m,
+        "along_view_weight": options.along_view_weight,
         "nthread": options.nthread,
         "max_batch_mb": options.max_batch_mb,
     }
