@@ -36,6 +36,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -94,6 +95,9 @@ def main() -> None:
     parser.add_argument("--truth", action="store_true", help="screen + calibrate on the true trajectory and scene")
     parser.add_argument("--generations", type=int, default=10, help="with --calibrate: differential evolution")
     parser.add_argument("--popsize", type=int, default=6, help="with --calibrate: population per parameter")
+    parser.add_argument(
+        "--start-rounds", type=int, default=None, help="with --calibrate: start refits (default: InteractionOptions')"
+    )
     args = parser.parse_args()
     clip_dir = ROOT / ("samples/toss_occluded" if args.occluded else "samples/toss")
     if args.truth:
@@ -166,7 +170,7 @@ def main() -> None:
 
 
 def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.Namespace) -> None:
-    from grounder._interaction import InteractionOptions, ground_with_interaction
+    from grounder._interaction import ground_with_interaction
 
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
@@ -174,10 +178,7 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
         ROOT / "samples/tabletop/video.mp4",
         clip_dir / "video.mp4",
         out,
-        InteractionOptions(
-            track=TrackOptions(aruco_size_m=0.12),
-            calibrate_settings={"generations": args.generations, "popsize": args.popsize},
-        ),
+        _options(args, track=TrackOptions(aruco_size_m=0.12)),
         grounded_scene=scene,
         overwrite=True,
     )
@@ -261,21 +262,33 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:
     """Screen + calibrate the grounded scene on saved tracks (e.g. `OUT/interaction/tracks` of a `--calibrate` run),
     per object as `ground --interaction` does."""
-    from grounder._interaction import InteractionOptions, calibrate_per_body, default_params
+    from grounder._interaction import calibrate_per_body, default_params, view_point_of
     from grounder._trajectory import load_trajectories
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
+    track_json = json.loads((tracks / "track.json").read_text())
     entry, _ = calibrate_per_body(
         scene / "scene.xml",
         load_trajectories(tracks),
         default_params(names),
-        InteractionOptions(calibrate_settings={"generations": args.generations, "popsize": args.popsize}),
+        _options(args),
+        view_point_m=view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64)),
     )
     print(f"screen + calibration on {tracks}: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])
     print_parameter_table(entry["parameters"], clip_dir, {b: offsets[b][0] for b in offsets})
+
+
+def _options(args: argparse.Namespace, **fields: Any) -> Any:
+    """The benchmark's `InteractionOptions`: its search budget, and `--start-rounds` when given."""
+    from grounder._interaction import InteractionOptions
+
+    rounds = {} if args.start_rounds is None else {"start_rounds": args.start_rounds}
+    return InteractionOptions(
+        calibrate_settings={"generations": args.generations, "popsize": args.popsize}, **rounds, **fields
+    )
 
 
 def print_screens(params: dict) -> None:
@@ -295,7 +308,7 @@ def truth_benchmark(clip_dir: Path, args: argparse.Namespace) -> None:
 
     import mujoco
 
-    from grounder._interaction import InteractionOptions, calibrate_per_body, default_params
+    from grounder._interaction import calibrate_per_body, default_params
     from grounder._trajectory import Trajectory
 
     truth = np.load(clip_dir / "truth/trajectory.npz", allow_pickle=False)
@@ -316,7 +329,7 @@ def truth_benchmark(clip_dir: Path, args: argparse.Namespace) -> None:
             scene / "scene.xml",
             [traj],
             default_params(bodies),
-            InteractionOptions(calibrate_settings={"generations": args.generations, "popsize": args.popsize}),
+            _options(args),
         )
     print(f"truth screen + calibration: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])

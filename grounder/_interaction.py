@@ -14,7 +14,11 @@
    lands without bouncing little about its damping ratio. Only constrained parameters are calibrated; the others
    keep the prior and are reported as unconstrained (interval = bounds), not as a number the clip never measured.
    Each calibrated value also gets its resolution range (`indistinguishable_range`). Contact parameters are
-   calibrated as the contact's values (the object's geoms get top priority).
+   calibrated as the contact's values (the object's geoms get top priority). The loss counts position errors
+   along the camera's viewing rays a quarter (`along_view_weight`: tracked depth is 4-6 times noisier than the
+   position across the image). Then, `start_rounds` times, each window's start state is refitted to the window's
+   own tracked motion with the calibrated values (`grounder._interaction_starts`: a fresh detection's pose and a
+   velocity from a few frames are what the tracking measures worst) and the screen and calibration run again.
 4. **Report** what was calibrated and how well the scene now matches the clip: `interaction.json` and
    `interaction.md` in the output folder.
 
@@ -24,7 +28,8 @@ Output folder (written in a temporary sibling and moved into place at the end):
   unchanged, if nothing could be calibrated);
 - `grounded/`: the scene as grounded from the scan, before calibration (with `reconstruction/`);
 - `interaction/tracks/`: the tracked trajectories and `track.json` (per-frame valid mask, scores);
-- `interaction/windows/`: the windows the calibration was fitted and validated on;
+- `interaction/windows/`: the windows the calibration was fitted and validated on, with their tracked starts (how
+  far the refits moved each start is in the report's `start_refinement`);
 - `interaction.json`, `interaction.md`: the report.
 """
 
@@ -79,6 +84,13 @@ class InteractionOptions:
             over the frames; about the median tracking error measured on `samples/toss`, 0.83 mm and 0.47 deg). At
             2 mm / 1.5 deg (twice that) the screen dropped the box's damping ratio and the can's friction, which,
             fitted anyway, came out within 10% and 18% of the rendered values: the clip does resolve them.
+        along_view_weight: weight of the position error along the camera's viewing ray in the calibration's loss
+            and the start refits (`grounder._simulate.along_view_weighted`). Tracked depth is 4-6 times noisier
+            than the position across the image (`samples/toss`, four scans: 0.9-3.6 mm against 0.2-0.8 mm root mean
+            square per axis), so it counts a quarter. The screen keeps all directions alike (its thresholds are
+            the unweighted tracking error).
+        start_rounds: after the first calibration, this many rounds of refitting each window's start state with
+            the calibrated values (`grounder._interaction_starts`) and calibrating again (0: tracked starts only).
     """
 
     ground: GroundOptions = field(default_factory=GroundOptions)
@@ -94,12 +106,18 @@ class InteractionOptions:
     identify_relative_change: float = 0.2
     identify_min_position_m: float = 0.001
     identify_min_rotation_deg: float = 0.75
+    along_view_weight: float = 0.25
+    start_rounds: int = 2
 
     def __post_init__(self) -> None:
         if self.window_s is not None and not self.window_s > 0:
             raise GrounderError(f"window_s={self.window_s} but expected a positive length in seconds, or None")
         if not self.window_stride_s > 0:
             raise GrounderError(f"window_stride_s={self.window_stride_s} but expected > 0")
+        if not 0.0 < self.along_view_weight <= 1.0:
+            raise GrounderError(f"along_view_weight={self.along_view_weight} but expected a weight in (0, 1]")
+        if self.start_rounds < 0:
+            raise GrounderError(f"start_rounds={self.start_rounds} but expected 0 or more")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -122,6 +140,19 @@ class InteractionResult:
 
 def calibration_available() -> bool:
     return importlib.util.find_spec("grounder._calibrate") is not None
+
+
+def view_point_of(world_from_cam: np.ndarray) -> tuple[float, float, float] | None:
+    """The camera centre (world, metres) of a clip's (F, 4, 4) or (4, 4) camera poses, for weighing tracked depth:
+    the mean over the frames where the camera is known (a moving camera's rays are then approximate); None if it is
+    never known."""
+    poses = np.asarray(world_from_cam, np.float64).reshape(-1, 4, 4)
+    centres = poses[:, :3, 3]
+    known = np.all(np.isfinite(centres), axis=1)
+    if not known.any():
+        return None
+    x, y, z = (float(v) for v in centres[known].mean(axis=0))
+    return (x, y, z)
 
 
 def reliable_starts(traj: Trajectory, smoothing: SmoothingOptions | None = None) -> np.ndarray:
@@ -253,16 +284,71 @@ def calibrate_constrained(
     params: Sequence[str],
     options: InteractionOptions,
     *,
+    view_point_m: Sequence[float] | None = None,
     out: Path | None = None,
     progress: ProgressFn | None = None,
 ) -> dict[str, Any]:
-    """Screens `params` on `trajs` (unless `options.identify` is off) and calibrates only the constrained ones.
+    """Screens `params` on `trajs` (unless `options.identify` is off) and calibrates only the constrained ones; then
+    `options.start_rounds` times refits the windows' start states with the calibrated values
+    (`grounder._interaction_starts`) and screens and calibrates again on the refitted windows.
+
+    Args:
+        view_point_m: the camera centre (world, metres) the trajectories were tracked from: position errors along
+            its rays count `options.along_view_weight` as much (None: all directions alike).
 
     Returns the report's `calibration` entry: `status`; per parameter (all of `params`) `nominal`, `value`,
     `interval`, `bounds`, `unit`, `constrained` and the screen's figures; unconstrained parameters keep the prior
-    (`value` = `nominal`, `interval` = `bounds`). Writes the calibrated scene to `out` only if something was
-    calibrated.
+    (`value` = `nominal`, `interval` = `bounds`); `start_refinement`: per round, what each window's start moved.
+    Writes the calibrated scene to `out` only if something was calibrated (in the last round).
     """
+    import mujoco
+
+    from grounder._calibrate_params import apply_to_model, resolve_parameters
+    from grounder._interaction_starts import refine_window_starts
+
+    windows_now = list(trajs)
+    rounds: list[dict[str, Any]] = []
+    entry: dict[str, Any] = {}
+    for round_index in range(options.start_rounds + 1):
+        last = round_index == options.start_rounds
+        if round_index:
+            base = mujoco.MjModel.from_xml_path(str(scene_xml))
+            resolved = resolve_parameters(base, list(entry["parameters"]))
+            model = apply_to_model(base, resolved, [entry["parameters"][p.name]["value"] for p in resolved])
+            windows_now, fits = refine_window_starts(
+                model,
+                windows_now,
+                rotation_weight=options.rotation_weight,
+                view_point_m=view_point_m,
+                along_view_weight=options.along_view_weight,
+            )
+            rounds.append({"round": round_index, "windows": [f.as_dict() for f in fits]})
+        entry = _screen_and_calibrate(
+            scene_xml,
+            windows_now,
+            params,
+            options,
+            view_point_m=view_point_m,
+            out=out if last else None,
+            progress=progress,
+        )
+        if not any(r.get("constrained") for r in entry["parameters"].values()):
+            break
+    entry["start_refinement"] = rounds
+    return entry
+
+
+def _screen_and_calibrate(
+    scene_xml: Path,
+    trajs: Sequence[Trajectory],
+    params: Sequence[str],
+    options: InteractionOptions,
+    *,
+    view_point_m: Sequence[float] | None,
+    out: Path | None,
+    progress: ProgressFn | None,
+) -> dict[str, Any]:
+    """One round of `calibrate_constrained`: screen, then calibrate the constrained parameters on `trajs`."""
     import mujoco
 
     from grounder._calibrate import CalibrateOptions, calibrate
@@ -296,6 +382,7 @@ def calibrate_constrained(
         # Windows cut from one clip overlap and share its errors: holding some out would not test anything new.
         "validation_fraction": 0.0,
         "rotation_weight": options.rotation_weight,
+        **_view_settings(options, view_point_m),
         **options.calibrate_settings,
     }
     result = calibrate(
@@ -331,6 +418,16 @@ def calibrate_constrained(
         after={k: v.as_dict() for k, v in result.after.items()},
     )
     return entry
+
+
+def _view_settings(options: InteractionOptions, view_point_m: Sequence[float] | None) -> dict[str, Any]:
+    """`CalibrateOptions` fields that weigh tracked depth less (none without a camera centre)."""
+    if view_point_m is None:
+        return {}
+    return {
+        "view_point_m": tuple(float(v) for v in view_point_m),
+        "along_view_weight": options.along_view_weight,
+    }
 
 
 def separable_bodies(scene_xml: Path, trajs: Sequence[Trajectory], clearance_m: float = 0.005) -> bool:
@@ -384,6 +481,7 @@ def calibrate_per_body(
     params: Sequence[str],
     options: InteractionOptions,
     *,
+    view_point_m: Sequence[float] | None = None,
     out: Path | None = None,
     progress: ProgressFn | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
@@ -392,7 +490,8 @@ def calibrate_per_body(
     For objects that never touch each other (`separable_bodies`): each object's tracked motion is cut into windows
     that start only where its state is well measured (`reliable_starts`), and its parameters are screened and fitted
     on those, alone (a few dimensions, with no other object's tracking errors in the loss). The values found are
-    then written into the whole scene (`out`), evaluated on the whole tracked segments.
+    then written into the whole scene (`out`), evaluated on the whole tracked segments. `view_point_m`: as in
+    `calibrate_constrained`.
 
     Returns:
         The report's `calibration` entry (as `calibrate_constrained`'s, with `windows` per object) and the names of
@@ -435,10 +534,16 @@ def calibrate_per_body(
             used += [f"{body}:{t.name}" for t in fit]
             sub: dict[str, Any] = {"status": "skipped: no well-measured window shows motion", "parameters": {}}
             if fit:
-                sub = calibrate_constrained(sub_xml, fit, body_params, options, progress=progress)
+                sub = calibrate_constrained(
+                    sub_xml, fit, body_params, options, view_point_m=view_point_m, progress=progress
+                )
         finally:
             sub_xml.unlink(missing_ok=True)
-        entry["per_object"][body] = {"status": sub["status"], "windows": [t.name for t in fit]}
+        entry["per_object"][body] = {
+            "status": sub["status"],
+            "windows": [t.name for t in fit],
+            "start_refinement": sub.get("start_refinement", []),
+        }
         for name in body_params:
             record = sub["parameters"].get(name, {})
             entry["parameters"][name] = record
@@ -462,6 +567,7 @@ def calibrate_per_body(
             local_iterations=0,
             validation_fraction=0.0,
             rotation_weight=options.rotation_weight,
+            **_view_settings(options, view_point_m),
         ),
         out=out,
         progress=progress,
@@ -562,13 +668,20 @@ def ground_with_interaction(
         }
         payload["match_before"] = _clip_match(grounded / "scene.xml", segments)
         calibrated = False
+        view_point_m = view_point_of(tracked.world_from_cam)
         if not calibration_available():
             payload["calibration"] = {"status": "skipped: grounder._calibrate is not installed"}
         elif per_body:
             params = options.calibrate_params or default_params(names)
             tick = time.perf_counter()
             payload["calibration"], payload["windows"] = calibrate_per_body(
-                grounded / "scene.xml", segments, params, options, out=stage / "calibrated", progress=report
+                grounded / "scene.xml",
+                segments,
+                params,
+                options,
+                view_point_m=view_point_m,
+                out=stage / "calibrated",
+                progress=report,
             )
             seconds["calibrate"] = time.perf_counter() - tick
         elif not fit_trajs:
@@ -578,7 +691,13 @@ def ground_with_interaction(
             params = options.calibrate_params or default_params(names)
             tick = time.perf_counter()
             payload["calibration"] = calibrate_constrained(
-                grounded / "scene.xml", fit_trajs, params, options, out=stage / "calibrated", progress=report
+                grounded / "scene.xml",
+                fit_trajs,
+                params,
+                options,
+                view_point_m=view_point_m,
+                out=stage / "calibrated",
+                progress=report,
             )
             seconds["calibrate"] = time.perf_counter() - tick
         calibrated = (stage / "calibrated" / "scene.xml").is_file()
@@ -625,6 +744,19 @@ def _markdown(payload: dict[str, Any]) -> str:
                 f"| {name} | {p['nominal']:.4g} | {p['value']:.4g} | {p['interval'][0]:.4g} .. "
                 f"{p['interval'][1]:.4g} | {seen} |"
             )
+        lines.append("")
+    for body, info in payload["calibration"].get("per_object", {}).items():
+        for refit in info.get("start_refinement", []):
+            fits = refit["windows"]
+            if fits:
+                velocity = [f["velocity_change_m_s"] for f in fits]
+                position = [f["position_change_mm"] for f in fits]
+                lines.append(
+                    f"- {body}, start refit {refit['round']}: {len(fits)} windows, start velocity moved by median "
+                    f"{np.median(velocity):.3f} m/s (max {max(velocity):.3f}), position by median "
+                    f"{np.median(position):.1f} mm (max {max(position):.1f})"
+                )
+    if payload["calibration"].get("per_object"):
         lines.append("")
     lines += [
         "## Match with the clip",

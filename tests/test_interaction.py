@@ -204,3 +204,118 @@ def test_reliable_starts_skip_the_frame_after_a_bounce() -> None:
     assert good[:6].all()
     assert not good[6] and not good[7]
     assert good[8:].all()
+
+
+BALL = """
+<mujoco>
+  <option timestep="0.002"/>
+  <worldbody>
+    <geom name="table" type="plane" size="2 2 0.1"/>
+    <body name="ball" pos="0 0 0.035">
+      <freejoint name="ball_free"/>
+      <geom type="sphere" size="0.03" density="300" friction="{friction}" priority="1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _ball(tmp_path: Path, friction: float) -> tuple[Path, Trajectory]:
+    """A ball thrown with backspin from 5 mm above the table: it lands, skids for 0.2 s and rolls (its friction
+    decides when skidding stops), 0.5 s at 30 fps with the true friction; and a scene with `friction`."""
+    (tmp_path / "ball").mkdir(exist_ok=True)
+    truth = tmp_path / "ball" / "truth.xml"
+    truth.write_text(BALL.format(friction=TRUE_FRICTION))
+    model = mujoco.MjModel.from_xml_path(str(truth))
+    data = mujoco.MjData(model)
+    data.qvel[:3] = [2.0, 0.0, 0.0]
+    data.qvel[3:6] = [0.0, -30.0, 0.0]  # backspin: it skids long after landing
+    mujoco.mj_forward(model, data)
+    time_s, qpos, qvel = [], [], []
+    for _ in range(15):
+        time_s.append(data.time)
+        qpos.append(data.qpos.copy())
+        qvel.append(data.qvel.copy())
+        for _ in range(round((1 / 30) / model.opt.timestep)):
+            mujoco.mj_step(model, data)
+    scene = tmp_path / "ball" / "scene.xml"
+    scene.write_text(BALL.format(friction=friction))
+    return scene, Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=np.array(qvel), name="throw_00")
+
+
+def _corrupted(traj: Trajectory, dx_m: float, dv_m_s: float) -> Trajectory:
+    """The recording with its first position and velocity off along the throw, as a fresh detection's can be."""
+    qpos, qvel = traj.qpos.copy(), traj.qvel.copy()
+    qpos[0, 0] += dx_m
+    qvel[0, 0] += dv_m_s
+    return Trajectory(time_s=traj.time_s, qpos=qpos, qvel=qvel, name=traj.name)
+
+
+def test_start_refit_recovers_the_true_start_from_the_motion_after_it(tmp_path: Path) -> None:
+    """A start 4 mm and 0.15 m/s off (a fresh detection's error): the refit brings it back from the motion after
+    it, to within the roughness the landing gives the cost (about a millimetre and 3 cm/s here)."""
+    from grounder._interaction_starts import refine_window_starts
+
+    scene, traj = _ball(tmp_path, TRUE_FRICTION)
+    bad = _corrupted(traj, 0.004, 0.15)
+    refit, fits = refine_window_starts(mujoco.MjModel.from_xml_path(str(scene)), [bad], rotation_weight=0.25)
+    assert fits[0].accepted and fits[0].cost_after < 1e-3 * fits[0].cost_before
+    assert np.abs(refit[0].qpos[0, :3] - traj.qpos[0, :3]).max() < 1e-3  # 1 mm, from 4 mm off
+    assert np.abs(refit[0].qvel[0, :3] - traj.qvel[0, :3]).max() < 0.04  # 4 cm/s, from 15 cm/s off
+    assert np.abs(refit[0].qvel[0, 3:] - traj.qvel[0, 3:]).max() < 1.5  # rad/s: the 30 rad/s backspin stays
+    np.testing.assert_array_equal(refit[0].qpos[1:], bad.qpos[1:])  # only the start is a nuisance parameter
+
+
+def test_start_refits_leave_a_clean_recording_at_its_true_start_and_friction(tmp_path: Path) -> None:
+    """On an exact recording the refits (two rounds, the default) barely move the start and keep the friction."""
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    entry = calibrate_constrained(xml, [traj], ("slider.friction.sliding",), QUICK)
+    assert entry["parameters"]["slider.friction.sliding"]["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+    assert [r["round"] for r in entry["start_refinement"]] == [1, 2]
+    for refits in entry["start_refinement"]:
+        (fit,) = refits["windows"]
+        assert fit["position_change_mm"] < 1.0 and fit["velocity_change_m_s"] < 0.02
+
+
+def test_along_view_weight_scales_only_the_error_along_the_camera_ray(tmp_path: Path) -> None:
+    from grounder._calibrate import Evaluator
+    from grounder._calibrate_params import resolve_parameters
+    from grounder._simulate import along_view_weighted
+
+    view_m = np.array([0.0, -0.5, 0.5])
+    seen_m = np.array([0.0, 0.0, 0.0])
+    ray = (seen_m - view_m) / np.linalg.norm(seen_m - view_m)
+    across = np.array([1.0, 0.0, 0.0])
+    error_m = 0.004 * ray + 0.001 * across
+    weighted = along_view_weighted(error_m, seen_m, view_m, 0.25)
+    np.testing.assert_allclose(weighted, 0.001 * ray + 0.001 * across, atol=1e-12)
+    np.testing.assert_array_equal(along_view_weighted(error_m, seen_m, None, 0.25), error_m)
+
+    # In the calibration loss: a recording offset along the ray from the camera to each sample by 5 mm.
+    traj = _recorded(tmp_path)
+    model = mujoco.MjModel.from_xml_path(str(tmp_path / "truth" / "scene.xml"))
+    shifted = traj.qpos.copy()
+    for body in (0, 7):  # the first sample stays: the rollout starts on the truth
+        rays = shifted[1:, body : body + 3] - view_m
+        shifted[1:, body : body + 3] += 0.005 * rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    offset = Trajectory(time_s=traj.time_s, qpos=shifted, qvel=traj.qvel, name="offset")
+    params = resolve_parameters(model, ["slider.friction.sliding"])
+    true_value = np.array([[TRUE_FRICTION]])
+    plain = Evaluator(model, params, [offset], rotation_weight=0.0).loss_of_values(true_value)[0, 0]
+    quarter = Evaluator(
+        model, params, [offset], rotation_weight=0.0, view_point_m=view_m, along_view_weight=0.25
+    ).loss_of_values(true_value)[0, 0]
+    assert plain > 3.0  # 5 mm of a 10 cm box, in percent, on every sample but the first
+    assert quarter == pytest.approx(0.25 * plain, rel=1e-6)
+
+
+def test_view_point_is_the_mean_camera_centre_where_the_camera_is_known() -> None:
+    from grounder._interaction import view_point_of
+
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[0, :3, 3] = [0.0, -0.5, 0.5]
+    poses[1] = np.nan  # marker unseen in that frame
+    poses[2, :3, 3] = [0.1, -0.5, 0.5]
+    np.testing.assert_allclose(view_point_of(poses), [0.05, -0.5, 0.5])
+    assert view_point_of(np.full((2, 4, 4), np.nan)) is None

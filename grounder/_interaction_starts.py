@@ -1,0 +1,257 @@
+"""Start states of tracked windows as nuisance parameters: fitted to each window's own tracked motion.
+
+A calibration window is rolled out open loop from its first tracked state, so an error in that state (the pose of
+a fresh detection, the velocity fitted over a few noisy frames) is read as an error of the physics: on
+`samples/toss` start velocities 0.1 m/s off turned into friction 29% off. The frames after the start say where the
+object must have started and how fast: `refine_window_starts` fits each window's start pose and velocity (6 + 6
+numbers per free body) to the window's tracked poses by least squares, with the scene's current parameters. The
+interaction calibration alternates the two (`grounder._interaction.calibrate_constrained`): calibrate the
+parameters on the windows, refit the starts with the calibrated values, calibrate again; the joint estimate of
+start states and parameters that multiple-shooting system identification makes, done in blocks.
+
+The fit is a maximum a posteriori estimate: the calibration's loss terms over the window's samples (position in
+percent of the object's size, about the tracking error, with the along-ray part weighted as in
+`grounder._simulate.along_view_weighted`, and `rotation_weight` percent per degree), squared and summed, plus the
+start's change over its expected size (`START_SIGMA`), squared: the prior stands for the first sample, the tracked
+start, with the error a tracked start really has. Without that prior a start in contact is not
+determined: a box resting on the table fits its next samples just as well from a tilted, spinning start that the
+contact stops in the first step. The window's first sample is replaced by the fitted start; its other samples are
+untouched.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+from mujoco import rollout as mj_rollout
+
+from grounder import _simulate as sim
+from grounder._calibrate_params import body_size_m
+from grounder._trajectory import Trajectory
+from grounder.errors import GrounderError
+
+# Expected error of a tracked start (one standard deviation): position, rotation, linear and angular velocity. On
+# `samples/toss` the first frames' poses were 4-8 mm off and velocities fitted over 3-4 frames up to 0.1 m/s.
+START_SIGMA = {"position_m": 0.005, "rotation_deg": 3.0, "velocity_m_s": 0.1, "angular_velocity_rad_s": 3.0}
+
+
+@dataclass(frozen=True, kw_only=True)
+class StartFit:
+    """How one window's start state moved (largest over its free bodies) and the fit's loss before and after.
+
+    Attributes:
+        name: the window.
+        position_change_mm, rotation_change_deg: of the start pose.
+        velocity_change_m_s, angular_velocity_change_rad_s: of the start velocity.
+        cost_before, cost_after: the fit's cost (squared residual terms over the samples, plus the prior's).
+        accepted: False when the fit did not lower the cost (the tracked start is kept).
+    """
+
+    name: str
+    position_change_mm: float
+    rotation_change_deg: float
+    velocity_change_m_s: float
+    angular_velocity_change_rad_s: float
+    cost_before: float
+    cost_after: float
+    accepted: bool
+
+    def as_dict(self) -> dict[str, float | str | bool]:
+        return {
+            "name": self.name,
+            "position_change_mm": round(self.position_change_mm, 2),
+            "rotation_change_deg": round(self.rotation_change_deg, 2),
+            "velocity_change_m_s": round(self.velocity_change_m_s, 4),
+            "angular_velocity_change_rad_s": round(self.angular_velocity_change_rad_s, 3),
+            "cost_before": round(self.cost_before, 3),
+            "cost_after": round(self.cost_after, 3),
+            "accepted": self.accepted,
+        }
+
+
+class _WindowFit:
+    """Residuals of one window as a function of its start correction x = per free body (dpos 3, drot 3, dv 3, dw 3),
+    many corrections per `mujoco.rollout` call."""
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        traj: Trajectory,
+        *,
+        rotation_weight: float,
+        view_point_m: np.ndarray | None,
+        along_view_weight: float,
+        nthread: int,
+    ) -> None:
+        self.model = model
+        self.traj = traj
+        self.rotation_weight = rotation_weight
+        self.view_point_m = view_point_m
+        self.along_view_weight = along_view_weight
+        self.free = sim.free_joints(model)
+        self.dofs = [int(model.jnt_dofadr[model.body(fj.body).jntadr[0]]) for fj in self.free]
+        self.sizes_m = [body_size_m(model, model.body(fj.body).id) for fj in self.free]
+        self.steps = sim.step_indices(traj.time_s, model.opt.timestep)
+        self.nstep = max(1, int(self.steps[-1]))
+        self.qpos_at, _ = sim._offsets(model)
+        self.datas = [mujoco.MjData(model) for _ in range(nthread)]
+        sigma = np.array(
+            [START_SIGMA["position_m"]] * 3
+            + [np.radians(START_SIGMA["rotation_deg"])] * 3
+            + [START_SIGMA["velocity_m_s"]] * 3
+            + [START_SIGMA["angular_velocity_rad_s"]] * 3
+        )
+        self.sigma = np.tile(sigma, len(self.free))
+        self.controls = (
+            sim._controls(traj, self.steps, model.nu, self.nstep)[None] if model.nu and traj.ctrl is not None else None
+        )
+
+    @property
+    def size(self) -> int:
+        return 12 * len(self.free)
+
+    def start(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(qpos, qvel) of the start corrected by x."""
+        qpos = self.traj.qpos[0].astype(np.float64, copy=True)
+        qvel = self.traj.qvel[0].astype(np.float64, copy=True)
+        dq = np.zeros(self.model.nv)
+        for k, dof in enumerate(self.dofs):
+            dq[dof : dof + 6] = x[12 * k : 12 * k + 6]
+            qvel[dof : dof + 6] += x[12 * k + 6 : 12 * k + 12]
+        mujoco.mj_integratePos(self.model, qpos, dq, 1.0)
+        return qpos, qvel
+
+    def residuals(
+        self, xs: np.ndarray, samples: int | None = None, *, model: mujoco.MjModel | None = None
+    ) -> np.ndarray:
+        """(K, R) residuals of K corrections: per sample after the first (up to `samples` of them) and free body,
+        the weighted position error in percent of the body's size (3) and the rotation error times
+        `rotation_weight` (3, degrees); then the corrections over `START_SIGMA` (12 per body). `model`: another
+        model of the same structure (other parameter values) to simulate with."""
+        model = self.model if model is None else model
+        data = self.datas[0]
+        states0 = np.stack([sim.initial_state(model, *self.start(x), data) for x in xs])
+        controls = None if self.controls is None else np.repeat(self.controls, len(xs), axis=0)
+        datas = self.datas[: max(1, min(len(self.datas), len(xs)))]
+        states, _ = mj_rollout.rollout(model, datas, states0, controls, nstep=self.nstep)
+        full = np.concatenate([states0[:, None], states], axis=1)
+        # The first sample is the start itself: the prior stands for it, with the error a tracked start really has.
+        rows = self.steps[1:] if samples is None else self.steps[1 : 1 + samples]
+        qpos = full[:, rows, self.qpos_at : self.qpos_at + model.nq]
+        seen = self.traj.qpos[1 : 1 + len(rows)]
+        num = len(seen)
+        out = []
+        for fj, size_m in zip(self.free, self.sizes_m, strict=True):
+            seen_m = seen[None, :, fj.pos]
+            dpos = sim.along_view_weighted(
+                qpos[:, :, fj.pos] - seen_m, seen_m, self.view_point_m, self.along_view_weight
+            )
+            drot = np.zeros((len(xs), num, 3))
+            for k in range(len(xs)):
+                for t in range(num):
+                    mujoco.mju_subQuat(drot[k, t], qpos[k, t, fj.quat], seen[t, fj.quat])
+            out += [100.0 * dpos / size_m, self.rotation_weight * np.degrees(drot)]
+        res = np.concatenate([r.reshape(len(xs), -1) for r in out] + [xs / self.sigma], axis=1)
+        res[~np.isfinite(res)] = 1e3
+        return res
+
+
+def _least_squares(
+    problem: _WindowFit, z0: np.ndarray, free: np.ndarray, samples: int | None, budget: int
+) -> np.ndarray:
+    """Levenberg-Marquardt over the `free` start corrections (in units of the prior's sigma: metres, radians and m/s
+    differ by orders of magnitude), the others held at `z0`, on the first `samples` samples (None: all). Forward
+    differences of 0.02 sigma (0.1 mm, 0.06 deg, 2 mm/s, 0.06 rad/s), one batch of rollouts per Jacobian."""
+    from scipy.optimize import least_squares
+
+    step = 0.02
+    sigma = problem.sigma
+
+    def full(z_free: np.ndarray) -> np.ndarray:
+        z = z0.copy()
+        z[free] = z_free
+        return z
+
+    def fun(z_free: np.ndarray) -> np.ndarray:
+        return problem.residuals((full(z_free) * sigma)[None], samples)[0]
+
+    def jac(z_free: np.ndarray) -> np.ndarray:
+        z = full(z_free)
+        zs = np.concatenate([z[None], z[None] + step * np.eye(len(z))[free]])
+        res = problem.residuals(zs * sigma, samples)
+        return ((res[1:] - res[0]) / step).T
+
+    result = least_squares(fun, z0[free], jac=jac, method="lm", x_scale=1.0, max_nfev=budget)
+    return full(result.x)
+
+
+def refine_window_starts(
+    model: mujoco.MjModel,
+    windows: Sequence[Trajectory],
+    *,
+    rotation_weight: float,
+    view_point_m: Sequence[float] | None = None,
+    along_view_weight: float = 1.0,
+    max_iterations: int = 20,
+    nthread: int | None = None,
+) -> tuple[list[Trajectory], list[StartFit]]:
+    """Fits each window's start pose and velocity to its tracked motion under `model` (module docstring).
+
+    Levenberg-Marquardt (SciPy) on forward-difference Jacobians, each one batch of 1 + 12 x bodies rollouts. A fit
+    that does not lower the cost keeps the tracked start.
+
+    Returns:
+        The windows with their first sample replaced by the fitted start, and what each fit changed.
+    """
+    view = None if view_point_m is None else np.asarray(view_point_m, np.float64)
+    threads = nthread or sim.default_nthread()
+    out: list[Trajectory] = []
+    fits: list[StartFit] = []
+    for traj in windows:
+        if not sim.free_joints(model):
+            raise GrounderError("start refinement needs free bodies (objects); the model has none")
+        problem = _WindowFit(
+            model,
+            traj,
+            rotation_weight=rotation_weight,
+            view_point_m=view,
+            along_view_weight=along_view_weight,
+            nthread=threads,
+        )
+        z0 = np.zeros(problem.size)
+        r0 = problem.residuals(z0[None])[0]
+        cost_before = float(r0 @ r0)
+        # First the position and linear velocity alone, then all twelve numbers from there. A contact makes the cost
+        # rough (a landing's timing moves with a millimetre of height) and its tilt and spin barely seen (the contact
+        # undoes them in a step): one fit of all twelve from a start 0.15 m/s off traded them against the velocity
+        # and stopped in a worse local minimum (a sliding box: cost 14 against 16 with this order, 2.9 at the true
+        # start; a skidding ball: 28 against 5.8). A global search finds the true start (differential evolution,
+        # 6000 rollouts a window) but made the clip's calibration ten times slower.
+        linear = np.tile(np.array([True] * 3 + [False] * 3 + [True] * 3 + [False] * 3), len(problem.free))
+        z = _least_squares(problem, z0, linear, None, max_iterations)
+        z = _least_squares(problem, z, np.ones(problem.size, bool), None, max_iterations)
+        result_cost = problem.residuals((z * problem.sigma)[None])[0]
+        cost_after = float(result_cost @ result_cost)
+        accepted = bool(np.isfinite(cost_after) and cost_after < cost_before)
+        x = z * problem.sigma if accepted else z0
+        qpos0, qvel0 = problem.start(x)
+        qpos, qvel = traj.qpos.astype(np.float64, copy=True), traj.qvel.astype(np.float64, copy=True)
+        qpos[0], qvel[0] = qpos0, qvel0
+        out.append(Trajectory(time_s=traj.time_s, qpos=qpos, qvel=qvel, ctrl=traj.ctrl, name=traj.name))
+        per_body = x.reshape(-1, 12)
+        fits.append(
+            StartFit(
+                name=traj.name,
+                position_change_mm=1e3 * float(np.linalg.norm(per_body[:, 0:3], axis=1).max()),
+                rotation_change_deg=float(np.degrees(np.linalg.norm(per_body[:, 3:6], axis=1).max())),
+                velocity_change_m_s=float(np.linalg.norm(per_body[:, 6:9], axis=1).max()),
+                angular_velocity_change_rad_s=float(np.linalg.norm(per_body[:, 9:12], axis=1).max()),
+                cost_before=cost_before,
+                cost_after=cost_after if accepted else cost_before,
+                accepted=accepted,
+            )
+        )
+    return out, fits
