@@ -6,6 +6,7 @@ friction leaves no trace). The recorded motion is simulated with known values, s
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -267,10 +268,10 @@ def test_start_refit_recovers_the_true_start_from_the_motion_after_it(tmp_path: 
 
 
 def test_start_refits_leave_a_clean_recording_at_its_true_start_and_friction(tmp_path: Path) -> None:
-    """On an exact recording the refits (two rounds, the default) barely move the start and keep the friction."""
+    """On an exact recording two rounds of refits barely move the start and keep the friction."""
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
-    entry = calibrate_constrained(xml, [traj], ("slider.friction.sliding",), QUICK)
+    entry = calibrate_constrained(xml, [traj], ("slider.friction.sliding",), replace(QUICK, start_rounds=2))
     assert entry["parameters"]["slider.friction.sliding"]["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
     assert [r["round"] for r in entry["start_refinement"]] == [1, 2]
     for refits in entry["start_refinement"]:
