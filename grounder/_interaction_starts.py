@@ -5,17 +5,18 @@ a fresh detection, the velocity fitted over a few noisy frames) is read as an er
 `samples/toss` start velocities 0.1 m/s off turned into friction 29% off. The frames after the start say where the
 object must have started and how fast: `refine_window_starts` fits each window's start pose and velocity (6 + 6
 numbers per free body) to the window's tracked poses by least squares, with the scene's current parameters. The
-interaction calibration alternates the two (`grounder._interaction.calibrate_constrained`): calibrate the
-parameters on the windows, refit the starts with the calibrated values, calibrate again; the joint estimate of
-start states and parameters that multiple-shooting system identification makes, done in blocks.
+interaction calibration can alternate the two (`grounder._interaction.calibrate_constrained`, `start_rounds`; off
+by default): calibrate the parameters on the windows, refit the starts with the calibrated values, calibrate
+again; the joint estimate of start states and parameters that multiple-shooting system identification makes, done
+in blocks. Where a parameter's loss is nearly flat the starts absorb what decides it (README, measured figures).
 
 The fit is a maximum a posteriori estimate: the calibration's loss terms over the window's samples (position in
 percent of the object's size, about the tracking error, with the along-ray part weighted as in
 `grounder._simulate.along_view_weighted`, and `rotation_weight` percent per degree), squared and summed, plus the
 start's change over its expected size (`START_SIGMA`), squared: the prior stands for the first sample, the tracked
-start, with the error a tracked start really has. Without that prior a start in contact is not
-determined: a box resting on the table fits its next samples just as well from a tilted, spinning start that the
-contact stops in the first step. The window's first sample is replaced by the fitted start; its other samples are
+start, with the error a tracked start really has. Without that prior a start in contact is not determined: a box
+sliding on the table fitted its next samples from a start tilted by 4 deg and spinning at 12 rad/s, which the
+contact stopped in the first step. The window's first sample is replaced by the fitted start; its other samples are
 untouched.
 """
 
@@ -124,14 +125,11 @@ class _WindowFit:
         mujoco.mj_integratePos(self.model, qpos, dq, 1.0)
         return qpos, qvel
 
-    def residuals(
-        self, xs: np.ndarray, samples: int | None = None, *, model: mujoco.MjModel | None = None
-    ) -> np.ndarray:
-        """(K, R) residuals of K corrections: per sample after the first (up to `samples` of them) and free body,
+    def residuals(self, xs: np.ndarray) -> np.ndarray:
+        """(K, R) residuals of K corrections: per sample after the first and free body,
         the weighted position error in percent of the body's size (3) and the rotation error times
-        `rotation_weight` (3, degrees); then the corrections over `START_SIGMA` (12 per body). `model`: another
-        model of the same structure (other parameter values) to simulate with."""
-        model = self.model if model is None else model
+        `rotation_weight` (3, degrees); then the corrections over `START_SIGMA` (12 per body)."""
+        model = self.model
         data = self.datas[0]
         states0 = np.stack([sim.initial_state(model, *self.start(x), data) for x in xs])
         controls = None if self.controls is None else np.repeat(self.controls, len(xs), axis=0)
@@ -139,9 +137,8 @@ class _WindowFit:
         states, _ = mj_rollout.rollout(model, datas, states0, controls, nstep=self.nstep)
         full = np.concatenate([states0[:, None], states], axis=1)
         # The first sample is the start itself: the prior stands for it, with the error a tracked start really has.
-        rows = self.steps[1:] if samples is None else self.steps[1 : 1 + samples]
-        qpos = full[:, rows, self.qpos_at : self.qpos_at + model.nq]
-        seen = self.traj.qpos[1 : 1 + len(rows)]
+        qpos = full[:, self.steps[1:], self.qpos_at : self.qpos_at + model.nq]
+        seen = self.traj.qpos[1:]
         num = len(seen)
         out = []
         for fj, size_m in zip(self.free, self.sizes_m, strict=True):
@@ -159,12 +156,10 @@ class _WindowFit:
         return res
 
 
-def _least_squares(
-    problem: _WindowFit, z0: np.ndarray, free: np.ndarray, samples: int | None, budget: int
-) -> np.ndarray:
+def _least_squares(problem: _WindowFit, z0: np.ndarray, free: np.ndarray, budget: int) -> np.ndarray:
     """Levenberg-Marquardt over the `free` start corrections (in units of the prior's sigma: metres, radians and m/s
-    differ by orders of magnitude), the others held at `z0`, on the first `samples` samples (None: all). Forward
-    differences of 0.02 sigma (0.1 mm, 0.06 deg, 2 mm/s, 0.06 rad/s), one batch of rollouts per Jacobian."""
+    differ by orders of magnitude), the others held at `z0`. Forward differences of 0.02 sigma (0.1 mm, 0.06 deg,
+    2 mm/s, 0.06 rad/s), one batch of rollouts per Jacobian."""
     from scipy.optimize import least_squares
 
     step = 0.02
@@ -176,12 +171,12 @@ def _least_squares(
         return z
 
     def fun(z_free: np.ndarray) -> np.ndarray:
-        return problem.residuals((full(z_free) * sigma)[None], samples)[0]
+        return problem.residuals((full(z_free) * sigma)[None])[0]
 
     def jac(z_free: np.ndarray) -> np.ndarray:
         z = full(z_free)
         zs = np.concatenate([z[None], z[None] + step * np.eye(len(z))[free]])
-        res = problem.residuals(zs * sigma, samples)
+        res = problem.residuals(zs * sigma)
         return ((res[1:] - res[0]) / step).T
 
     result = least_squares(fun, z0[free], jac=jac, method="lm", x_scale=1.0, max_nfev=budget)
@@ -224,15 +219,15 @@ def refine_window_starts(
         z0 = np.zeros(problem.size)
         r0 = problem.residuals(z0[None])[0]
         cost_before = float(r0 @ r0)
-        # First the position and linear velocity alone, then all twelve numbers from there. A contact makes the cost
-        # rough (a landing's timing moves with a millimetre of height) and its tilt and spin barely seen (the contact
-        # undoes them in a step): one fit of all twelve from a start 0.15 m/s off traded them against the velocity
-        # and stopped in a worse local minimum (a sliding box: cost 14 against 16 with this order, 2.9 at the true
-        # start; a skidding ball: 28 against 5.8). A global search finds the true start (differential evolution,
-        # 6000 rollouts a window) but made the clip's calibration ten times slower.
+        # First the position and linear velocity alone, then all twelve numbers from there: in contact a start's
+        # tilt and spin are barely seen (the contact undoes them in a step), and one fit of all twelve from a start
+        # 0.15 m/s off traded them against the velocity. The cost stays rough (a landing's timing moves with a
+        # millimetre of height): on a skidding ball this stops at cost 5.8 against 2.9 at the true start (within
+        # 1 mm and 3 cm/s of it). A global search finds the true start (differential evolution, 6000 rollouts a
+        # window) but made the clip's calibration ten times slower.
         linear = np.tile(np.array([True] * 3 + [False] * 3 + [True] * 3 + [False] * 3), len(problem.free))
-        z = _least_squares(problem, z0, linear, None, max_iterations)
-        z = _least_squares(problem, z, np.ones(problem.size, bool), None, max_iterations)
+        z = _least_squares(problem, z0, linear, max_iterations)
+        z = _least_squares(problem, z, np.ones(problem.size, bool), max_iterations)
         result_cost = problem.residuals((z * problem.sigma)[None])[0]
         cost_after = float(result_cost @ result_cost)
         accepted = bool(np.isfinite(cost_after) and cost_after < cost_before)
