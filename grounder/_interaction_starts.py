@@ -23,11 +23,10 @@ untouched.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import mujoco
 import numpy as np
-from mujoco import rollout as mj_rollout
 
 from grounder import _simulate as sim
 from grounder._calibrate_params import body_size_m
@@ -95,10 +94,10 @@ class _WindowFit:
         self.free = sim.free_joints(model)
         self.dofs = [int(model.jnt_dofadr[model.body(fj.body).jntadr[0]]) for fj in self.free]
         self.sizes_m = [body_size_m(model, model.body(fj.body).id) for fj in self.free]
-        self.steps = sim.step_indices(traj.time_s, model.opt.timestep)
-        self.nstep = max(1, int(self.steps[-1]))
+        self.batch = sim.prepare(model, [traj])  # the window's controls and sample steps, for `mujoco.rollout`
+        self.nthread = nthread
         self.qpos_at, _ = sim._offsets(model)
-        self.datas = [mujoco.MjData(model) for _ in range(nthread)]
+        self.data = mujoco.MjData(model)
         sigma = np.array(
             [START_SIGMA["position_m"]] * 3
             + [np.radians(START_SIGMA["rotation_deg"])] * 3
@@ -106,9 +105,6 @@ class _WindowFit:
             + [START_SIGMA["angular_velocity_rad_s"]] * 3
         )
         self.sigma = np.tile(sigma, len(self.free))
-        self.controls = (
-            sim._controls(traj, self.steps, model.nu, self.nstep)[None] if model.nu and traj.ctrl is not None else None
-        )
 
     @property
     def size(self) -> int:
@@ -129,15 +125,15 @@ class _WindowFit:
         """(K, R) residuals of K corrections: per sample after the first and free body,
         the weighted position error in percent of the body's size (3) and the rotation error times
         `rotation_weight` (3, degrees); then the corrections over `START_SIGMA` (12 per body)."""
-        model = self.model
-        data = self.datas[0]
-        states0 = np.stack([sim.initial_state(model, *self.start(x), data) for x in xs])
-        controls = None if self.controls is None else np.repeat(self.controls, len(xs), axis=0)
-        datas = self.datas[: max(1, min(len(self.datas), len(xs)))]
-        states, _ = mj_rollout.rollout(model, datas, states0, controls, nstep=self.nstep)
-        full = np.concatenate([states0[:, None], states], axis=1)
+        starts = replace(
+            self.batch,
+            states0=np.stack([sim.initial_state(self.model, *self.start(x), self.data) for x in xs]),
+            controls=np.repeat(self.batch.controls, len(xs), axis=0),
+            sample_steps=self.batch.sample_steps * len(xs),
+        )
+        full = sim.rollout_states([self.model], starts, nthread=self.nthread)[0]
         # The first sample is the start itself: the prior stands for it, with the error a tracked start really has.
-        qpos = full[:, self.steps[1:], self.qpos_at : self.qpos_at + model.nq]
+        qpos = full[:, self.batch.sample_steps[0][1:], self.qpos_at : self.qpos_at + self.model.nq]
         seen = self.traj.qpos[1:]
         num = len(seen)
         out = []
