@@ -201,9 +201,9 @@ def refine_window_starts(
     threads = nthread or sim.default_nthread()
     out: list[Trajectory] = []
     fits: list[StartFit] = []
+    if not sim.free_joints(model):
+        raise GrounderError("start refinement needs free bodies (objects); the model has none")
     for traj in windows:
-        if not sim.free_joints(model):
-            raise GrounderError("start refinement needs free bodies (objects); the model has none")
         problem = _WindowFit(
             model,
             traj,
