@@ -98,6 +98,12 @@ def main() -> None:
     parser.add_argument(
         "--start-rounds", type=int, default=None, help="with --calibrate: start refits (default: InteractionOptions')"
     )
+    parser.add_argument(
+        "--along-view-weight",
+        type=float,
+        default=None,
+        help="with --calibrate: weight of the position error along the camera ray (default: InteractionOptions')",
+    )
     args = parser.parse_args()
     clip_dir = ROOT / ("samples/toss_occluded" if args.occluded else "samples/toss")
     if args.truth:
@@ -282,12 +288,14 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
 
 
 def _options(args: argparse.Namespace, **fields: Any) -> Any:
-    """The benchmark's `InteractionOptions`: its search budget, and `--start-rounds` when given."""
+    """The benchmark's `InteractionOptions`: its search budget, and `--start-rounds` / `--along-view-weight` when
+    given."""
     from grounder._interaction import InteractionOptions
 
-    rounds = {} if args.start_rounds is None else {"start_rounds": args.start_rounds}
+    given = {"start_rounds": args.start_rounds, "along_view_weight": args.along_view_weight}
+    chosen = {k: v for k, v in given.items() if v is not None}
     return InteractionOptions(
-        calibrate_settings={"generations": args.generations, "popsize": args.popsize}, **rounds, **fields
+        calibrate_settings={"generations": args.generations, "popsize": args.popsize}, **chosen, **fields
     )
 
 
