@@ -49,6 +49,7 @@ class SegmentOptions:
         solidity_warning: footprints less convex than this are reported as possibly several touching objects.
         footprint_dilate_cells: growth of the seed footprint that collects the object's lower surface.
         table_band_voxels: points lower than this outside the object's core footprint are table.
+        stacked_overlap: clusters whose footprints share more than this fraction of the smaller one are one object.
     """
 
     seed_height_voxels: float = 6.0
@@ -59,6 +60,7 @@ class SegmentOptions:
     solidity_warning: float = 0.8
     footprint_dilate_cells: int = 1
     table_band_voxels: float = 4.0
+    stacked_overlap: float = 0.5
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -158,28 +160,24 @@ def segment_objects(
         )
     low_ok = height > options.min_height_voxels * voxel
     face_owner = np.full(len(dense.faces), -1)
-    segments = []
-    for index, seed_ids in enumerate(sorted(candidates, key=len, reverse=True)):
+    segments: list[ObjectSegment] = []
+    for seed_ids in _merge_stacked(candidates, verts, voxel, options.stacked_overlap):
+        index = len(segments)
         footprint, origin, cell = _footprint_image(
             verts[seed_ids, :2], voxel, dilate_cells=options.footprint_dilate_cells
         )
-        ij = np.floor((verts[:, :2] - origin) / cell).astype(int)
-        inside_grid = np.all((ij >= 0) & (ij < footprint.shape), axis=1)
-        members = np.zeros(len(verts), bool)
-        members[inside_grid] = footprint[ij[inside_grid, 0], ij[inside_grid, 1]]
-        members &= low_ok
+        members = _in_footprint(verts[:, :2], footprint, origin, cell) & low_ok
         # Table surface beside the object (noisy, a few mm high) is not the object
         core, core_origin, _ = _footprint_image(verts[seed_ids, :2], voxel, dilate_cells=0)
-        core = ndimage.binary_erosion(core, iterations=1)
-        cij = np.floor((verts[:, :2] - core_origin) / cell).astype(int)
-        in_core_grid = np.all((cij >= 0) & (cij < core.shape), axis=1)
-        in_core = np.zeros(len(verts), bool)
-        in_core[in_core_grid] = core[cij[in_core_grid, 0], cij[in_core_grid, 1]]
+        in_core = _in_footprint(verts[:, :2], ndimage.binary_erosion(core, iterations=1), core_origin, cell)
         # (whatever its normal says: stereo noise on shadowed table has random normals)
         table_like = height < options.table_band_voxels * voxel
         members &= in_core | ~table_like
         ids = np.flatnonzero(members)
         faces = np.flatnonzero(members[dense.faces].all(axis=1) & (face_owner < 0))
+        if len(faces) == 0:  # its surface all went to a larger object beside it
+            log.info("a cluster of %d points has no fused surface of its own: dropped", len(seed_ids))
+            continue
         face_owner[faces] = index
         points = verts[ids]
         warnings = []
@@ -205,7 +203,43 @@ def segment_objects(
                 warnings=tuple(warnings),
             )
         )
+    if not segments:
+        raise SegmentationError(
+            "no object found on the table: what stands above the table plane has no fused surface; "
+            "film the objects from more sides, closer, with more texture"
+        )
     return segments
+
+
+def _merge_stacked(candidates: list[np.ndarray], verts: np.ndarray, voxel: float, overlap: float) -> list[np.ndarray]:
+    """Clusters grouped into objects, largest first: two clusters whose footprints share more than `overlap` of the
+    smaller footprint are one object. Where the fusion leaves a gap across an object (an apple's top split from its
+    sides at the stem, a glint above it), DBSCAN makes two clusters standing one over the other; objects side by
+    side only touch."""
+    groups: list[list[np.ndarray]] = []
+    footprints: list[tuple[np.ndarray, np.ndarray, float]] = []
+    for seed_ids in sorted(candidates, key=len, reverse=True):
+        image, origin, cell = _footprint_image(verts[seed_ids, :2], voxel, dilate_cells=0)
+        cells_xy = origin + (np.argwhere(image) + 0.5) * cell
+        for group, (g_image, g_origin, g_cell) in zip(groups, footprints, strict=True):
+            shared = _in_footprint(cells_xy, g_image, g_origin, g_cell).sum()
+            if shared > overlap * min(len(cells_xy), int(g_image.sum())):
+                log.info("a cluster of %d points stands over a larger one's footprint: one object", len(seed_ids))
+                group.append(seed_ids)
+                break
+        else:
+            groups.append([seed_ids])
+            footprints.append((image, origin, cell))
+    return sorted((np.concatenate(group) for group in groups), key=len, reverse=True)
+
+
+def _in_footprint(xy: np.ndarray, image: np.ndarray, origin: np.ndarray, cell: float) -> np.ndarray:
+    """Which points (N, 2) of the table plane fall on a footprint image's true cells."""
+    ij = np.floor((xy - origin) / cell).astype(int)
+    inside = np.all((ij >= 0) & (ij < image.shape), axis=1)
+    hit = np.zeros(len(xy), bool)
+    hit[inside] = image[ij[inside, 0], ij[inside, 1]]
+    return hit
 
 
 def _footprint_image(xy: np.ndarray, voxel: float, dilate_cells: int) -> tuple[np.ndarray, np.ndarray, float]:

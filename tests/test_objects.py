@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pytest
@@ -10,6 +11,9 @@ import pytest
 from reconstruction import ReconstructionResult
 from reconstruction._dense import DepthMap
 from reconstruction._objects import MeshOptions, _largest_component, _measured, _seen_through, _tapered_bottom
+
+if TYPE_CHECKING:
+    import trimesh
 
 VOXEL_M = 0.01
 
@@ -189,3 +193,58 @@ def test_measured_counts_the_depth_maps_that_saw_a_surface_there() -> None:
     # Within the tolerance along the ray still counts; beyond it not.
     assert _measured(top + np.array([0, 0, 0.01]), views, tolerance_m).tolist() == [3, 3]
     assert _measured(top + np.array([0, 0, 0.03]), views, tolerance_m).tolist() == [0, 0]
+
+
+def _grid_patch(centre_xy: tuple[float, float], half_m: float, z_m: float, step_m: float) -> trimesh.Trimesh:
+    """A flat square grid of triangles at height z_m (world frame), vertices step_m apart."""
+    import trimesh
+
+    ticks = np.arange(-half_m, half_m + 1e-9, step_m)
+    n = len(ticks)
+    x, y = np.meshgrid(ticks + centre_xy[0], ticks + centre_xy[1], indexing="ij")
+    verts = np.c_[x.ravel(), y.ravel(), np.full(n * n, z_m)]
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    a = (i * n + j).ravel()
+    faces = np.concatenate([np.c_[a, a + n, a + 1], np.c_[a + 1, a + n, a + n + 1]])
+    return trimesh.Trimesh(verts, faces, process=False)
+
+
+def test_clusters_stacked_one_over_the_other_are_one_object() -> None:
+    """A fused surface of a table and two 8 cm objects the fusion split apart (DBSCAN clusters the pieces apart):
+    on the left a cylinder with a patch floating 4 cm above its top (a stem, a glint); on the right the walls of a
+    cylinder (up to 5 cm) and, 3 cm higher, a smaller, denser top (an apple's top split from its sides at the stem).
+    Two objects, each holding all of its pieces and fused faces of its own. (A CI run once made a piece an object
+    with no faces, and meshing it failed the whole scene.)"""
+    import trimesh
+
+    from reconstruction._dense import DenseResult, RegionOfInterest
+    from reconstruction._objects import segment_objects
+
+    voxel_m = 0.004
+    table = _grid_patch((0.0, 0.0), 0.3, 0.0, voxel_m)
+    cylinder = trimesh.creation.cylinder(radius=0.04, height=0.08, sections=64).subdivide_to_size(voxel_m)
+    cylinder.apply_translation([-0.12, 0.0, 0.04])
+    floating = _grid_patch((-0.12, 0.0), 0.012, 0.12, 0.001)  # 625 points
+    walls = trimesh.creation.annulus(r_min=0.0395, r_max=0.04, height=0.05, sections=64).subdivide_to_size(voxel_m)
+    walls.apply_translation([0.12, 0.0, 0.025])
+    top = _grid_patch((0.12, 0.0), 0.015, 0.08, 0.001)  # 961 points, more than the walls' above the seed height
+    surface = trimesh.util.concatenate([table, cylinder, floating, walls, top])
+    dense = DenseResult(
+        vertices_world=np.asarray(surface.vertices), faces=np.asarray(surface.faces, np.int64),
+        vertex_rgb=np.full((len(surface.vertices), 3), 128, np.uint8),
+        vertex_normals=np.asarray(surface.vertex_normals), voxel_size=voxel_m, num_pairs=1,
+    )  # fmt: skip
+    roi = RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.02]), max_world=np.array([0.3, 0.3, 0.2]))
+    cam_from_world = np.linalg.inv(_looking_down(1.0))
+    k = np.array([[300.0, 0, 320], [0, 300.0, 240], [0, 0, 1]])
+    segments = sorted(
+        segment_objects(dense, roi, [cam_from_world], k, (640, 480)),
+        key=lambda s: float(np.mean(s.points_world[:, 0])),
+    )
+    assert len(segments) == 2
+    for segment, x_m, top_m in zip(segments, (-0.12, 0.12), (0.12, 0.08), strict=True):
+        assert len(segment.face_ids) > 500
+        assert float(np.mean(segment.points_world[:, 0])) == pytest.approx(x_m, abs=0.015)
+        assert segment.points_world[:, 2].max() == pytest.approx(top_m)  # the higher piece is part of it
+        radius_m = np.hypot(segment.points_world[:, 0] - x_m, segment.points_world[:, 1])
+        assert radius_m[segment.points_world[:, 2] > 0.01].max() == pytest.approx(0.04, abs=0.002)  # so are the walls
