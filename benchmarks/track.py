@@ -16,7 +16,8 @@ the tracked frames, plus the velocity errors of the written trajectories.
 
 With `--calibrate`, runs part 2 instead: `grounder._interaction.ground_with_interaction` (reusing the cached grounded
 scene), and prints per object and parameter (sliding friction; contact damping ratio, `solref[1]`, MuJoCo's
-restitution knob: the ratio the clip was rendered with, lower bounces more) the rendered value, the calibrated value,
+restitution knob: the ratio the clip was rendered with, lower bounces more; contact time constant, `solref[0]`) the
+rendered value, the calibrated value,
 its interval, whether the clip constrains it, and the relative error (target: within 20%), then how well the scene
 matches the clip before and after. With `--truth`, the same screen + calibration runs on the TRUE trajectory against
 the TRUE scene (no tracking, no grounded mesh): what the clip can tell at best.
@@ -93,8 +94,12 @@ def main() -> None:
         "--tracks", type=Path, default=None, help="with --calibrate: calibrate these saved tracks (no re-tracking)"
     )
     parser.add_argument("--truth", action="store_true", help="screen + calibrate on the true trajectory and scene")
-    parser.add_argument("--generations", type=int, default=10, help="with --calibrate: differential evolution")
-    parser.add_argument("--popsize", type=int, default=6, help="with --calibrate: population per parameter")
+    parser.add_argument(
+        "--generations", type=int, default=None, help="with --calibrate: differential evolution (default: the tool's)"
+    )
+    parser.add_argument(
+        "--popsize", type=int, default=None, help="with --calibrate: population per parameter (default: the tool's)"
+    )
     parser.add_argument(
         "--start-rounds", type=int, default=None, help="with --calibrate: start refits (default: InteractionOptions')"
     )
@@ -208,8 +213,9 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
         )
 
 
-def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, tuple[float, float]]:
-    """True object name -> (sliding friction, dampratio) of its contacts with the table, as MuJoCo mixed them when
+def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, dict[str, float]]:
+    """True object name -> calibration parameter field (sliding friction, damping ratio, time constant) -> value of
+    its contacts with the table, as MuJoCo mixed them when
     rendering: read from the contacts of the clip's last (resting) frame."""
     import mujoco
 
@@ -218,12 +224,16 @@ def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, tuple[float, fl
     truth = np.load(clip_dir / "truth/trajectory.npz", allow_pickle=False)
     data.qpos[:] = truth["qpos"][-1]
     mujoco.mj_forward(model, data)
-    out: dict[str, tuple[float, float]] = {}
+    out: dict[str, dict[str, float]] = {}
     for contact in data.contact[: data.ncon]:
         for g in (int(contact.geom1), int(contact.geom2)):
             body = model.body(int(model.geom_bodyid[g])).name
             if model.geom_bodyid[g] != 0:
-                out[body] = (float(contact.friction[0]), float(contact.solref[1]))
+                out[body] = {
+                    "friction.sliding": float(contact.friction[0]),
+                    "solref.dampratio": float(contact.solref[1]),
+                    "solref.timeconst": float(contact.solref[0]),
+                }
     return out
 
 
@@ -248,7 +258,7 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
     for name, p in params.items():
         body, field = name.split(".", 1)
         true_name = true_names.get(body, body)
-        rendered = contact[true_name][0] if field == "friction.sliding" else contact[true_name][1]
+        rendered = contact[true_name][field]
         constrained = p.get("constrained", True)
         span = "{:.3f}..{:.3f}".format(*p["indistinguishable"]) if "indistinguishable" in p else "-"
         value = p["value"]
@@ -288,15 +298,15 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
 
 
 def _options(args: argparse.Namespace, **fields: Any) -> Any:
-    """The benchmark's `InteractionOptions`: its search budget, and `--start-rounds` / `--along-view-weight` when
-    given."""
+    """The benchmark's `InteractionOptions`: the tool's defaults (what `ground --interaction` runs), except the search
+    budget, `--start-rounds` and `--along-view-weight` where given."""
     from grounder._interaction import InteractionOptions
 
+    budget = {"generations": args.generations, "popsize": args.popsize}
     given = {"start_rounds": args.start_rounds, "along_view_weight": args.along_view_weight}
     chosen = {k: v for k, v in given.items() if v is not None}
-    return InteractionOptions(
-        calibrate_settings={"generations": args.generations, "popsize": args.popsize}, **chosen, **fields
-    )
+    settings = {k: v for k, v in budget.items() if v is not None}
+    return InteractionOptions(calibrate_settings=settings, **chosen, **fields)
 
 
 def print_screens(params: dict) -> None:
