@@ -66,8 +66,13 @@ class InteractionOptions:
     Attributes:
         ground: how the scan is grounded.
         track: how the clip is tracked; its `aruco_size_m` defaults to the scan's (`ground.reconstruct.aruco_size_m`).
-        calibrate_params: parameters to fit (calibration's names); None: per object its sliding friction and its
-            contact damping ratio (MuJoCo's restitution knob, `solref` dampratio).
+        calibrate_params: parameters to fit (calibration's names); None: per object its sliding friction, its
+            contact damping ratio (MuJoCo's restitution knob, `solref` dampratio) and its contact time constant
+            (`solref` timeconst). A bounce's height depends on both solref values at MuJoCo's time step, so a time
+            constant held at the prior biases the damping ratio: the property model gave `samples/tabletop`'s
+            ceramic bowl 0.0086 s (rendered: 0.02 s), and with it held there the bowl's damping ratio came out +33%;
+            calibrated too, it came out 0.0200 s and the damping ratio +0% (scan E, `benchmarks/track.py`). Each is
+            screened like the others.
         calibrate_settings: extra `CalibrateOptions` fields (e.g. {"generations": 10}).
         window_s: length of the calibration windows cut from the tracked segments, each rolled out from its first
             state (None: whole segments). Short windows keep a bounce's chaos from swamping the fit: rolled out
@@ -241,8 +246,12 @@ def windows(
     return out
 
 
+CONTACT_FIELDS = ("friction.sliding", "solref.dampratio", "solref.timeconst")
+
+
 def default_params(object_names: Sequence[str]) -> tuple[str, ...]:
-    return tuple(p for name in object_names for p in (f"{name}.friction.sliding", f"{name}.solref.dampratio"))
+    """Per object what `ground --interaction` calibrates: `CONTACT_FIELDS` (`InteractionOptions.calibrate_params`)."""
+    return tuple(f"{name}.{field}" for name in object_names for field in CONTACT_FIELDS)
 
 
 def _clip_match(scene_xml: Path, trajs: Sequence[Trajectory]) -> dict[str, dict[str, float]]:
