@@ -34,7 +34,7 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = options.max_num_features
     extraction.max_image_size = options.max_image_size_px
-    extraction.num_threads = options.num_threads
+    extraction.num_threads = options.extraction_threads  # one: reproducible (`SfmOptions.extraction_threads`)
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
     pycolmap.extract_features(
