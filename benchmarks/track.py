@@ -319,8 +319,9 @@ def print_screens(params: dict) -> None:
 
 
 def truth_benchmark(clip_dir: Path, args: argparse.Namespace) -> None:
-    """Screen + calibrate on the true trajectory against the true scene (prior: every object at friction 0.45 and
-    damping ratio 0.4, not the rendered values): what the clip can tell at best, without tracking or meshing."""
+    """Screen + calibrate on the true trajectory against the true scene (prior: every object at friction 0.45,
+    damping ratio 0.4 and time constant 0.01 s, not the rendered values): what the clip can tell at best, without
+    tracking or meshing."""
     import shutil
     import tempfile
 
@@ -340,6 +341,7 @@ def truth_benchmark(clip_dir: Path, args: argparse.Namespace) -> None:
         for body in bodies:
             geom = spec.geom(f"{body}_geom")
             geom.friction[0] = 0.45
+            geom.solref[0] = 0.01
             geom.solref[1] = 0.4
         (scene / "scene.xml").write_text(spec.to_xml())
         tick = time.perf_counter()

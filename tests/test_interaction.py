@@ -369,3 +369,30 @@ def test_the_time_constant_is_calibrated_with_the_damping_ratio(tmp_path: Path) 
     fitted = both["parameters"]
     assert fitted["ball.solref.dampratio"]["value"] == pytest.approx(0.2, rel=0.05)
     assert fitted["ball.solref.timeconst"]["value"] == pytest.approx(0.02, rel=0.1)
+
+
+def test_a_time_constant_is_fitted_wherever_its_damping_ratio_is() -> None:
+    """The screen moves one parameter at a time by 20%; a time constant whose prior is off by a factor of 2 shows
+    little that way, yet held there it biases the damping ratio. It is fitted whenever its body's damping ratio is."""
+    from grounder._interaction import ParameterScreen, _paired
+
+    def screen(name: str, constrained: bool) -> ParameterScreen:
+        return ParameterScreen(
+            name=name, body=name.split(".")[0], nominal=0.1, lower=0.0, upper=1.0, best=0.1,
+            change_down=(0.0, 0.0), change_up=(0.0, 0.0), constrained=constrained, curve=(),
+        )  # fmt: skip
+
+    screens = {
+        s.name: s
+        for s in (
+            screen("bowl.solref.dampratio", True),
+            screen("bowl.solref.timeconst", False),
+            screen("can.solref.dampratio", False),
+            screen("can.solref.timeconst", False),
+            screen("can.friction.sliding", True),
+        )
+    }
+    assert _paired("bowl.solref.timeconst", screens, screens)
+    assert not _paired("can.solref.timeconst", screens, screens)  # its damping ratio is not fitted either
+    assert not _paired("can.friction.sliding", screens, screens)  # only time constants are paired
+    assert not _paired("box.solref.timeconst", screens, screens)  # no damping ratio in the calibration
