@@ -47,7 +47,7 @@ import secrets
 import shutil
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -96,6 +96,10 @@ class CalibrateOptions:
         max_batch_mb: Memory cap of one rollout call's recorded states; larger batches are split.
         initial: Start values by parameter name instead of the scene's (the scene's stay the "nominal" ones that
             before/after compare with); with no search budget the result is these values, evaluated.
+        robust_scale: None: the objective is the mean of the trajectories' losses. A number k: each trajectory's
+            error r = sqrt(loss) enters through the pseudo-Huber function with scale c = k x the median r at the
+            start values (quadratic below c, linear above), so one trajectory that cannot be matched (a badly
+            tracked impact) weighs like a few, not like all the others together.
         separate_bodies: The bodies never touch each other (objects tossed apart): search each body's parameters on
             its own, one body after another, the others held at their current values. Exact when the loss is a
             sum over bodies that each depend only on their own parameters; each search is then a few dimensions
@@ -120,6 +124,7 @@ class CalibrateOptions:
     max_batch_mb: float = 256.0
     initial: dict[str, float] = field(default_factory=dict)
     separate_bodies: bool = False
+    robust_scale: float | None = None
 
     def __post_init__(self) -> None:
         if self.separate_bodies and self.mode != "raw":
@@ -138,6 +143,8 @@ class CalibrateOptions:
             raise GrounderError(f"view_point_m must be 3 numbers (x, y, z in metres), got {self.view_point_m}")
         if not 0.0 < self.interval_level < 1.0:
             raise GrounderError(f"interval_level must be in (0, 1), got {self.interval_level}")
+        if self.robust_scale is not None and not self.robust_scale > 0.0:
+            raise GrounderError(f"robust_scale must be > 0 or None, got {self.robust_scale}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -485,6 +492,7 @@ class _Problem:
     fixed: tuple[int, ...] = ()
     prior: Callable[[np.ndarray], np.ndarray] | None = None
     data_scale: float = 1.0
+    robust_c: float | None = None  # pseudo-Huber scale of the per-trajectory residuals (CalibrateOptions.robust_scale)
 
     @property
     def free(self) -> list[int]:
@@ -495,6 +503,9 @@ class _Problem:
         u_rows = np.atleast_2d(u_rows)
         loss = self.ev.loss_of_values(self.values(u_rows))
         res = np.sqrt(np.maximum(loss, 0.0)) / self.data_scale
+        if self.robust_c is not None:  # sqrt of the pseudo-Huber function: least squares minimise its sum
+            c = self.robust_c
+            res = c * np.sqrt(2.0 * (np.sqrt(1.0 + (res / c) ** 2) - 1.0))
         if self.prior is not None:
             res = np.concatenate([res, self.prior(u_rows)], axis=1)
         return res
@@ -630,6 +641,7 @@ def _subproblem(prob: _Problem, group: Sequence[int], current: np.ndarray) -> _P
         fixed=tuple(k for k, i in enumerate(index) if i in prob.fixed),
         prior=None,
         data_scale=prob.data_scale,
+        robust_c=prob.robust_c,
     )
 
 
@@ -867,6 +879,9 @@ def calibrate(
             values=lambda u: _to_values(params, u),
             fixed=tuple(i for i, p in enumerate(params) if p.discrete),
         )
+        if options.robust_scale is not None:
+            start = np.sqrt(np.maximum(ev.loss_of_values(prob.values(prob.x0[None]))[0], 0.0))
+            prob = replace(prob, robust_c=max(options.robust_scale * float(np.median(start)), 1e-9))
         groups = body_groups(params) if options.separate_bodies else None
         best_u, history = _search(prob, options, report, groups)
         values, fits = _raw_fits(prob, params, best_u, options, report)

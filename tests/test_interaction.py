@@ -396,3 +396,41 @@ def test_a_time_constant_is_fitted_wherever_its_damping_ratio_is() -> None:
     assert not _paired("can.solref.timeconst", screens, screens)  # its damping ratio is not fitted either
     assert not _paired("can.friction.sliding", screens, screens)  # only time constants are paired
     assert not _paired("box.solref.timeconst", screens, screens)  # no damping ratio in the calibration
+
+
+def test_robust_scale_keeps_one_badly_measured_trajectory_from_deciding(tmp_path: Path) -> None:
+    """Five pushes of the box at 0.8-1.6 m/s sliding to rest at friction 0.4; one recording's start velocity is 2 m/s
+    too fast (as a tracked start next to an impact can be). The mean loss lets that one pull friction far up to
+    stop it in time; with `robust_scale` it weighs like a few trajectories, and the other four decide."""
+    from grounder._calibrate import CalibrateOptions, calibrate
+    from grounder._interaction import CALIBRATE_SETTINGS
+    from grounder.errors import GrounderError
+
+    model = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
+    pushes = []
+    for i, speed_m_s in enumerate((0.8, 1.0, 1.2, 1.4, 1.6)):
+        data = mujoco.MjData(model)
+        data.qvel[0] = speed_m_s
+        mujoco.mj_forward(model, data)
+        time_s, qpos, qvel = [], [], []
+        for _ in range(15):
+            time_s.append(data.time)
+            qpos.append(data.qpos.copy())
+            qvel.append(data.qvel.copy())
+            for _ in range(round((1 / 30) / model.opt.timestep)):
+                mujoco.mj_step(model, data)
+        recorded_qvel = np.array(qvel)
+        if i == 4:
+            recorded_qvel[0, 0] += 2.0
+        pushes.append(Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=recorded_qvel, name=f"push_{i}"))
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    budget = {"generations": 6, "popsize": 6, "local_iterations": 10, "validation_fraction": 0.0}
+
+    def fitted(robust_scale: float | None) -> float:
+        options = CalibrateOptions(params=("slider.friction.sliding",), robust_scale=robust_scale, **budget)
+        return calibrate(xml, pushes, options=options).values["slider.friction.sliding"]
+
+    assert fitted(None) > 2 * TRUE_FRICTION  # the mean loss: 1.13 measured
+    assert fitted(CALIBRATE_SETTINGS["robust_scale"]) == pytest.approx(TRUE_FRICTION, rel=0.05)  # 0.408 measured
+    with pytest.raises(GrounderError, match="robust_scale"):
+        CalibrateOptions(robust_scale=0.0)
