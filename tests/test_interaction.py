@@ -45,20 +45,27 @@ def _scene(folder: Path, slider: float, still: float) -> Path:
     return xml
 
 
-def _recorded(tmp_path: Path) -> Trajectory:
-    model = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
+def _simulated(model: mujoco.MjModel, qvel0: dict[int, float], frames: int, name: str) -> Trajectory:
+    """`frames` states at 30 fps of `model` started at rest where it stands, with qvel[i] = qvel0[i]."""
     data = mujoco.MjData(model)
-    data.qvel[0] = 1.5  # thrown along +x
+    for i, value in qvel0.items():
+        data.qvel[i] = value
     mujoco.mj_forward(model, data)
     time_s, qpos, qvel = [], [], []
     steps_per_frame = round((1 / 30) / model.opt.timestep)
-    for _ in range(24):  # 0.8 s at 30 fps: slides ~0.29 m and stops
+    for _ in range(frames):
         time_s.append(data.time)
         qpos.append(data.qpos.copy())
         qvel.append(data.qvel.copy())
         for _ in range(steps_per_frame):
             mujoco.mj_step(model, data)
-    return Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=np.array(qvel), name="toss_00")
+    return Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=np.array(qvel), name=name)
+
+
+def _recorded(tmp_path: Path) -> Trajectory:
+    model = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
+    # Thrown along +x; 0.8 s at 30 fps: slides ~0.29 m and stops.
+    return _simulated(model, {0: 1.5}, 24, "toss_00")
 
 
 def test_screen_flags_only_the_parameter_the_motion_shows(tmp_path: Path) -> None:
@@ -228,20 +235,10 @@ def _ball(tmp_path: Path, friction: float) -> tuple[Path, Trajectory]:
     truth = tmp_path / "ball" / "truth.xml"
     truth.write_text(BALL.format(friction=TRUE_FRICTION))
     model = mujoco.MjModel.from_xml_path(str(truth))
-    data = mujoco.MjData(model)
-    data.qvel[:3] = [2.0, 0.0, 0.0]
-    data.qvel[3:6] = [0.0, -30.0, 0.0]  # backspin: it skids long after landing
-    mujoco.mj_forward(model, data)
-    time_s, qpos, qvel = [], [], []
-    for _ in range(15):
-        time_s.append(data.time)
-        qpos.append(data.qpos.copy())
-        qvel.append(data.qvel.copy())
-        for _ in range(round((1 / 30) / model.opt.timestep)):
-            mujoco.mj_step(model, data)
+    throw = _simulated(model, {0: 2.0, 4: -30.0}, 15, "throw_00")  # backspin: it skids long after landing
     scene = tmp_path / "ball" / "scene.xml"
     scene.write_text(BALL.format(friction=friction))
-    return scene, Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=np.array(qvel), name="throw_00")
+    return scene, throw
 
 
 def _corrupted(traj: Trajectory, dx_m: float, dv_m_s: float) -> Trajectory:
@@ -347,18 +344,8 @@ def test_the_time_constant_is_calibrated_with_the_damping_ratio(tmp_path: Path) 
     assert "solref.timeconst" in CONTACT_FIELDS and "ball.solref.timeconst" in default_params(["ball"])
     true_xml = tmp_path / "truth.xml"
     true_xml.write_text(DROPPED_BALL.format(timeconst=0.02, dampratio=0.2))
-    model = mujoco.MjModel.from_xml_path(str(true_xml))
-    data = mujoco.MjData(model)
-    data.qvel[0] = 0.3
-    mujoco.mj_forward(model, data)
-    time_s, qpos, qvel = [], [], []
-    for _ in range(24):  # 0.8 s at 30 fps: the drop and two bounces
-        time_s.append(data.time)
-        qpos.append(data.qpos.copy())
-        qvel.append(data.qvel.copy())
-        for _ in range(round((1 / 30) / model.opt.timestep)):
-            mujoco.mj_step(model, data)
-    traj = Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=np.array(qvel), name="drop_00")
+    # 0.8 s at 30 fps: the drop and two bounces
+    traj = _simulated(mujoco.MjModel.from_xml_path(str(true_xml)), {0: 0.3}, 24, "drop_00")
     prior = tmp_path / "prior" / "scene.xml"
     prior.parent.mkdir()
     prior.write_text(DROPPED_BALL.format(timeconst=0.008, dampratio=0.35))
@@ -407,22 +394,10 @@ def test_robust_scale_keeps_one_badly_measured_trajectory_from_deciding(tmp_path
     from grounder.errors import GrounderError
 
     model = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
-    pushes = []
-    for i, speed_m_s in enumerate((0.8, 1.0, 1.2, 1.4, 1.6)):
-        data = mujoco.MjData(model)
-        data.qvel[0] = speed_m_s
-        mujoco.mj_forward(model, data)
-        time_s, qpos, qvel = [], [], []
-        for _ in range(15):
-            time_s.append(data.time)
-            qpos.append(data.qpos.copy())
-            qvel.append(data.qvel.copy())
-            for _ in range(round((1 / 30) / model.opt.timestep)):
-                mujoco.mj_step(model, data)
-        recorded_qvel = np.array(qvel)
-        if i == 4:
-            recorded_qvel[0, 0] += 2.0
-        pushes.append(Trajectory(time_s=np.array(time_s), qpos=np.array(qpos), qvel=recorded_qvel, name=f"push_{i}"))
+    pushes = [_simulated(model, {0: v_m_s}, 15, f"push_{i}") for i, v_m_s in enumerate((0.8, 1.0, 1.2, 1.4, 1.6))]
+    bad_qvel = pushes[4].qvel.copy()
+    bad_qvel[0, 0] += 2.0  # a badly measured start
+    pushes[4] = Trajectory(time_s=pushes[4].time_s, qpos=pushes[4].qpos, qvel=bad_qvel, name=pushes[4].name)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
     budget = {"generations": 6, "popsize": 6, "local_iterations": 10, "validation_fraction": 0.0}
 
