@@ -96,10 +96,10 @@ class CalibrateOptions:
         max_batch_mb: Memory cap of one rollout call's recorded states; larger batches are split.
         initial: Start values by parameter name instead of the scene's (the scene's stay the "nominal" ones that
             before/after compare with); with no search budget the result is these values, evaluated.
-        robust_scale: None: the objective is the mean of the trajectories' losses. A number k: each trajectory's
-            error r = sqrt(loss) enters through the pseudo-Huber function with scale c = k x the median r at the
-            start values (quadratic below c, linear above), so one trajectory that cannot be matched (a badly
-            tracked impact) weighs like a few, not like all the others together.
+        robust_scale: Raw mode. None: the objective is the mean of the trajectories' losses. A number k: each
+            trajectory's error r = sqrt(loss) enters through the pseudo-Huber function with scale c = k x the median
+            r at the start values (quadratic below c, linear above), so one trajectory that cannot be matched (a
+            badly tracked impact) weighs like a few, not like all the others together.
         separate_bodies: The bodies never touch each other (objects tossed apart): search each body's parameters on
             its own, one body after another, the others held at their current values. Exact when the loss is a
             sum over bodies that each depend only on their own parameters; each search is then a few dimensions
@@ -145,6 +145,8 @@ class CalibrateOptions:
             raise GrounderError(f"interval_level must be in (0, 1), got {self.interval_level}")
         if self.robust_scale is not None and not self.robust_scale > 0.0:
             raise GrounderError(f"robust_scale must be > 0 or None, got {self.robust_scale}")
+        if self.robust_scale is not None and self.mode != "raw":
+            raise GrounderError("robust_scale applies to raw mode only (embedding mode weighs its prior by the misfit)")
 
 
 @dataclass(frozen=True, kw_only=True)

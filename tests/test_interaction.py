@@ -409,3 +409,5 @@ def test_robust_scale_keeps_one_badly_measured_trajectory_from_deciding(tmp_path
     assert fitted(CALIBRATE_SETTINGS["robust_scale"]) == pytest.approx(TRUE_FRICTION, rel=0.05)  # 0.408 measured
     with pytest.raises(GrounderError, match="robust_scale"):
         CalibrateOptions(robust_scale=0.0)
+    with pytest.raises(GrounderError, match="raw mode only"):
+        CalibrateOptions(robust_scale=0.5, mode="embedding")
