@@ -17,10 +17,10 @@ the tracked frames, plus the velocity errors of the written trajectories.
 With `--calibrate`, runs part 2 instead: `grounder._interaction.ground_with_interaction` (reusing the cached grounded
 scene), and prints per object and parameter (sliding friction; contact damping ratio, `solref[1]`, MuJoCo's
 restitution knob: the ratio the clip was rendered with, lower bounces more; contact time constant, `solref[0]`) the
-rendered value, the calibrated value,
-its interval, whether the clip constrains it, and the relative error (target: within 20%), then how well the scene
-matches the clip before and after. With `--truth`, the same screen + calibration runs on the TRUE trajectory against
-the TRUE scene (no tracking, no grounded mesh): what the clip can tell at best.
+rendered value, the calibrated value, its interval, whether the clip constrains it, and the relative error (target:
+within 20%), then how well the scene matches the clip before and after. With `--truth`, the same screen +
+calibration runs on the TRUE trajectory against the TRUE scene (no tracking, no grounded mesh): what the clip can
+tell at best.
 
 "Rendered value" is compared like with like: the toss scene gives each object geom priority over the table, so
 each object-table contact uses exactly the object's friction and solref (`objects.json`, `table_contact`), and the
@@ -215,8 +215,8 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
 
 def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, dict[str, float]]:
     """True object name -> calibration parameter field (sliding friction, damping ratio, time constant) -> value of
-    its contacts with the table, as MuJoCo mixed them when
-    rendering: read from the contacts of the clip's last (resting) frame."""
+    its contacts with the table, as MuJoCo mixed them when rendering: read from the contacts of the clip's last
+    (resting) frame."""
     import mujoco
 
     model = mujoco.MjModel.from_xml_path(str(truth_xml))
