@@ -199,18 +199,28 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
     print(f"calibration: {calibration['status']}")
     print_screens(calibration.get("parameters", {}))
     print_parameter_table(calibration.get("parameters", {}), clip_dir, {b: offsets[b][0] for b in offsets})
-    for split in ("train", "validation"):
-        if calibration.get("before", {}).get(split, {}).get("count"):
-            before = calibration["before"][split]["position_pct_of_size"]["mean"]
-            after = calibration["after"][split]["position_pct_of_size"]["mean"]
-            print(f"{split}: position error {before:.1f}% -> {after:.1f}% of object size")
-    print("match with the clip (open-loop over the tracked segments):")
+    print_window_match(calibration)
+    print("match with the whole segments (open loop from the first tracked state; hinges on that state):")
     for body, before in result.report["match_before"].items():
         after = result.report.get("match_after", {}).get(body, {})
         print(
             f"  {body}: mean position error {before['mean_position_error_mm']} -> "
             f"{after.get('mean_position_error_mm', '-')} mm"
         )
+
+
+def print_window_match(calibration: dict) -> None:
+    """Per object: how well its calibration windows match before and after (the report's `window_match`)."""
+    print("match with the calibration windows (median over windows of each window's mean error):")
+    for body, info in calibration.get("per_object", {}).items():
+        match = info.get("window_match") or {}
+        if match:
+            b, a = match["before"], match["after"]
+            print(
+                f"  {body}: {match['windows']} windows, position {b['median_position_error_mm']} -> "
+                f"{a['median_position_error_mm']} mm, rotation {b['median_rotation_error_deg']} -> "
+                f"{a['median_rotation_error_deg']} deg"
+            )
 
 
 def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, dict[str, float]]:
@@ -295,6 +305,7 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
     print(f"screen + calibration on {tracks}: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])
     print_parameter_table(entry["parameters"], clip_dir, {b: offsets[b][0] for b in offsets})
+    print_window_match(entry)
 
 
 def _options(args: argparse.Namespace, **fields: Any) -> Any:

@@ -134,6 +134,13 @@ def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scen
     assert calibrated.geom_friction[calibrated.body("slider").geomadr[0], 0] == pytest.approx(slider["value"])
     assert calibrated.geom_friction[calibrated.body("still").geomadr[0], 0] == pytest.approx(0.8)
     assert sorted(p.name for p in (tmp_path / "prior").iterdir()) == ["scene.xml"]
+    # The report's window match: the slider's windows, rolled out at the prior friction (0.8: it stops too soon) and
+    # at the calibrated one (the recording's own value, so within what a 5% friction error leaves).
+    match = entry["per_object"]["slider"]["window_match"]
+    assert match["windows"] == sum(name.startswith("slider:") for name in used)
+    assert match["before"]["median_position_error_mm"] > 10.0
+    assert match["after"]["median_position_error_mm"] < 0.2 * match["before"]["median_position_error_mm"]
+    assert entry["per_object"]["still"]["window_match"] == {}
 
 
 def test_touching_objects_are_not_separable(tmp_path: Path) -> None:
