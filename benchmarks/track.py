@@ -20,7 +20,8 @@ restitution knob: the ratio the clip was rendered with, lower bounces more; cont
 rendered value, the calibrated value, its interval, whether the clip constrains it, and the relative error (target:
 within 20%), then how well the scene matches the clip before and after. With `--truth`, the same screen +
 calibration runs on the TRUE trajectory against the TRUE scene (no tracking, no grounded mesh): what the clip can
-tell at best.
+tell at best. With `--calibrate --true-motion --scene S`, the same per-object calibration runs on the TRUE trajectory
+carried into scene S's grounded body frames: what the grounded shapes allow when tracking is perfect.
 
 "Rendered value" is compared like with like: the toss scene gives each object geom priority over the table, so
 each object-table contact uses exactly the object's friction and solref (`objects.json`, `table_contact`), and the
@@ -95,6 +96,11 @@ def main() -> None:
     )
     parser.add_argument("--truth", action="store_true", help="screen + calibrate on the true trajectory and scene")
     parser.add_argument(
+        "--true-motion",
+        action="store_true",
+        help="with --calibrate: calibrate the grounded scene on the true trajectory (no tracking)",
+    )
+    parser.add_argument(
         "--generations", type=int, default=None, help="with --calibrate: differential evolution (default: the tool's)"
     )
     parser.add_argument(
@@ -115,6 +121,9 @@ def main() -> None:
         truth_benchmark(clip_dir, args)
         return
     ground_scene(args.scene)
+    if args.calibrate and args.true_motion:
+        true_motion_benchmark(clip_dir, args.scene, args)
+        return
     if args.calibrate and args.tracks is not None:
         tracks_benchmark(clip_dir, args.scene, args.tracks, args)
         return
@@ -303,6 +312,61 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
         view_point_m=view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64)),
     )
     print(f"screen + calibration on {tracks}: {time.perf_counter() - tick:.1f} s; {entry['status']}")
+    print_screens(entry["parameters"])
+    print_parameter_table(entry["parameters"], clip_dir, {b: offsets[b][0] for b in offsets})
+    print_window_match(entry)
+
+
+def true_motion_in_grounded_frames(scene: Path, clip_dir: Path) -> Any:
+    """The clip's true trajectory expressed in the grounded scene's bodies and joint order: each grounded body's pose
+    is the true pose times its offset (`truth_offsets`), its linear velocity that of the grounded body origin, its
+    angular velocity in the grounded body frame."""
+    from grounder._trajectory import Trajectory
+
+    offsets = truth_offsets(scene)
+    names = list(json.loads((scene / "scene.json").read_text())["objects"])
+    adr = {
+        o["name"]: (o["qpos_adr"], o["dof_adr"])
+        for o in json.loads((clip_dir / "truth/objects.json").read_text())["objects"]
+    }
+    truth = np.load(clip_dir / "truth/trajectory.npz", allow_pickle=False)
+    frames = len(truth["time"])
+    qpos, qvel = np.zeros((frames, 7 * len(names))), np.zeros((frames, 6 * len(names)))
+    for i, name in enumerate(names):
+        true_name, offset = offsets[name]
+        qa, da = adr[true_name]
+        for f in range(frames):
+            world_from_true = pose(truth["qpos"][f, qa : qa + 3], truth["qpos"][f, qa + 3 : qa + 7])
+            world_from_grounded = world_from_true @ offset
+            qpos[f, 7 * i : 7 * i + 3] = world_from_grounded[:3, 3]
+            qpos[f, 7 * i + 3 : 7 * i + 7] = quat_from_matrix(world_from_grounded[:3, :3])
+            angular_body = truth["qvel"][f, da + 3 : da + 6]
+            lever_world = world_from_true[:3, :3] @ offset[:3, 3]
+            qvel[f, 6 * i : 6 * i + 3] = truth["qvel"][f, da : da + 3] + np.cross(
+                world_from_true[:3, :3] @ angular_body, lever_world
+            )
+            qvel[f, 6 * i + 3 : 6 * i + 6] = offset[:3, :3].T @ angular_body
+    return Trajectory(time_s=truth["time"], qpos=qpos, qvel=qvel, ctrl=None, name="true_motion")
+
+
+def true_motion_benchmark(clip_dir: Path, scene: Path, args: argparse.Namespace) -> None:
+    """Screen + calibrate the grounded scene on the clip's TRUE motion, per object as `ground --interaction` does:
+    what the grounded shapes and masses allow when tracking is perfect (tracking's share of the errors is the
+    difference to a `--calibrate` run)."""
+    from grounder._interaction import calibrate_per_body, default_params, view_point_of
+
+    names = list(json.loads((scene / "scene.json").read_text())["objects"])
+    offsets = truth_offsets(scene)
+    world_from_cam = np.array(json.loads((clip_dir / "truth/camera.json").read_text())["world_from_cam"])
+    tick = time.perf_counter()
+    entry, _ = calibrate_per_body(
+        scene / "scene.xml",
+        [true_motion_in_grounded_frames(scene, clip_dir)],
+        default_params(names),
+        _options(args),
+        view_point_m=view_point_of(world_from_cam),
+    )
+    print(f"screen + calibration of {scene} on the true motion: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])
     print_parameter_table(entry["parameters"], clip_dir, {b: offsets[b][0] for b in offsets})
     print_window_match(entry)
