@@ -174,7 +174,7 @@ def test_convex_objects_skip_coacd_and_bowl_is_decomposed(collisions: dict[str, 
     assert collisions["box"].method == "convex_hull"
     assert [len(h) for h in collisions["box"].hulls] == [8]
     assert collisions["can"].method == "convex_hull" and len(collisions["can"].hulls) == 1
-    assert len(collisions["can"].hulls[0]) <= 64  # 96 hull vertices reduced to the limit
+    assert len(collisions["can"].hulls[0]) == 96  # a convex object's one hull keeps up to 256 vertices
     bowl = collisions["bowl"]
     assert bowl.method == "coacd"
     assert 4 <= len(bowl.hulls) <= 16
@@ -194,6 +194,31 @@ def test_second_decomposition_comes_from_cache(
     assert len(again.hulls) == len(collisions["bowl"].hulls)
     for cached, fresh in zip(again.hulls, collisions["bowl"].hulls, strict=True):
         np.testing.assert_array_equal(cached, fresh)
+
+
+def test_a_convex_objects_hull_keeps_its_base_ring() -> None:
+    """A can whose side bulges by up to 2 mm (as a reconstructed one does) but whose bottom rim is round: its one hull
+    must keep vertices all round the base, the ring it lands and rocks on. Cut to 64 vertices, the extreme points
+    chosen are mostly on the bulges and 9 of 24 sectors of 15 deg of the base ring are left empty (bevelled)."""
+    radius_m, height_m = 0.035, 0.11
+    can = trimesh.creation.cylinder(radius=radius_m, height=height_m, sections=96).subdivide_to_size(0.005)
+    vertices = can.vertices.copy()
+    rho = np.hypot(vertices[:, 0], vertices[:, 1])
+    angle = np.arctan2(vertices[:, 1], vertices[:, 0])
+    side = (rho > 0.99 * radius_m) & (np.abs(vertices[:, 2]) < height_m / 2 - 0.004)
+    bulge = 0.002 * np.clip(np.sin(5 * angle) * np.sin(3 * np.pi * (vertices[:, 2] / height_m + 0.5)), 0.0, None)
+    vertices[side, :2] *= ((radius_m + bulge[side]) / rho[side])[:, None]
+
+    def empty_base_sectors(options: CollisionOptions) -> int:
+        collision = convex_decomposition(vertices, can.faces, options)
+        assert collision.method == "convex_hull" and len(collision.hulls) == 1
+        hull = collision.hulls[0]
+        base = hull[:, 2] < hull[:, 2].min() + 1e-9
+        sectors = np.histogram(np.arctan2(hull[base, 1], hull[base, 0]), bins=24, range=(-np.pi, np.pi))[0]
+        return int(np.sum(sectors == 0))
+
+    assert empty_base_sectors(CollisionOptions(cache_dir=None)) == 0
+    assert empty_base_sectors(CollisionOptions(cache_dir=None, single_hull_vertices=64)) >= 6
 
 
 def ring_mesh() -> trimesh.Trimesh:
@@ -289,7 +314,7 @@ def test_scene_compiles_with_relative_assets_and_conventions(
             assert model.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH
             np.testing.assert_allclose(model.geom_friction[g], truth["objects"][name]["friction"], rtol=1e-6)
             np.testing.assert_allclose(model.geom_solref[g], truth["objects"][name]["solref"], rtol=1e-6)
-            assert model.mesh_vertnum[model.geom_dataid[g]] <= 64
+            assert model.mesh_vertnum[model.geom_dataid[g]] <= (256 if len(hulls) == 1 else 64)
     table = model.geom("table")
     assert table.pos[2] + table.size[2] == pytest.approx(truth["table"]["top_z_m"], abs=1e-12)
     assert model.opt.timestep == pytest.approx(0.002)
