@@ -218,6 +218,14 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
         )
 
 
+def _seen(record: dict) -> str:
+    if record.get("constrained", True):
+        return "yes"
+    if "unresolved_fit" in record:
+        return f"no: prior kept (fit {record['unresolved_fit']:.3f} unresolved there)"
+    return "no: prior kept"
+
+
 def print_window_match(calibration: dict) -> None:
     """Per object: how well its calibration windows match before and after (the report's `window_match`)."""
     print("match with the calibration windows (median over windows of each window's mean error):")
@@ -288,10 +296,7 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
             as_e = f"{e_true:.3f} / {e_cal:.3f} / " + (
                 f"{100 * (e_cal - e_true) / e_true:+.0f}%" if constrained else "n/a"
             )
-        print(
-            f"| {name} | {true_name} | {rendered:.3f} | {value:.3f} | {'yes' if constrained else 'no: prior kept'} | "
-            f"{span} | {error} | {as_e} |"
-        )
+        print(f"| {name} | {true_name} | {rendered:.3f} | {value:.3f} | {_seen(p)} | {span} | {error} | {as_e} |")
 
 
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:

@@ -407,7 +407,7 @@ def _screen_and_calibrate(
     """One round of `calibrate_constrained`: screen, then calibrate the constrained parameters on `trajs`."""
     import mujoco
 
-    from grounder._calibrate import CalibrateOptions, calibrate
+    from grounder._calibrate import CalibrateOptions, calibrate, write_calibrated_scene
     from grounder._calibrate_params import resolve_parameters
 
     base = mujoco.MjModel.from_xml_path(str(scene_xml))
@@ -431,9 +431,6 @@ def _screen_and_calibrate(
             "constrained": name in fit,
             **({"screen": screens[name].as_dict()} if name in screens else {}),
         }
-    if not fit:
-        entry["status"] = "skipped: the clip constrains none of the parameters (prior kept)"
-        return entry
     settings = {
         # Windows cut from one clip overlap and share its errors: holding some out would not test anything new.
         "validation_fraction": 0.0,
@@ -442,14 +439,22 @@ def _screen_and_calibrate(
         **CALIBRATE_SETTINGS,
         **options.calibrate_settings,
     }
-    result = calibrate(
-        scene_xml.parent if scene_xml.name == "scene.xml" else scene_xml,
-        trajs,
-        options=CalibrateOptions(params=tuple(fit), **settings),
-        out=out,
-        progress=progress,
-    )
-    values = np.array([f.value for f in result.parameters])
+    scene = scene_xml.parent if scene_xml.name == "scene.xml" else scene_xml
+    while fit:
+        result = calibrate(scene, trajs, options=CalibrateOptions(params=tuple(fit), **settings), progress=progress)
+        values = np.array([f.value for f in result.parameters])
+        # The screen looked at its grid best; the answer must be resolved where it landed, by the same rule (a
+        # -/+ step visible both ways). Where it is not, the fit's number says nothing the clip measured: the prior
+        # stands and the rest is fitted again without it.
+        unresolved = [] if not options.identify else _unresolved_at(scene_xml, trajs, fit, values, options)
+        if not unresolved:
+            break
+        for name in unresolved:
+            entry["parameters"][name].update(constrained=False, unresolved_fit=float(values[fit.index(name)]))
+        fit = [n for n in fit if n not in unresolved]
+    if not fit:
+        entry["status"] = "skipped: the clip constrains none of the parameters (prior kept)"
+        return entry
     for i, fitted in enumerate(result.parameters):
         entry["parameters"][fitted.name].update(
             value=fitted.value,
@@ -464,6 +469,8 @@ def _screen_and_calibrate(
                 min_rotation_deg=options.identify_min_rotation_deg,
             ),
         )
+    if out is not None:
+        write_calibrated_scene(scene, result, list(trajs), out, base)
     unconstrained = [n for n in resolved if n not in fit]
     entry["status"] = "calibrated" + (
         f"; unconstrained by the clip, prior kept: {unconstrained}" if unconstrained else ""
@@ -475,6 +482,33 @@ def _screen_and_calibrate(
         after={k: v.as_dict() for k, v in result.after.items()},
     )
     return entry
+
+
+def _unresolved_at(
+    scene_xml: Path, trajs: Sequence[Trajectory], fit: Sequence[str], values: np.ndarray, options: InteractionOptions
+) -> list[str]:
+    """The fitted parameters whose -/+ `identify_relative_change` step, taken at the fitted `values`, does not show in
+    their body's rollouts both ways (`_step_visible`, the screen's rule)."""
+    import mujoco
+
+    from grounder._calibrate_params import resolve_parameters
+
+    base = mujoco.MjModel.from_xml_path(str(scene_xml))
+    resolved = resolve_parameters(base, list(fit))
+    return [
+        p.name
+        for i, p in enumerate(resolved)
+        if not _step_visible(
+            base,
+            resolved,
+            values,
+            i,
+            trajs,
+            options.identify_relative_change,
+            options.identify_min_position_m,
+            options.identify_min_rotation_deg,
+        )[2]
+    ]
 
 
 def _paired(name: str, resolved: Mapping[str, Any], screens: Mapping[str, ParameterScreen]) -> bool:
@@ -810,6 +844,8 @@ def _markdown(payload: dict[str, Any]) -> str:
         lines += ["| parameter | before | after | interval | constrained by the clip |", "|---|---|---|---|---|"]
         for name, p in params.items():
             seen = "yes" if p.get("constrained", True) else "no: prior kept"
+            if "unresolved_fit" in p:
+                seen += f" (the fit, {p['unresolved_fit']:.4g}, is not resolved where it landed)"
             lines.append(
                 f"| {name} | {p['nominal']:.4g} | {p['value']:.4g} | {p['interval'][0]:.4g} .. "
                 f"{p['interval'][1]:.4g} | {seen} |"
@@ -994,36 +1030,65 @@ def screen_parameters(
             curves[i] = curve
     out = []
     for i, p in enumerate(resolved):
-        best = float(current[i])
-        rows = np.repeat(current[None], 3, axis=0)
-        rows[1, i] = float(np.clip(best * (1.0 - relative_change), p.lower, p.upper))
-        rows[2, i] = float(np.clip(best * (1.0 + relative_change), p.lower, p.upper))
-        body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
-        (_, ref), (model_d, down), (model_u, up) = run(rows)
-        change_down = _body_errors(model_d, down, ref, body, rms=True)
-        change_up = _body_errors(model_u, up, ref, body, rms=True)
-
-        def visible(change: tuple[float, float]) -> bool:
-            return change[0] >= min_position_m or change[1] >= min_rotation_deg
-
-        # A bound hit counts as no change in that direction: the clip may not rule out the bound's far side.
-        down_ok = visible(change_down) and rows[1, i] < best
-        up_ok = visible(change_up) and rows[2, i] > best
+        change_down, change_up, constrained = _step_visible(
+            base, resolved, current, i, trajs, relative_change, min_position_m, min_rotation_deg, nthread=nthread
+        )
         out.append(
             ParameterScreen(
                 name=p.name,
-                body=body or "",
+                body=p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else "",
                 nominal=p.nominal,
                 lower=p.lower,
                 upper=p.upper,
-                best=best,
+                best=float(current[i]),
                 change_down=change_down,
                 change_up=change_up,
-                constrained=bool(down_ok and up_ok),
+                constrained=constrained,
                 curve=tuple(curves[i]),
             )
         )
     return out
+
+
+def _step_visible(
+    base: Any,
+    resolved: Sequence[Any],
+    values: np.ndarray,
+    index: int,
+    trajs: Sequence[Trajectory],
+    relative_change: float,
+    min_position_m: float,
+    min_rotation_deg: float,
+    *,
+    nthread: int | None = 1,
+) -> tuple[tuple[float, float], tuple[float, float], bool]:
+    """Moves parameter `index` from `values[index]` by -/+ `relative_change` (the others at `values`) and returns the
+    changes of its body's rollouts, (position m, rotation deg) root mean square each way, and whether both are at
+    least `min_position_m` or `min_rotation_deg`. A bound hit counts as no change in that direction: the clip may not
+    rule out the bound's far side."""
+    import mujoco
+
+    from grounder._calibrate_params import apply_to_model
+    from grounder._simulate import simulate
+
+    p = resolved[index]
+    centre = float(values[index])
+    rows = np.repeat(np.asarray(values, float)[None], 3, axis=0)
+    rows[1, index] = float(np.clip(centre * (1.0 - relative_change), p.lower, p.upper))
+    rows[2, index] = float(np.clip(centre * (1.0 + relative_change), p.lower, p.upper))
+    data = mujoco.MjData(base)
+    models = [apply_to_model(base, resolved, row, data=data) for row in rows]
+    ref, down, up = simulate(models, list(trajs), nthread=nthread)
+    body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
+    change_down = _body_errors(models[1], down, ref, body, rms=True)  # type: ignore[arg-type]
+    change_up = _body_errors(models[2], up, ref, body, rms=True)  # type: ignore[arg-type]
+
+    def visible(change: tuple[float, float]) -> bool:
+        return change[0] >= min_position_m or change[1] >= min_rotation_deg
+
+    down_ok = visible(change_down) and rows[1, index] < centre
+    up_ok = visible(change_up) and rows[2, index] > centre
+    return change_down, change_up, bool(down_ok and up_ok)
 
 
 def indistinguishable_range(

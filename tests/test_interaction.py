@@ -100,6 +100,32 @@ def test_calibrate_constrained_fits_the_shown_parameter_and_keeps_the_prior_of_t
     assert (tmp_path / "calibrated" / "scene.xml").is_file()
 
 
+def test_a_value_the_screen_passed_but_unresolved_where_the_fit_lands_keeps_the_prior(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The screen looks at its grid best; the fit may land where the clip says nothing. With a screen that passes
+    everything, the still box's friction is fitted (any value matches a box that never moves), then found unresolved
+    at the fitted value: it keeps the prior, the slider is fitted again alone, and the written scene holds the prior."""
+    import grounder._interaction as interaction
+
+    real_screen = interaction.screen_parameters
+
+    def screen_passing_everything(*args: object, **kwargs: object) -> list[interaction.ParameterScreen]:
+        return [replace(screen, constrained=True) for screen in real_screen(*args, **kwargs)]  # type: ignore[arg-type]
+
+    monkeypatch.setattr(interaction, "screen_parameters", screen_passing_everything)
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    entry = calibrate_constrained(xml, [traj], PARAMS, QUICK, out=tmp_path / "calibrated")
+    slider, still = entry["parameters"]["slider.friction.sliding"], entry["parameters"]["still.friction.sliding"]
+    assert slider["constrained"] and slider["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+    assert not still["constrained"] and still["value"] == 0.8 and "unresolved_fit" in still
+    assert entry["status"] == "calibrated; unconstrained by the clip, prior kept: ['still.friction.sliding']"
+    written = mujoco.MjModel.from_xml_path(str(tmp_path / "calibrated" / "scene.xml"))
+    assert written.geom_friction[written.body("still").geomadr[0], 0] == pytest.approx(0.8)
+    assert written.geom_friction[written.body("slider").geomadr[0], 0] == pytest.approx(slider["value"])
+
+
 def test_nothing_constrained_calibrates_nothing(tmp_path: Path) -> None:
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
