@@ -445,8 +445,13 @@ def _screen_and_calibrate(
         values = np.array([f.value for f in result.parameters])
         # The screen looked at its grid best; the answer must be resolved where it landed, by the same rule (a
         # -/+ step visible both ways). Where it is not, the fit's number says nothing the clip measured: the prior
-        # stands and the rest is fitted again without it.
-        unresolved = [] if not options.identify else _unresolved_at(scene_xml, trajs, fit, values, options)
+        # stands and the rest is fitted again without it. A time constant stays with its fitted damping ratio
+        # (`_paired`): held at a wrong prior it biases the damping ratio, resolved or not.
+        unresolved = [
+            name
+            for name in (_unresolved_at(scene_xml, trajs, fit, values, options) if options.identify else [])
+            if not (name.endswith(".solref.timeconst") and name.removesuffix("timeconst") + "dampratio" in fit)
+        ]
         if not unresolved:
             break
         for name in unresolved:
