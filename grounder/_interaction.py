@@ -13,6 +13,8 @@
    frames, about the median tracking error): an object that never slides says nothing about its friction, one that
    lands without bouncing little about its damping ratio. Only constrained parameters are calibrated; the others
    keep the prior and are reported as unconstrained (interval = bounds), not as a number the clip never measured.
+   The same ±20% rule is applied again where the fit lands (the screen looked at its grid best): a value that fails
+   there keeps the prior too (reported with its `unresolved_fit`), and the rest is fitted again.
    Each calibrated value also gets its resolution range (`indistinguishable_range`). Contact parameters are
    calibrated as the contact's values (the object's geoms get top priority). The loss counts position errors
    along the camera's viewing rays a quarter (`along_view_weight`: tracked depth is 4-6 times noisier than the
@@ -404,7 +406,8 @@ def _screen_and_calibrate(
     out: Path | None,
     progress: ProgressFn | None,
 ) -> dict[str, Any]:
-    """One round of `calibrate_constrained`: screen, then calibrate the constrained parameters on `trajs`."""
+    """One round of `calibrate_constrained`: screen, then calibrate the constrained parameters on `trajs`; a value
+    that is not resolved where the fit lands (`_unresolved_at`) keeps the prior and the rest is fitted again."""
     import mujoco
 
     from grounder._calibrate import CalibrateOptions, calibrate, write_calibrated_scene
@@ -450,7 +453,7 @@ def _screen_and_calibrate(
         unresolved = [
             name
             for name in (_unresolved_at(scene_xml, trajs, fit, values, options) if options.identify else [])
-            if not (name.endswith(".solref.timeconst") and name.removesuffix("timeconst") + "dampratio" in fit)
+            if _damping_partner(name) not in fit
         ]
         if not unresolved:
             break
@@ -520,10 +523,13 @@ def _paired(name: str, resolved: Mapping[str, Any], screens: Mapping[str, Parame
     """A contact time constant is fitted wherever its body's damping ratio is, whatever its own screen says: a bounce
     fixes a combination of the two, and a time constant held at a wrong prior moves the damping ratio instead
     (`InteractionOptions.calibrate_params`)."""
-    if not name.endswith(".solref.timeconst"):
-        return False
-    partner = name.removesuffix("timeconst") + "dampratio"
-    return partner in resolved and screens[partner].constrained
+    partner = _damping_partner(name)
+    return partner is not None and partner in resolved and screens[partner].constrained
+
+
+def _damping_partner(name: str) -> str | None:
+    """The damping ratio a contact time constant (`….solref.timeconst`) is fitted with, or None for other names."""
+    return name.removesuffix("timeconst") + "dampratio" if name.endswith(".solref.timeconst") else None
 
 
 def _view_settings(options: InteractionOptions, view_point_m: Sequence[float] | None) -> dict[str, Any]:
@@ -1025,7 +1031,7 @@ def screen_parameters(
             values = [float(v) for v in p.from_unit(np.linspace(0.0, 1.0, grid_points))]
             rows = np.repeat(current[None], len(values), axis=0)
             rows[:, i] = values
-            body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
+            body = _body_of(p.name)
             curve = []
             for v, (model, preds) in zip(values, run(rows), strict=True):
                 pos_m, rot_deg = _body_errors(model, preds, trajs, body)
@@ -1041,7 +1047,7 @@ def screen_parameters(
         out.append(
             ParameterScreen(
                 name=p.name,
-                body=p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else "",
+                body=_body_of(p.name) or "",
                 nominal=p.nominal,
                 lower=p.lower,
                 upper=p.upper,
@@ -1053,6 +1059,12 @@ def screen_parameters(
             )
         )
     return out
+
+
+def _body_of(name: str) -> str | None:
+    """The free body whose motion shows a parameter (`BODY.field`), or None for a pair parameter (`A:B.field`)."""
+    head = name.split(".", 1)[0]
+    return None if ":" in head else head
 
 
 def _step_visible(
@@ -1084,7 +1096,7 @@ def _step_visible(
     data = mujoco.MjData(base)
     models = [apply_to_model(base, resolved, row, data=data) for row in rows]
     ref, down, up = simulate(models, list(trajs), nthread=nthread)
-    body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
+    body = _body_of(p.name)
     change_down = _body_errors(models[1], down, ref, body, rms=True)  # type: ignore[arg-type]
     change_up = _body_errors(models[2], up, ref, body, rms=True)  # type: ignore[arg-type]
 
@@ -1135,7 +1147,7 @@ def indistinguishable_range(
     data = mujoco.MjData(base)
     models = [apply_to_model(base, resolved, row, data=data) for row in rows]
     preds = simulate(models, list(trajs), nthread=nthread)
-    body = p.name.split(".", 1)[0] if ":" not in p.name.split(".", 1)[0] else None
+    body = _body_of(p.name)
     ref = preds[0]
     same = []
     for model, pred in zip(models[1:], preds[1:], strict=True):
