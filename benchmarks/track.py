@@ -96,6 +96,9 @@ def main() -> None:
     )
     parser.add_argument("--truth", action="store_true", help="screen + calibrate on the true trajectory and scene")
     parser.add_argument(
+        "--own-runs", action="store_true", help="with --calibrate: windows from each object's own tracked runs"
+    )
+    parser.add_argument(
         "--true-motion",
         action="store_true",
         help="with --calibrate: calibrate the grounded scene on the true trajectory (no tracking)",
@@ -303,6 +306,7 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
     """Screen + calibrate the grounded scene on saved tracks (e.g. `OUT/interaction/tracks` of a `--calibrate` run),
     per object as `ground --interaction` does."""
     from grounder._interaction import calibrate_per_body, default_params, view_point_of
+    from grounder._track import load_object_trajectories
     from grounder._trajectory import load_trajectories
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
@@ -315,6 +319,7 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
         default_params(names),
         _options(args),
         view_point_m=view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64)),
+        object_tracks=load_object_trajectories(tracks / "track.json") if args.own_runs else None,
     )
     print(f"screen + calibration on {tracks}: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])
@@ -383,7 +388,11 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
     from grounder._interaction import InteractionOptions
 
     budget = {"generations": args.generations, "popsize": args.popsize}
-    given = {"start_rounds": args.start_rounds, "along_view_weight": args.along_view_weight}
+    given = {
+        "start_rounds": args.start_rounds,
+        "along_view_weight": args.along_view_weight,
+        "own_runs": args.own_runs or None,
+    }
     chosen = {k: v for k, v in given.items() if v is not None}
     settings = {k: v for k, v in budget.items() if v is not None}
     return InteractionOptions(calibrate_settings=settings, **chosen, **fields)

@@ -39,7 +39,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -963,6 +963,65 @@ def segment_trajectory(
         qvel[:, dof : dof + 3] = linvel
         qvel[:, dof + 3 : dof + 6] = angvel
     return Trajectory(time_s=time_s[frames], qpos=qpos, qvel=qvel, name=name)
+
+
+def object_trajectories(
+    time_s: np.ndarray,
+    world_from_objects: np.ndarray,
+    valid: np.ndarray,
+    names: Sequence[str],
+    smoothing: SmoothingOptions,
+    min_frames: int,
+    stem: str,
+) -> dict[str, list[Trajectory]]:
+    """Per object, its own tracked motion: one single-body trajectory (qpos 7, qvel 6, the object's free joint alone)
+    per maximal run of frames in which *it* is tracked, at least `min_frames` long, velocities from the smoothing
+    fit. Where objects never touch, each can be calibrated on these: an object hidden for a while costs the others
+    nothing (the segments, runs in which every object is tracked, would cut all of them).
+
+    Args:
+        time_s: (F,) frame times, seconds.
+        world_from_objects: (F, N, 4, 4) tracked poses (anything where not valid).
+        valid: (F, N) tracked mask.
+        names: the N object names.
+    """
+    joint = _JointAddress(pos=slice(0, 3), quat=slice(3, 7), dof=0)
+    out: dict[str, list[Trajectory]] = {}
+    for i, name in enumerate(names):
+        runs = [(a, b) for a, b in iter_valid_runs(valid[:, i]) if b - a + 1 >= min_frames]
+        out[name] = [
+            segment_trajectory(
+                7, 6, [joint], time_s, world_from_objects[:, i : i + 1], run, smoothing, f"{stem}_{name}_{k:02d}"
+            )
+            for k, run in enumerate(runs)
+        ]
+    return out
+
+
+def load_object_trajectories(
+    track_json: Path, smoothing: SmoothingOptions | None = None, min_frames: int | None = None
+) -> dict[str, list[Trajectory]]:
+    """`object_trajectories` of a `track.json` written by `track` (its poses, valid mask and frame times)."""
+    payload = json.loads(Path(track_json).read_text())
+    names = list(payload["object_names"])
+    valid = np.array([payload["objects"][n]["valid"] for n in names], dtype=bool).T
+    poses = np.tile(np.eye(4), (len(valid), len(names), 1, 1))
+    for i, name in enumerate(names):
+        for f, row in enumerate(payload["objects"][name]["qpos"]):
+            if row is not None:
+                poses[f, i, :3, 3] = row[:3]
+                poses[f, i, :3, :3] = matrix_from_quat(np.asarray(row[3:7], float))
+    time_s = (int(payload["first_frame"]) + np.arange(len(valid))) / float(payload["fps"])
+    options = TrackOptions()
+    return object_trajectories(
+        time_s,
+        poses,
+        valid,
+        names,
+        smoothing or options.smoothing,
+        min_frames or options.min_segment_frames,
+        Path(payload["clip"]).stem,
+    )
 
 
 def _score_json(score: FrameScore) -> dict[str, object]:

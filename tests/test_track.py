@@ -197,6 +197,31 @@ def test_options_reject_bad_values() -> None:
         TrackOptions(min_segment_frames=2)
 
 
+def test_each_object_keeps_its_own_tracked_runs() -> None:
+    """Object a is tracked throughout, b is hidden in frames 10-19: the segments (every object tracked) cut both, but
+    each object's own runs keep a whole (one run of 30 frames) and b in two; each run is a single-body trajectory
+    whose velocity is the smoothing fit of its own poses (a ballistic throw: exact)."""
+    from grounder._track import object_trajectories
+    from grounder._track_smooth import SmoothingOptions
+
+    time_s = np.arange(30) / 30.0
+    valid = np.ones((30, 2), bool)
+    valid[10:20, 1] = False
+    poses = np.tile(np.eye(4), (30, 2, 1, 1))
+    velocity = np.array([0.5, -0.2, 1.0])
+    poses[:, 0, :3, 3] = time_s[:, None] * velocity + 0.5 * time_s[:, None] ** 2 * np.array([0.0, 0.0, -9.81])
+    poses[:, 1, :3, 3] = [0.3, 0.0, 0.05]
+    poses[10:20, 1] = np.nan  # a lost object's pose is never read
+    assert tracked_segments(valid, 5) == [(0, 9), (20, 29)]
+    runs = object_trajectories(time_s, poses, valid, ["a", "b"], SmoothingOptions(), 5, "clip")
+    assert [(t.name, len(t.time_s)) for t in runs["a"]] == [("clip_a_00", 30)]
+    assert [(t.name, t.time_s[0]) for t in runs["b"]] == [("clip_b_00", 0.0), ("clip_b_01", pytest.approx(20 / 30))]
+    a = runs["a"][0]
+    assert a.qpos.shape == (30, 7) and a.qvel.shape == (30, 6)
+    np.testing.assert_allclose(a.qvel[:, :3], velocity + time_s[:, None] * np.array([0.0, 0.0, -9.81]), atol=1e-6)
+    np.testing.assert_allclose(runs["b"][1].qvel, 0.0, atol=1e-9)
+
+
 def test_windows_cut_tracked_segments_and_drop_still_ones() -> None:
     from grounder import Trajectory
     from grounder._interaction import windows
