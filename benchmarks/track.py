@@ -99,6 +99,9 @@ def main() -> None:
         "--own-runs", action="store_true", help="with --calibrate: windows from each object's own tracked runs"
     )
     parser.add_argument(
+        "--window-stride", type=float, default=None, help="with --calibrate: window start-to-start, s (default: tool's)"
+    )
+    parser.add_argument(
         "--true-motion",
         action="store_true",
         help="with --calibrate: calibrate the grounded scene on the true trajectory (no tracking)",
@@ -392,6 +395,7 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
         "start_rounds": args.start_rounds,
         "along_view_weight": args.along_view_weight,
         "own_runs": args.own_runs or None,
+        "window_stride_s": args.window_stride,
     }
     chosen = {k: v for k, v in given.items() if v is not None}
     settings = {k: v for k, v in budget.items() if v is not None}
