@@ -96,7 +96,9 @@ def main() -> None:
     )
     parser.add_argument("--truth", action="store_true", help="screen + calibrate on the true trajectory and scene")
     parser.add_argument(
-        "--own-runs", action="store_true", help="with --calibrate: windows from each object's own tracked runs"
+        "--segments",
+        action="store_true",
+        help="with --calibrate: windows from the segments (every object tracked), not each object's own runs",
     )
     parser.add_argument(
         "--window-stride", type=float, default=None, help="with --calibrate: window start-to-start, s (default: tool's)"
@@ -316,13 +318,14 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
     track_json = json.loads((tracks / "track.json").read_text())
+    options = _options(args)
     entry, _ = calibrate_per_body(
         scene / "scene.xml",
         load_trajectories(tracks),
         default_params(names),
-        _options(args),
+        options,
         view_point_m=view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64)),
-        object_tracks=load_object_trajectories(tracks / "track.json") if args.own_runs else None,
+        object_tracks=load_object_trajectories(tracks / "track.json") if options.own_runs else None,
     )
     print(f"screen + calibration on {tracks}: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])
@@ -394,7 +397,7 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
     given = {
         "start_rounds": args.start_rounds,
         "along_view_weight": args.along_view_weight,
-        "own_runs": args.own_runs or None,
+        "own_runs": False if args.segments else None,
         "window_stride_s": args.window_stride,
     }
     chosen = {k: v for k, v in given.items() if v is not None}

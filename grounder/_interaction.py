@@ -83,12 +83,11 @@ class InteractionOptions:
         window_stride_s: start-to-start distance of the windows.
         per_object: when the objects never touch each other (`separable_bodies`), calibrate each one alone in a
             scene of its own, on windows that start where its state is well measured (`calibrate_per_body`).
-        own_runs: with `per_object`, cut each object's windows from its own tracked runs
-            (`grounder._track.object_trajectories`) instead of the segments in which every object is tracked. Off
-            by default. On scan H2's occluded clip (the box hidden in frames 20-40) it brought every reported
-            friction and damping ratio within 20% (4 of 4, against 3 of 4). On the toss it resolved the can's
-            friction (-4%), but the box's windows then start at frame 1 instead of 3. That start misses by 14 mm
-            at the rendered values, and the box's friction came out +126%.
+        own_runs: with `per_object`, cut each object's windows from its own tracked runs, without the frames the
+            backward pass recovered (`grounder._track.object_trajectories`), instead of from the segments in which
+            every object is tracked. On scan H2 of `samples/tabletop` (`benchmarks/track.py --calibrate`): the
+            toss went from 5 values within 20% and the can's friction unresolved to all 6 within 20% (the can's
+            friction -4%); the occluded clip (box hidden in frames 20-40) from 3 of 4 to 4 of 4.
         rotation_weight: percent of the object's size per degree of rotation error in the loss; low, as tracked
             orientations and spins are noisier (about 1 degree) than positions.
         min_motion_m_s: windows where no object moves faster than this are dropped.
@@ -120,7 +119,7 @@ class InteractionOptions:
     window_stride_s: float = 0.1
     min_motion_m_s: float = 0.05
     per_object: bool = True
-    own_runs: bool = False
+    own_runs: bool = True
     rotation_weight: float = 0.25
     identify: bool = True
     identify_relative_change: float = 0.2
@@ -820,6 +819,7 @@ def ground_with_interaction(
                     track_options.smoothing,
                     track_options.min_segment_frames,
                     Path(clip).stem,
+                    sources=np.array([[score.source for score in row] for row in tracked.scores]),
                 )
                 if options.own_runs
                 else None,

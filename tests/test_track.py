@@ -149,6 +149,14 @@ def test_track_first_frames_of_toss(tmp_path: Path, toss_truth: dict[str, np.nda
     meta = json.loads((out / "track.json").read_text())
     assert meta["object_names"] == ["box", "can", "bowl"]
     assert all(all(o["valid"]) for o in meta["objects"].values())
+    # Each object's own run, read back from track.json, holds the tracked poses (all 8 frames tracked forward here).
+    from grounder._track import load_object_trajectories
+
+    runs = load_object_trajectories(out / "track.json")
+    assert [len(runs[name]) for name in meta["object_names"]] == [1, 1, 1]
+    can = runs["can"][0]
+    np.testing.assert_allclose(can.qpos[:, :3], trajs[0].qpos[:, 7:10], atol=1e-6)
+    np.testing.assert_allclose(can.qvel[:, :3], trajs[0].qvel[:, 6:9], atol=1e-4)
 
 
 def test_hidden_object_is_flagged_and_excluded_from_trajectories(tmp_path: Path) -> None:
@@ -216,6 +224,11 @@ def test_each_object_keeps_its_own_tracked_runs() -> None:
     runs = object_trajectories(time_s, poses, valid, ["a", "b"], SmoothingOptions(), 5, "clip")
     assert [(t.name, len(t.time_s)) for t in runs["a"]] == [("clip_a_00", 30)]
     assert [(t.name, t.time_s[0]) for t in runs["b"]] == [("clip_b_00", 0.0), ("clip_b_01", pytest.approx(20 / 30))]
+    # Frames the backward pass recovered (extrapolated from a later detection) are left out of a run.
+    sources = np.full((30, 2), "track", dtype=object)
+    sources[:3, 0] = "track_backwards"
+    trimmed = object_trajectories(time_s, poses, valid, ["a", "b"], SmoothingOptions(), 5, "clip", sources=sources)
+    assert [t.time_s[0] for t in trimmed["a"]] == [pytest.approx(3 / 30)] and len(trimmed["a"][0].time_s) == 27
     a = runs["a"][0]
     assert a.qpos.shape == (30, 7) and a.qvel.shape == (30, 6)
     np.testing.assert_allclose(a.qvel[:, :3], velocity + time_s[:, None] * np.array([0.0, 0.0, -9.81]), atol=1e-6)
