@@ -4,14 +4,15 @@
    `GroundOptions` asks for it).
 2. **Track** every grounded object through the interaction clip (`grounder._track.track`); frames where an object
    is lost or hidden are flagged and cut out: only segments in which every object is tracked become trajectories.
-3. **Calibrate** (`grounder._calibrate.calibrate`, when present) the objects' contact parameters on those tracked
-   segments only. Objects that never touch each other (`separable_bodies`) are calibrated one at a time, each in a
-   scene of its own with the table (`calibrate_per_body`), on short windows (0.3 s) rolled out open loop from
-   states that tracking measures well (`reliable_starts`: in a free flight, or away from impacts); windows keep a
-   bounce's chaos out of the loss. First a screen (`screen_parameters`) asks, per parameter, whether moving it by
-   20% changes its object's rollouts by more than tracking resolves (1 mm / 0.75 deg, root mean square over the
-   frames, about the median tracking error): an object that never slides says nothing about its friction, one that
-   lands without bouncing little about its damping ratio. Only constrained parameters are calibrated; the others
+3. **Calibrate** (`grounder._calibrate.calibrate`, when present) the objects' contact parameters on tracked frames
+   only. Objects that never touch each other (`separable_bodies`) are calibrated one at a time, each in a scene of
+   its own with the table (`calibrate_per_body`), on short windows (0.3 s) of its own tracked runs (`own_runs`;
+   without the frames the backward pass extrapolated), rolled out open loop from states that tracking measures well
+   (`reliable_starts`: in a free flight, or away from impacts); windows keep a bounce's chaos out of the loss.
+   First a screen (`screen_parameters`) asks, per parameter, whether moving it by 20% changes its object's
+   rollouts by more than tracking resolves (1 mm / 0.75 deg, root mean square over the frames, about the median
+   tracking error): an object that never slides says nothing about its friction, one that lands without bouncing
+   little about its damping ratio. Only constrained parameters are calibrated; the others
    keep the prior and are reported as unconstrained (interval = bounds), not as a number the clip never measured.
    The same ±20% rule is applied again where the fit lands (the screen looked at its grid best): a value that fails
    there keeps the prior too (reported with its `unresolved_fit`), and the rest is fitted again.
