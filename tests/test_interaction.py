@@ -203,6 +203,11 @@ def test_reliable_starts_skip_the_frames_next_to_an_impact() -> None:
     sliding = Trajectory(time_s=time_s[10:], qpos=qpos[10:], qvel=np.zeros((14, 6)), name="slide")
     good = reliable_starts(sliding)
     assert not good[0] and good[1:].all()
+    # A run that begins two samples before the landing: a flight of two samples gives no start (its velocity is
+    # their difference alone).
+    late = Trajectory(time_s=time_s[6:], qpos=qpos[6:], qvel=np.zeros((18, 6)), name="late")
+    good = reliable_starts(late)
+    assert not good[:3].any() and good[3:].all()
 
 
 def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
