@@ -274,20 +274,28 @@ def default_params(object_names: Sequence[str]) -> tuple[str, ...]:
     return tuple(f"{name}.{field}" for name in object_names for field in CONTACT_FIELDS)
 
 
+def _open_loop_errors(model: Any, trajs: Sequence[Trajectory]) -> list[dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """Per trajectory, each free body's per-frame position (m) and rotation (rad) error of the open-loop rollout from
+    its first state (`grounder._simulate.free_body_errors`)."""
+    from grounder._simulate import free_body_errors, simulate
+
+    predicted = simulate(model, list(trajs))
+    out = []
+    for pred, real in zip(predicted, trajs, strict=True):
+        assert isinstance(pred, Trajectory)
+        out.append(free_body_errors(model, pred, real))
+    return out
+
+
 def _clip_match(scene_xml: Path, trajs: Sequence[Trajectory]) -> dict[str, dict[str, float]]:
     """Per object, open-loop rollout of each tracked segment from its first state: mean / max position error (mm)
     and mean rotation error (deg) against the tracked poses, over all segments."""
     import mujoco
 
-    from grounder._simulate import free_body_errors, simulate
-
     model = mujoco.MjModel.from_xml_path(str(scene_xml))
-    predicted = simulate(model, list(trajs))
-    assert isinstance(predicted, list)
     per_body: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
-    for pred, real in zip(predicted, trajs, strict=True):
-        assert isinstance(pred, Trajectory)
-        for body, (pos, rot) in free_body_errors(model, pred, real).items():
+    for errors in _open_loop_errors(model, trajs):
+        for body, (pos, rot) in errors.items():
             per_body.setdefault(body, []).append((pos, rot))
     return {
         body: {
@@ -308,7 +316,6 @@ def _window_match(
     import mujoco
 
     from grounder._calibrate_params import apply_to_model, resolve_parameters
-    from grounder._simulate import free_body_errors, simulate
 
     base = mujoco.MjModel.from_xml_path(str(scene_xml))
     resolved = resolve_parameters(base, list(params))
@@ -317,11 +324,9 @@ def _window_match(
         ("before", [p.nominal for p in resolved]),
         ("after", [float(records.get(p.name, {}).get("value", p.nominal)) for p in resolved]),
     ):
-        model = apply_to_model(base, resolved, values)
         position_mm, rotation_deg = [], []
-        for pred, real in zip(simulate(model, list(fit)), fit, strict=True):
-            assert isinstance(pred, Trajectory)
-            for pos, rot in free_body_errors(model, pred, real).values():
+        for errors in _open_loop_errors(apply_to_model(base, resolved, values), fit):
+            for pos, rot in errors.values():
                 position_mm.append(1e3 * float(np.mean(pos)))
                 rotation_deg.append(float(np.rad2deg(np.mean(rot))))
         out[label] = {
@@ -462,7 +467,7 @@ def _screen_and_calibrate(
         # (`_paired`): held at a wrong prior it biases the damping ratio, resolved or not.
         unresolved = [
             name
-            for name in (_unresolved_at(scene_xml, trajs, fit, values, options) if options.identify else [])
+            for name in (_unresolved_at(base, trajs, fit, values, options) if options.identify else [])
             if _damping_partner(name) not in fit
         ]
         if not unresolved:
@@ -503,15 +508,12 @@ def _screen_and_calibrate(
 
 
 def _unresolved_at(
-    scene_xml: Path, trajs: Sequence[Trajectory], fit: Sequence[str], values: np.ndarray, options: InteractionOptions
+    base: Any, trajs: Sequence[Trajectory], fit: Sequence[str], values: np.ndarray, options: InteractionOptions
 ) -> list[str]:
-    """The fitted parameters whose -/+ `identify_relative_change` step, taken at the fitted `values`, does not show in
-    their body's rollouts both ways (`_step_visible`, the screen's rule)."""
-    import mujoco
-
+    """The fitted parameters whose -/+ `identify_relative_change` step, taken at the fitted `values` in the scene
+    model `base`, does not show in their body's rollouts both ways (`_step_visible`, the screen's rule)."""
     from grounder._calibrate_params import resolve_parameters
 
-    base = mujoco.MjModel.from_xml_path(str(scene_xml))
     resolved = resolve_parameters(base, list(fit))
     return [
         p.name
