@@ -157,12 +157,18 @@ def ceramic_texture(rng: np.random.Generator, size: int = 512) -> np.ndarray:
     return img
 
 
-def marker_texture(pixels_per_m: float = 4000.0) -> np.ndarray:
-    """ArUco DICT_4X4_50 id 0 with its white margin; the image's top is the marker's +y (BGR uint8)."""
+def marker_texture(
+    pixels_per_m: float = 4000.0,
+    marker_id: int = ARUCO_ID,
+    size_m: float = MARKER_SIZE_M,
+    margin_m: float = MARKER_MARGIN_M,
+) -> np.ndarray:
+    """ArUco DICT_4X4_50 marker (the table's, id 0, by default) with its white margin; the image's top is the
+    marker's +y (BGR uint8)."""
     dictionary = cv2.aruco.getPredefinedDictionary(ARUCO_DICT)
-    inner_px = round(MARKER_SIZE_M * pixels_per_m)
-    margin_px = round(MARKER_MARGIN_M * pixels_per_m)
-    marker = cv2.aruco.generateImageMarker(dictionary, ARUCO_ID, inner_px)
+    inner_px = round(size_m * pixels_per_m)
+    margin_px = round(margin_m * pixels_per_m)
+    marker = cv2.aruco.generateImageMarker(dictionary, marker_id, inner_px)
     marker = cv2.copyMakeBorder(marker, *(4 * [margin_px]), cv2.BORDER_CONSTANT, value=255)
     return cv2.cvtColor(marker, cv2.COLOR_GRAY2BGR)
 
@@ -251,10 +257,15 @@ def write_obj_with_uv(path: Path, vertices: np.ndarray, uv: np.ndarray, faces: n
     path.write_text("\n".join(lines) + "\n")
 
 
-def write_marker_mesh(path: Path) -> None:
+def write_marker_mesh(
+    path: Path,
+    size_m: float = MARKER_SIZE_M,
+    margin_m: float = MARKER_MARGIN_M,
+    thickness_m: float = MARKER_THICKNESS_M,
+) -> None:
     """A thin sheet; the top face carries the marker image upright (image top = +y), corners in UV (0..1)."""
-    h = MARKER_SIZE_M / 2 + MARKER_MARGIN_M
-    z0, z1 = 0.0, MARKER_THICKNESS_M
+    h = size_m / 2 + margin_m
+    z0, z1 = 0.0, thickness_m
     top = np.array([[-h, -h, z1], [h, -h, z1], [h, h, z1], [-h, h, z1]])
     bottom = top.copy()
     bottom[:, 2] = z0
@@ -438,3 +449,66 @@ def encode_video(frames: list[np.ndarray], path: Path, fps: float) -> None:
     for frame in frames:
         writer.send(np.ascontiguousarray(frame))
     writer.close()
+
+
+# ---------------------------------------------------------------- markers stuck on objects
+
+# Printed ArUco markers (DICT_4X4_50; the table's is id 0) on the top faces of the box and the can, as they lie:
+# marker +y along the body +y, white border one cell wide (1/6 of the black square). The bowl carries none.
+OBJECT_MARKERS = (
+    {"object": "box", "id": 1, "size_m": 0.048, "margin_m": 0.008},
+    {"object": "can", "id": 2, "size_m": 0.036, "margin_m": 0.006},
+)
+OBJECT_MARKER_PIXELS_PER_M = 4800.0  # the 6 cells of a 4x4 marker land on whole texture pixels for 4.8 and 3.6 cm
+OBJECT_MARKER_THICKNESS_M = 0.0003
+
+
+def add_object_markers(
+    spec: mujoco.MjSpec, assets_dir: Path, objects: list[SampleObject], *, absolute_paths: bool = False
+) -> list[dict[str, object]]:
+    """Adds `OBJECT_MARKERS` to a scene spec as thin textured sheets without contacts or mass (the objects move
+    exactly as without them); writes their textures and meshes to assets_dir. Returns the layout: per marker its
+    object, id, side of the black square and the marker frame in the object's body frame (origin at the square's
+    centre, x along its top edge, y up the marker image, z out of the face).
+
+    Args:
+        absolute_paths: refer to the files by absolute path (a spec loaded from another folder's scene.xml).
+    """
+    by_name = {o.name: o for o in objects}
+    layout: list[dict[str, object]] = []
+    for row in OBJECT_MARKERS:
+        name, marker_id = str(row["object"]), int(row["id"])
+        size_m, margin_m = float(row["size_m"]), float(row["margin_m"])
+        stem = f"object_marker_{marker_id}"
+        texture = marker_texture(OBJECT_MARKER_PIXELS_PER_M, marker_id=marker_id, size_m=size_m, margin_m=margin_m)
+        assets_dir.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(assets_dir / f"{stem}.png"), texture)
+        write_marker_mesh(assets_dir / f"{stem}.obj", size_m, margin_m, OBJECT_MARKER_THICKNESS_M)
+        ref = str(assets_dir.resolve()) + "/" if absolute_paths else ""
+        spec.add_texture(name=stem, type=mujoco.mjtTexture.mjTEXTURE_2D, file=f"{ref}{stem}.png")
+        material = spec.add_material(name=stem, specular=0.1)
+        material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = stem
+        spec.add_mesh(name=stem, file=f"{ref}{stem}.obj")
+        top_z_m = float(by_name[name].mesh.extents[2]) / 2.0
+        spec.body(name).add_geom(
+            name=stem,
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname=stem,
+            material=stem,
+            pos=[0.0, 0.0, top_z_m],
+            contype=0,
+            conaffinity=0,
+            density=0.0,
+        )
+        # MuJoCo centres a mesh on its centroid: the sheet spans top_z -+ thickness / 2; the printed face is on top.
+        face_z_m = top_z_m + OBJECT_MARKER_THICKNESS_M / 2
+        layout.append(
+            {
+                "object": name,
+                "id": marker_id,
+                "size_m": size_m,
+                "pos_m": [0.0, 0.0, round(face_z_m, 9)],
+                "quat_wxyz": [1.0, 0.0, 0.0, 0.0],
+            }
+        )
+    return layout

@@ -1,13 +1,16 @@
 """Renders `samples/tabletop/`: a hand-held-style orbit around a table with three objects and an ArUco marker.
 
 Run: `MUJOCO_GL=osmesa .venv/bin/python samples/make_tabletop.py [--out samples/tabletop] [--frames 70]`
+With `--object-markers --out samples/tabletop_markers`: the same scan with printed ArUco markers stuck on the box and
+the can (`_sample_assets.OBJECT_MARKERS`), as a user would before filming a scan and a toss (`samples/toss_markers`).
 
 Writes `video.mp4` (640x480, 10 fps, H.264) and `truth/`:
 - `scene.xml` + `assets/`: the true MuJoCo scene (world = marker frame, table top z = 0);
 - `cameras.json`: intrinsics and, per video frame, `world_from_cam` (4x4, OpenCV axes: x right, y down, z forward),
   plus which frames were deliberately made blurred or near-duplicate (frame selection must drop them);
 - `objects.json`: per object its mesh file (object frame = bbox centre), `world_from_object` position and
-  `quat_wxyz`, extents, volume and the physical parameters used.
+  `quat_wxyz`, extents, volume and the physical parameters used; with markers, `object_markers`: each marker's
+  object, id, side and pose in the object's body frame.
 """
 
 from __future__ import annotations
@@ -45,6 +48,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "tabletop")
     parser.add_argument("--frames", type=int, default=70)
+    parser.add_argument(
+        "--object-markers",
+        action="store_true",
+        help="stick ArUco markers on the box and the can (`samples/tabletop_markers`)",
+    )
     args = parser.parse_args()
     num_frames: int = args.frames
     # Frame 0..2 hold still (near-duplicates); two frames mid-orbit are motion-blurred by a fast pan.
@@ -57,6 +65,7 @@ def main() -> None:
         truth = out / "truth"
         sa.write_assets(truth / "assets", objects)
         spec = sa.build_scene_spec(truth / "assets", objects, free_objects=True)
+        markers = sa.add_object_markers(spec, truth / "assets", objects) if args.object_markers else []
         (truth / "scene.xml").write_text(spec.to_xml())
         model = spec.compile()
         data = mujoco.MjData(model)
@@ -134,6 +143,7 @@ def main() -> None:
                     }
                     for obj in objects
                 ],
+                **({"object_markers": markers} if markers else {}),
             },
         )
         if args.out.exists():

@@ -1,0 +1,88 @@
+"""Renders `samples/toss_markers/`: the toss clip again, with printed ArUco markers stuck on the box and the can.
+
+Run: `MUJOCO_GL=osmesa .venv/bin/python samples/make_toss_markers.py [--toss DIR] [--out samples/toss_markers]`
+
+Same physics, camera and frames as `samples/toss` (its truth trajectory is reused as is: the markers are thin
+sheets without contacts or mass, so the objects move exactly as there); only the picture differs. The scan
+(`samples/tabletop`) was filmed without them, as a user would stick markers on after scanning: the grounded
+meshes' textures do not show them. The bowl carries none (a tracked object need not have one).
+
+Writes `video.mp4` and `truth/`: `trajectory.npz`, `objects.json`, `camera.json` (copies of the toss truth) and
+`markers.json`, the marker layout `image2sim track --object-markers` reads, in the true scene's body frames
+(`samples/toss/truth/scene.xml`): each marker's id, side (of the black square) and pose on its object. A grounded
+scene's body frames are its own, so for it give only ids and sides (`markers_unplaced.json`): the tracker places
+each marker on its object from the frames where both are seen.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "osmesa")
+
+import mujoco
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+import _sample_assets as sa
+import make_toss
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--toss", type=Path, default=Path(__file__).parent / "toss")
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "toss_markers")
+    args = parser.parse_args()
+    truth_in = args.toss / "truth"
+    qpos = np.load(truth_in / "trajectory.npz", allow_pickle=False)["qpos"]
+
+    with tempfile.TemporaryDirectory() as assets_tmp:
+        spec = mujoco.MjSpec.from_file(str(truth_in / "scene.xml"))
+        layout = sa.add_object_markers(spec, Path(assets_tmp), sa.default_objects(), absolute_paths=True)
+        model = spec.compile()
+    data = mujoco.MjData(model)
+    cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "video")
+    renderer = mujoco.Renderer(model, make_toss.HEIGHT_PX, make_toss.WIDTH_PX)
+    frames: list[np.ndarray] = []
+    try:
+        for k in range(len(qpos)):
+            data.qpos[:] = qpos[k]
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera=cam_id)
+            frames.append(renderer.render()[:, :, :3].copy())
+            print(f"\rrendered {k + 1}/{len(qpos)}", end="", flush=True)
+    finally:
+        renderer.close()
+    print()
+
+    with tempfile.TemporaryDirectory(dir=args.out.parent if args.out.parent.exists() else None) as tmp:
+        out = Path(tmp) / "toss_markers"
+        truth = out / "truth"
+        truth.mkdir(parents=True)
+        sa.encode_video(frames, out / "video.mp4", make_toss.FPS)
+        for name in ("trajectory.npz", "objects.json", "camera.json"):
+            shutil.copy2(truth_in / name, truth / name)
+        note = (
+            "ArUco DICT_4X4_50 markers on the objects of samples/toss/truth/scene.xml; size_m = side of the black "
+            "square; pos_m / quat_wxyz = the marker frame (origin at the square's centre, x along its top edge, y "
+            "up the marker image, z out of the face) in the object's body frame (mesh bounding-box centre)"
+        )
+        sa.write_json(truth / "markers.json", {"convention": note, "markers": layout})
+        unplaced = [{"id": m["id"], "size_m": m["size_m"]} for m in layout]
+        sa.write_json(
+            truth / "markers_unplaced.json",
+            {"convention": "the same markers without their place: for a grounded scene", "markers": unplaced},
+        )
+        if args.out.exists():
+            shutil.rmtree(args.out)
+        shutil.move(str(out), args.out)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
