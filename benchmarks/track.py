@@ -57,14 +57,14 @@ def pose(pos: list[float] | np.ndarray, quat_wxyz: list[float] | np.ndarray) -> 
     return out
 
 
-def ground_scene(scene: Path) -> None:
+def ground_scene(scene: Path, scan: str = "tabletop") -> None:
     if (scene / "scene.xml").is_file():
         return
     from grounder import GroundOptions, ground
     from reconstruction import ReconstructOptions
 
     tick = time.perf_counter()
-    ground(ROOT / "samples/tabletop/video.mp4", scene, GroundOptions(reconstruct=ReconstructOptions(aruco_size_m=0.12)))
+    ground(ROOT / f"samples/{scan}/video.mp4", scene, GroundOptions(reconstruct=ReconstructOptions(aruco_size_m=0.12)))
     print(f"grounded the tabletop scan in {time.perf_counter() - tick:.1f} s -> {scene}")
 
 
@@ -86,9 +86,28 @@ def truth_offsets(scene: Path) -> dict[str, tuple[str, np.ndarray]]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", type=Path, default=ROOT / "out/track_bench/scene")
+    parser.add_argument(
+        "--scene",
+        type=Path,
+        default=None,
+        help="grounded scene (default out/track_bench/scene, with --markers out/track_bench_markers/scene)",
+    )
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--occluded", action="store_true", help="track samples/toss_occluded instead")
+    parser.add_argument(
+        "--markers",
+        action="store_true",
+        help="scan samples/tabletop_markers and track samples/toss_markers (ArUco markers on the box and the can)",
+    )
+    parser.add_argument(
+        "--marker-use", choices=("pose", "rotation"), default="pose", help="with --markers: TrackOptions.marker_use"
+    )
+    parser.add_argument("--ignore-markers", action="store_true", help="with --markers: track the clip without them")
+    parser.add_argument(
+        "--place-from-clip",
+        action="store_true",
+        help="with --markers: ignore the scan's marker places; place each marker from the clip's model-based track",
+    )
     parser.add_argument("--out", type=Path, default=None, help="also write the trajectories (scene with --calibrate)")
     parser.add_argument("--calibrate", action="store_true", help="ground + track + calibrate (part 2)")
     parser.add_argument(
@@ -124,11 +143,15 @@ def main() -> None:
         help="with --calibrate: weight of the position error along the camera ray (default: InteractionOptions')",
     )
     args = parser.parse_args()
-    clip_dir = ROOT / ("samples/toss_occluded" if args.occluded else "samples/toss")
+    clip_dir = ROOT / (
+        "samples/toss_occluded" if args.occluded else "samples/toss_markers" if args.markers else "samples/toss"
+    )
     if args.truth:
         truth_benchmark(clip_dir, args)
         return
-    ground_scene(args.scene)
+    if args.scene is None:
+        args.scene = ROOT / ("out/track_bench_markers/scene" if args.markers else "out/track_bench/scene")
+    ground_scene(args.scene, "tabletop_markers" if args.markers else "tabletop")
     if args.calibrate and args.true_motion:
         true_motion_benchmark(clip_dir, args.scene, args)
         return
@@ -149,11 +172,13 @@ def main() -> None:
         clip_dir / "video.mp4",
         args.scene,
         args.out,
-        TrackOptions(aruco_size_m=0.12, max_frames=args.frames),
+        TrackOptions(aruco_size_m=0.12, max_frames=args.frames, **marker_fields(args, clip_dir)),
         overwrite=True,
     )
     print(f"tracked {len(result.time_s)} frames in {time.perf_counter() - tick:.1f} s ({result.seconds})")
     print(f"segments: {list(result.segments)}")
+    for record in result.object_markers:
+        print(f"object marker: {record}")
     all_pos: list[float] = []
     all_rot: list[float] = []
     for i, name in enumerate(result.object_names):
@@ -197,16 +222,31 @@ def main() -> None:
             print(f"  {traj.name} {name}: linear velocity error median {np.median(err):.3f} m/s, max {err.max():.3f}")
 
 
+def marker_fields(args: argparse.Namespace, clip_dir: Path) -> dict[str, Any]:
+    """TrackOptions fields for the object markers (--markers): by default those `ground` measured in the scan."""
+    if not args.markers:
+        return {}
+    if args.ignore_markers:
+        return {"scene_markers": False}
+    fields: dict[str, Any] = {"marker_use": args.marker_use}
+    if args.place_from_clip:
+        from grounder._track_markers import load_object_markers
+
+        fields["scene_markers"] = False
+        fields["object_markers"] = load_object_markers(clip_dir / "truth/markers_unplaced.json")
+    return fields
+
+
 def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.Namespace) -> None:
     from grounder._interaction import ground_with_interaction
 
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
     result = ground_with_interaction(
-        ROOT / "samples/tabletop/video.mp4",
+        ROOT / f"samples/{'tabletop_markers' if args.markers else 'tabletop'}/video.mp4",
         clip_dir / "video.mp4",
         out,
-        _options(args, track=TrackOptions(aruco_size_m=0.12)),
+        _options(args, track=TrackOptions(aruco_size_m=0.12, **marker_fields(args, clip_dir))),
         grounded_scene=scene,
         overwrite=True,
     )

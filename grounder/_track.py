@@ -46,6 +46,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from grounder._track_markers import (
+    ObjectMarker,
+    aligned_grid_px,
+    check_markers,
+    combined_markers,
+    marker_grid_m,
+    marker_object_poses,
+    marker_template,
+    measure_markers,
+    place_markers,
+    placement_json,
+    scene_markers,
+)
 from grounder._track_render import (
     FeatureModel,
     PinholeCamera,
@@ -107,6 +120,19 @@ class TrackOptions:
         detect_views: rendered directions in each object's feature model.
         min_segment_frames: shorter tracked runs are not written as trajectories (still in track.json).
         smoothing: the velocity fit.
+        support_correction: scale each object's depth along the camera ray so that it rests on the table
+            (`grounder._track_support`); support_max_gap_m: the largest gap it corrects.
+        object_markers: ArUco markers stuck on objects (`grounder._track_markers`; `--object-markers FILE`).
+        scene_markers: also use the object markers `ground` measured in the scan (`scene.json`); a marker in
+            `object_markers` overrides the scan's entry of the same id.
+        marker_use: where an object's marker is seen, "pose" takes the pose from the marker, "rotation" only its
+            orientation (the position stays the model-based track's). Where the model-based track lost the object,
+            the marker's pose is taken either way.
+        marker_ambiguity_ratio: with no model-based orientation to choose between a marker's two planar poses, the
+            other must reproject this many times worse.
+        marker_max_rms_px: a marker pose whose aligned grid reprojects worse than this (RMS) is not used.
+        marker_max_spread_m: a marker without a place in the layout goes to the object it moves with; in 90% of the
+            frames its pose in that object's frame must lie this close to its placement.
     """
 
     aruco_size_m: float | None = None
@@ -138,6 +164,12 @@ class TrackOptions:
     smoothing: SmoothingOptions = field(default_factory=SmoothingOptions)
     support_correction: bool = True
     support_max_gap_m: float = 0.015
+    object_markers: tuple[ObjectMarker, ...] = ()
+    scene_markers: bool = True
+    marker_use: str = "pose"
+    marker_ambiguity_ratio: float = 3.0
+    marker_max_rms_px: float = 0.5
+    marker_max_spread_m: float = 0.01
 
     def __post_init__(self) -> None:
         if self.aruco_size_m is not None and not self.aruco_size_m > 0:
@@ -148,6 +180,8 @@ class TrackOptions:
             raise TrackError(f"max_frames={self.max_frames} but expected at least 2")
         if self.min_segment_frames < 3:
             raise TrackError(f"min_segment_frames={self.min_segment_frames} but expected >= 3 (velocities need 3)")
+        if self.marker_use not in ("pose", "rotation"):
+            raise TrackError(f"marker_use={self.marker_use!r} but expected 'pose' or 'rotation'")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -158,8 +192,9 @@ class FrameScore:
     inlier_ratio: float = float("nan")
     ncc: float = float("nan")
     in_frame: float = float("nan")
-    source: str = "lost"  # "track", "detect", "track_backwards" or "lost"
+    source: str = "lost"  # "track", "detect", "track_backwards", "marker" or "lost"
     reason: str = ""
+    marker_rms_px: float = float("nan")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -182,6 +217,7 @@ class TrackResult:
         seconds: wall time per stage.
         support: per object, the depth correction from the table where it rests (`grounder._track_support`);
             empty when `support_correction` is off.
+        object_markers: per object marker, where it was placed and from how many frames (`placement_json`).
     """
 
     object_names: tuple[str, ...]
@@ -197,6 +233,7 @@ class TrackResult:
     out_dir: Path | None
     seconds: dict[str, float]
     support: tuple[SupportFit, ...] = ()
+    object_markers: tuple[dict[str, object], ...] = ()
 
 
 # ---------------------------------------------------------------- input
@@ -275,54 +312,6 @@ def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[Pi
 # ---------------------------------------------------------------- camera
 
 
-_MARKER_TEMPLATE_PX = 120  # black square side in the ECC template
-_MARKER_QUIET_ZONE = 0.125  # white border around the black square used for ECC, as a fraction of its side
-_MARKER_GRID = 8  # marker-plane points per side used for the pose
-
-
-def _marker_template(options: TrackOptions) -> tuple[np.ndarray, float]:
-    """The marker's image (black square, bits, a white quiet zone), slightly blurred, and its pixels per metre."""
-    assert options.aruco_size_m is not None
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, options.aruco_dictionary))
-    image = cv2.aruco.generateImageMarker(dictionary, options.aruco_id, _MARKER_TEMPLATE_PX)
-    border = round(_MARKER_QUIET_ZONE * _MARKER_TEMPLATE_PX)
-    image = cv2.copyMakeBorder(image, border, border, border, border, cv2.BORDER_CONSTANT, value=255)
-    image = image.astype(np.float32)
-    return cv2.GaussianBlur(image, (0, 0), 2.0), _MARKER_TEMPLATE_PX / options.aruco_size_m
-
-
-def _template_px(points_marker_m: np.ndarray, template: np.ndarray, px_per_m: float) -> np.ndarray:
-    """Marker-plane points (N, 2) (x right, y up, metres) -> template pixels (OpenCV convention)."""
-    centre = template.shape[0] / 2 - 0.5
-    return np.stack([centre + points_marker_m[:, 0] * px_per_m, centre - points_marker_m[:, 1] * px_per_m], axis=1)
-
-
-def _marker_grid_px(
-    gray: np.ndarray, corners_px: np.ndarray, template: np.ndarray, px_per_m: float, grid_m: np.ndarray, size_m: float
-) -> np.ndarray | None:
-    """Where the marker-plane grid points fall in the frame, from an ECC homography fit of the marker's image.
-
-    The four detected corners alone gave 4 mm / 0.25 deg camera errors on the toss sample; aligning the whole
-    marker image (bits and edges) photometrically halves both.
-    """
-    from reconstruction._world import marker_corners_marker_frame
-
-    corners_m = marker_corners_marker_frame(size_m)[:, :2]
-    warp = cv2.getPerspectiveTransform(
-        _template_px(corners_m, template, px_per_m).astype(np.float32), corners_px.astype(np.float32)
-    )
-    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
-    try:
-        everywhere = np.full(gray.shape, 255, np.uint8)
-        _, warp = cv2.findTransformECC(
-            template, gray.astype(np.float32), warp.astype(np.float32), cv2.MOTION_HOMOGRAPHY, criteria, everywhere, 1
-        )
-    except cv2.error:
-        return None
-    grid_px = _template_px(grid_m, template, px_per_m)[None].astype(np.float32)
-    return np.asarray(cv2.perspectiveTransform(grid_px, warp)[0], np.float64)
-
-
 def marker_camera_poses(
     frames_gray: list[np.ndarray], camera: PinholeCamera, options: TrackOptions
 ) -> tuple[np.ndarray, bool]:
@@ -351,17 +340,15 @@ def marker_camera_poses(
     spread_px = float(np.median([np.abs(c - median).max() for c in seen_corners]))
     size_m = options.aruco_size_m
     static = options.static_camera if options.static_camera is not None else spread_px < 1.0
-    template, px_per_m = _marker_template(options)
-    half = size_m * (0.5 + _MARKER_QUIET_ZONE / 2)
-    axis = np.linspace(-half, half, _MARKER_GRID)
-    grid_m = np.array([[x, y] for y in axis for x in axis])
+    template, px_per_m = marker_template(options.aruco_dictionary, options.aruco_id, size_m)
+    grid_m = marker_grid_m(size_m)
     object_points = np.concatenate([grid_m, np.zeros((len(grid_m), 1))], axis=1)
 
     def grid(f: int) -> np.ndarray | None:
         found = corners[f]
         if found is None:
             return None
-        return _marker_grid_px(frames_gray[f], found, template, px_per_m, grid_m, size_m)
+        return aligned_grid_px(frames_gray[f], found, template, px_per_m, grid_m, size_m)
 
     def pose(image_points: np.ndarray) -> np.ndarray:
         ok, rvec, tvec = cv2.solvePnP(object_points, image_points, camera.cv_matrix, None, flags=cv2.SOLVEPNP_SQPNP)
@@ -928,6 +915,74 @@ def _track_backwards(
                 )
 
 
+def apply_object_markers(
+    grays: Sequence[np.ndarray],
+    camera: PinholeCamera,
+    world_from_cam: np.ndarray,
+    names: Sequence[str],
+    poses: np.ndarray,
+    valid: np.ndarray,
+    scores: list[list[FrameScore]],
+    markers: Sequence[ObjectMarker],
+    options: TrackOptions,
+    *,
+    progress: ProgressFn | None = None,
+) -> tuple[dict[str, object], ...]:
+    """Puts the object markers' poses into the model-based track (`options.marker_use`). In place.
+
+    Markers without a place in the layout are placed from the model-based track (`place_markers`), after the
+    support correction: a marker then keeps the track's absolute position (which the table fixes) and brings its
+    own frame-to-frame precision. Where the track lost an object (hidden texture, blur, a first frame it was not
+    found in) and its marker is seen, the marker's pose fills the frame. Returns each marker's `placement_json`.
+    """
+    views = measure_markers(grays, camera, world_from_cam, markers, options.aruco_dictionary, progress=progress)
+    model_based = valid & np.array([[s.source in ("track", "detect") for s in row] for row in scores], bool)
+    placed, placements = place_markers(
+        views,
+        markers,
+        names,
+        poses,
+        model_based,
+        ambiguity_ratio=options.marker_ambiguity_ratio,
+        max_spread_m=options.marker_max_spread_m,
+    )
+    reference = np.where(valid[:, :, None, None], poses, np.nan)
+    measured = marker_object_poses(
+        views,
+        placed,
+        names,
+        reference=reference,
+        ambiguity_ratio=options.marker_ambiguity_ratio,
+        max_rms_px=options.marker_max_rms_px,
+    )
+    for f, i in zip(*np.nonzero(measured.seen), strict=True):
+        old = scores[f][i]
+        pose = measured.world_from_objects[f, i].copy()
+        if options.marker_use == "rotation" and model_based[f, i]:
+            pose[:3, 3] = poses[f, i, :3, 3]
+        poses[f, i] = pose
+        valid[f, i] = True
+        scores[f][i] = FrameScore(
+            inliers=old.inliers,
+            inlier_ratio=old.inlier_ratio,
+            ncc=old.ncc,
+            in_frame=old.in_frame,
+            source="marker",
+            marker_rms_px=float(measured.rms_px[f, i]),
+        )
+    for marker, placement in zip(placed, placements, strict=True):
+        if placement.object_name is not None:
+            i = list(names).index(placement.object_name)
+            log.info(
+                "object marker %d on %s: seen in %d of %d frames",
+                marker.marker_id,
+                placement.object_name,
+                int(measured.seen[:, i].sum()),
+                len(grays),
+            )
+    return tuple(placement_json(m, p) for m, p in zip(placed, placements, strict=True))
+
+
 # ---------------------------------------------------------------- segments and trajectories
 
 
@@ -1097,10 +1152,22 @@ def track(
 
     tick = time.perf_counter()
     with PoseRenderer(scene_xml, camera) as renderer:
+        markers = options.object_markers
+        if options.scene_markers:
+            markers = combined_markers(markers, scene_markers(scene_xml.parent / "scene.json"))
+        check_markers(markers, renderer.names, options.aruco_dictionary, options.aruco_id)
         poses, valid, scores = track_frames(frames, fps, renderer, world_from_cam, options, progress=progress)
         model: mujoco.MjModel = renderer.model
         names = renderer.names
     seconds["tracking"] = time.perf_counter() - tick
+    marker_records: tuple[dict[str, object], ...] = ()
+    if markers:
+        tick = time.perf_counter()
+        marker_records = apply_object_markers(
+            grays, camera, world_from_cam, names, poses, valid, scores, markers, options, progress=progress
+        )
+        seconds["object_markers"] = time.perf_counter() - tick
+
     support: list[SupportFit] = []
     if options.support_correction:
         for i, name in enumerate(names):
@@ -1121,7 +1188,6 @@ def track(
                     "above" if fit.gap_m > 0 else "inside",
                     fit.scale,
                 )
-
     time_s = (options.start_frame + np.arange(len(frames))) / fps
     segments = tracked_segments(valid, options.min_segment_frames)
     joints = [
@@ -1153,6 +1219,7 @@ def track(
         out_dir=None if out_dir is None else Path(out_dir),
         seconds=seconds,
         support=tuple(support),
+        object_markers=marker_records,
     )
     if out_dir is not None:
         if not trajectories:
@@ -1250,6 +1317,7 @@ def write_track_output(
                 for t, (a, b) in zip(result.trajectories, result.segments, strict=True)
             ],
             "objects": objects,
+            "object_markers": list(result.object_markers),
             "options": _options_json(options),
             "stage_seconds": {k: round(v, 2) for k, v in result.seconds.items()},
         }
@@ -1257,7 +1325,9 @@ def write_track_output(
 
 
 def _options_json(options: TrackOptions) -> dict[str, object]:
-    return json.loads(json.dumps(asdict(options), default=str))
+    out = asdict(options)
+    out.pop("object_markers")  # in "object_markers" with their placements
+    return json.loads(json.dumps(out, default=str))
 
 
 def load_track_json(traj_dir: Path) -> dict[str, object]:

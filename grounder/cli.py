@@ -166,6 +166,10 @@ def ground(
             help="A clip of the same objects moving (pushed, dropped, tossed): track it and calibrate the scene to it."
         ),
     ] = None,
+    object_markers: Annotated[
+        Path | None,
+        typer.Option(help="With --interaction: JSON layout of ArUco markers stuck on the objects (see `track`)."),
+    ] = None,
     verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
 ) -> None:
     """Film a tabletop, get a MuJoCo scene: scene.xml, assets/, scene.json, preview.png.
@@ -195,14 +199,20 @@ def ground(
             default_density_kg_m3=density,
             property_model=property_model,
         )
+        if object_markers is not None and interaction is None:
+            fail("--object-markers needs --interaction CLIP: the markers are tracked in the interaction clip")
         if interaction is not None:
             from grounder._interaction import InteractionOptions, ground_with_interaction
+            from grounder._track import TrackOptions
+            from grounder._track_markers import load_object_markers
 
             if not interaction.exists():
                 fail(f"interaction clip {interaction} does not exist; give the path of a video of the objects moving")
+            markers = () if object_markers is None else load_object_markers(object_markers)
+            interaction_options = InteractionOptions(ground=options, track=TrackOptions(object_markers=markers))
             with stage_progress() as progress:
                 calibrated = ground_with_interaction(
-                    source, interaction, out, InteractionOptions(ground=options), overwrite=overwrite, progress=progress
+                    source, interaction, out, interaction_options, overwrite=overwrite, progress=progress
                 )
             typer.echo(f"calibrated scene: {calibrated.scene_xml}")
             return

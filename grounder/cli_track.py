@@ -35,6 +35,16 @@ def register(app: typer.Typer) -> None:
         min_segment_frames: Annotated[
             int, typer.Option(help="Shortest run of fully tracked frames written as a trajectory.")
         ] = 5,
+        object_markers: Annotated[
+            Path | None,
+            typer.Option(
+                help="JSON layout of ArUco markers stuck on objects: ids, sizes, optionally objects and places "
+                "(see README). Where seen, a marker gives its object's pose."
+            ),
+        ] = None,
+        marker_use: Annotated[
+            str, typer.Option(help="Where a marker is seen, take its 'pose', or only its 'rotation'.")
+        ] = "pose",
         overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once done.")] = False,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
     ) -> None:
@@ -45,18 +55,25 @@ def register(app: typer.Typer) -> None:
         with user_errors_exit_2():
             from grounder._track import TrackOptions
             from grounder._track import track as run_track
+            from grounder._track_markers import load_object_markers
 
+            markers = () if object_markers is None else load_object_markers(object_markers)
             options = TrackOptions(
                 aruco_size_m=aruco_size,
                 intrinsics_colmap=intrinsics,
                 static_camera=static_camera,
                 max_frames=max_frames,
                 min_segment_frames=min_segment_frames,
+                object_markers=markers,
+                marker_use=marker_use,
             )
             with stage_progress() as progress:
                 result = run_track(clip, scene, out, options, overwrite=overwrite, progress=progress)
         for i, name in enumerate(result.object_names):
             lost = int((~result.valid[:, i]).sum())
             typer.echo(f"{name}: tracked {len(result.valid) - lost}/{len(result.valid)} frames")
+        for record in result.object_markers:
+            where = record["object"] or f"no object ({record.get('note', '')})"
+            typer.echo(f"object marker {record['id']}: on {where}")
         spans = ", ".join(f"{a}-{b}" for a, b in result.segments)
         typer.echo(f"{len(result.trajectories)} trajectory file(s) (frames {spans}) and track.json in {out}")
