@@ -120,12 +120,20 @@ def main() -> None:
         help="with --calibrate: windows from the segments (every object tracked), not each object's own runs",
     )
     parser.add_argument(
+        "--window", type=float, default=None, help="with --calibrate: window length, s (default: the tool's)"
+    )
+    parser.add_argument(
         "--window-stride", type=float, default=None, help="with --calibrate: window start-to-start, s (default: tool's)"
     )
     parser.add_argument(
         "--true-motion",
         action="store_true",
         help="with --calibrate: calibrate the grounded scene on the true trajectory (no tracking)",
+    )
+    parser.add_argument(
+        "--smooth-poses",
+        action="store_true",
+        help="with --calibrate --tracks: windows start from the smoothing fit's poses (SmoothingOptions.smooth_poses)",
     )
     parser.add_argument(
         "--generations", type=int, default=None, help="with --calibrate: differential evolution (default: the tool's)"
@@ -358,14 +366,17 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
     track_json = json.loads((tracks / "track.json").read_text())
-    options = _options(args)
+    from grounder._track_smooth import SmoothingOptions
+
+    smoothing = SmoothingOptions(smooth_poses=args.smooth_poses)
+    options = _options(args, track=TrackOptions(smoothing=smoothing))
     entry, _ = calibrate_per_body(
         scene / "scene.xml",
         load_trajectories(tracks),
         default_params(names),
         options,
         view_point_m=view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64)),
-        object_tracks=load_object_trajectories(tracks / "track.json") if options.own_runs else None,
+        object_tracks=load_object_trajectories(tracks / "track.json", smoothing) if options.own_runs else None,
     )
     print(f"screen + calibration on {tracks}: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])
@@ -439,6 +450,7 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
         "along_view_weight": args.along_view_weight,
         "own_runs": False if args.segments else None,
         "window_stride_s": args.window_stride,
+        "window_s": args.window,
     }
     chosen = {k: v for k, v in given.items() if v is not None}
     settings = {k: v for k, v in budget.items() if v is not None}
