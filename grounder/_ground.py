@@ -234,22 +234,9 @@ def _scan_object_markers(
     views: list[TextureView], objects: dict[str, dict], options: GroundOptions, warnings: list[str]
 ) -> list[dict[str, object]]:
     """ArUco markers stuck on objects, measured in the scan (`grounder._scan_markers`), as `scene.json` stores them."""
-    from grounder._scan_markers import ScanView, find_scan_markers
+    from grounder._scan_markers import find_scan_markers
     from grounder._track_smooth import matrix_from_quat
 
-    scan_views = [
-        ScanView(
-            image_bgr=v.image_bgr,
-            world_from_cam=v.world_from_cam,
-            fx_px=v.intrinsics.fx_px,
-            fy_px=v.intrinsics.fy_px,
-            cx_px=v.intrinsics.cx_px,
-            cy_px=v.intrinsics.cy_px,
-            k1=v.intrinsics.k1,
-            k2=v.intrinsics.k2,
-        )
-        for v in views
-    ]
     bodies = {}
     for name, record in objects.items():
         world_from_body = np.eye(4)
@@ -257,7 +244,7 @@ def _scan_object_markers(
         world_from_body[:3, 3] = record["pos_m"]
         bodies[name] = (world_from_body, np.asarray(record["extents_m"], float))
     markers, notes = find_scan_markers(
-        scan_views, bodies, options.reconstruct.aruco_dictionary, options.reconstruct.aruco_id
+        views, bodies, options.reconstruct.aruco_dictionary, options.reconstruct.aruco_id
     )
     warnings.extend(notes)
     return [m.to_json() for m in markers]

@@ -20,31 +20,19 @@ import cv2
 import numpy as np
 
 from grounder._track_smooth import quat_from_matrix
+from reconstruction._texture import TextureView
+from reconstruction._types import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True, kw_only=True)
-class ScanView:
-    """One registered scan frame: pixels, camera pose, intrinsics (COLMAP convention) and radial distortion."""
+def _cv_matrix(intr: CameraIntrinsics) -> np.ndarray:
+    """K in OpenCV's pixel convention (upper-left pixel centre at 0, 0)."""
+    return np.array([[intr.fx_px, 0.0, intr.cx_px - 0.5], [0.0, intr.fy_px, intr.cy_px - 0.5], [0.0, 0.0, 1.0]])
 
-    image_bgr: np.ndarray
-    world_from_cam: np.ndarray
-    fx_px: float
-    fy_px: float
-    cx_px: float
-    cy_px: float
-    k1: float = 0.0
-    k2: float = 0.0
 
-    @property
-    def cv_matrix(self) -> np.ndarray:
-        """K in OpenCV's pixel convention (upper-left pixel centre at 0, 0)."""
-        return np.array([[self.fx_px, 0.0, self.cx_px - 0.5], [0.0, self.fy_px, self.cy_px - 0.5], [0.0, 0.0, 1.0]])
-
-    @property
-    def distortion(self) -> np.ndarray:
-        return np.array([self.k1, self.k2, 0.0, 0.0])
+def _distortion(intr: CameraIntrinsics) -> np.ndarray:
+    return np.array([intr.k1, intr.k2, 0.0, 0.0])
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,7 +72,7 @@ class ScanMarker:
         }
 
 
-def _detect(views: Sequence[ScanView], dictionary: str, skip_id: int) -> dict[int, list[tuple[int, np.ndarray]]]:
+def _detect(views: Sequence[TextureView], dictionary: str, skip_id: int) -> dict[int, list[tuple[int, np.ndarray]]]:
     """Per marker id (other than skip_id): (view index, (4, 2) corners refined along the edges, OpenCV pixels)."""
     from reconstruction._world import aruco_detector, refine_corners_by_edges
 
@@ -104,7 +92,7 @@ def _detect(views: Sequence[ScanView], dictionary: str, skip_id: int) -> dict[in
     return found
 
 
-def _triangulate(views: Sequence[ScanView], seen: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, float, int]:
+def _triangulate(views: Sequence[TextureView], seen: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, float, int]:
     """(4, 3) world corners triangulated from the views that saw them, their reprojection RMS in pixels, and the
     number of views used: a view whose corners reproject more than 3x the median error (and 0.5 px) off is dropped
     once and the rest triangulated again (a grazing view whose corners the edge refinement pulled)."""
@@ -113,7 +101,9 @@ def _triangulate(views: Sequence[ScanView], seen: list[tuple[int, np.ndarray]]) 
     def solve(used: list[tuple[int, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
         cams_from_world = [np.linalg.inv(views[v].world_from_cam)[:3] for v, _ in used]
         rays = [
-            cv2.undistortPoints(px.reshape(-1, 1, 2), views[v].cv_matrix, views[v].distortion).reshape(4, 2)
+            cv2.undistortPoints(
+                px.reshape(-1, 1, 2), _cv_matrix(views[v].intrinsics), _distortion(views[v].intrinsics)
+            ).reshape(4, 2)
             for v, px in used
         ]
         corners = np.stack([triangulate_point([r[k] for r in rays], cams_from_world) for k in range(4)])
@@ -121,7 +111,9 @@ def _triangulate(views: Sequence[ScanView], seen: list[tuple[int, np.ndarray]]) 
         for (v, px), cam_from_world in zip(used, cams_from_world, strict=True):
             in_cam = corners @ cam_from_world[:, :3].T + cam_from_world[:, 3]
             zero = np.zeros(3)
-            projected = cv2.projectPoints(in_cam, zero, zero, views[v].cv_matrix, views[v].distortion)[0]
+            projected = cv2.projectPoints(
+                in_cam, zero, zero, _cv_matrix(views[v].intrinsics), _distortion(views[v].intrinsics)
+            )[0]
             errors.append(float(np.sqrt(np.mean(np.sum((projected.reshape(4, 2) - px) ** 2, axis=1)))))
         return corners, np.array(errors)
 
@@ -151,7 +143,7 @@ def _box_distance(point_body: np.ndarray, extents_m: np.ndarray) -> float:
 
 
 def find_scan_markers(
-    views: Sequence[ScanView],
+    views: Sequence[TextureView],
     bodies: Mapping[str, tuple[np.ndarray, np.ndarray]],
     dictionary: str,
     table_marker_id: int,

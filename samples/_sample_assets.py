@@ -9,6 +9,7 @@ with appearance tied to material (wood grain, printed cardboard, painted metal, 
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -428,6 +429,35 @@ def world_from_cam_opencv(data: mujoco.MjData, cam_id: int) -> np.ndarray:
 
 def write_json(path: Path, payload: object) -> None:
     path.write_text(json.dumps(payload, indent=1) + "\n")
+
+
+def render_states(
+    model: mujoco.MjModel, qpos: np.ndarray, camera: str, height_px: int, width_px: int
+) -> list[np.ndarray]:
+    """(H, W, 3) uint8 frames of `model` seen from `camera` at each row of qpos (T, nq), with progress."""
+    data = mujoco.MjData(model)
+    cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+    renderer = mujoco.Renderer(model, height_px, width_px)
+    frames = []
+    try:
+        for k, row in enumerate(qpos):
+            data.qpos[:] = row
+            mujoco.mj_forward(model, data)
+            renderer.update_scene(data, camera=cam_id)
+            frames.append(renderer.render()[:, :, :3].copy())
+            print(f"\rrendered {k + 1}/{len(qpos)}", end="", flush=True)
+    finally:
+        renderer.close()
+    print()
+    return frames
+
+
+def move_into_place(built: Path, dest: Path) -> None:
+    """Replaces `dest` by the finished sample folder `built` (the old one goes only once the new one is complete)."""
+    if dest.exists():
+        shutil.rmtree(dest)
+    shutil.move(str(built), dest)
+    print(f"wrote {dest}")
 
 
 def encode_video(frames: list[np.ndarray], path: Path, fps: float) -> None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -146,10 +145,7 @@ def main() -> None:
                 **({"object_markers": markers} if markers else {}),
             },
         )
-        if args.out.exists():
-            shutil.rmtree(args.out)
-        shutil.move(str(out), args.out)
-    print(f"wrote {args.out}")
+        sa.move_into_place(out, args.out)
 
 
 if __name__ == "__main__":

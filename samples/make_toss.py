@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import shutil
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -291,19 +290,7 @@ def main() -> None:
         rest_s = check_clip(model, objects, qpos, qvel, world_from_cam, intrinsics)
         print(f"all objects in view and on the table; at rest for the last {rest_s:.2f} s")
 
-        renderer = mujoco.Renderer(model, HEIGHT_PX, WIDTH_PX)
-        frames = []
-        try:
-            for k in range(NUM_FRAMES):
-                data.qpos[:] = qpos[k]
-                data.qvel[:] = qvel[k]
-                mujoco.mj_forward(model, data)
-                renderer.update_scene(data, camera=cam_id)
-                frames.append(renderer.render()[:, :, :3].copy())
-                print(f"\rrendered {k + 1}/{NUM_FRAMES}", end="", flush=True)
-        finally:
-            renderer.close()
-        print()
+        frames = sa.render_states(model, qpos, "video", HEIGHT_PX, WIDTH_PX)
         sa.encode_video(frames, out / "video.mp4", FPS)
 
         save_trajectory(Trajectory(time_s=time_s, qpos=qpos, qvel=qvel, name="trajectory"), truth / "trajectory.npz")
@@ -372,10 +359,7 @@ def main() -> None:
                 "objects": records,
             },
         )
-        if args.out.exists():
-            shutil.rmtree(args.out)
-        shutil.move(str(out), args.out)
-    print(f"wrote {args.out}")
+        sa.move_into_place(out, args.out)
 
 
 if __name__ == "__main__":

@@ -45,20 +45,7 @@ def main() -> None:
         spec = mujoco.MjSpec.from_file(str(truth_in / "scene.xml"))
         layout = sa.add_object_markers(spec, Path(assets_tmp), sa.default_objects(), absolute_paths=True)
         model = spec.compile()
-    data = mujoco.MjData(model)
-    cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "video")
-    renderer = mujoco.Renderer(model, make_toss.HEIGHT_PX, make_toss.WIDTH_PX)
-    frames: list[np.ndarray] = []
-    try:
-        for k in range(len(qpos)):
-            data.qpos[:] = qpos[k]
-            mujoco.mj_forward(model, data)
-            renderer.update_scene(data, camera=cam_id)
-            frames.append(renderer.render()[:, :, :3].copy())
-            print(f"\rrendered {k + 1}/{len(qpos)}", end="", flush=True)
-    finally:
-        renderer.close()
-    print()
+    frames = sa.render_states(model, qpos, "video", make_toss.HEIGHT_PX, make_toss.WIDTH_PX)
 
     with tempfile.TemporaryDirectory(dir=args.out.parent if args.out.parent.exists() else None) as tmp:
         out = Path(tmp) / "toss_markers"
@@ -78,10 +65,7 @@ def main() -> None:
             truth / "markers_unplaced.json",
             {"convention": "the same markers without their place: for a grounded scene", "markers": unplaced},
         )
-        if args.out.exists():
-            shutil.rmtree(args.out)
-        shutil.move(str(out), args.out)
-    print(f"wrote {args.out}")
+        sa.move_into_place(out, args.out)
 
 
 if __name__ == "__main__":

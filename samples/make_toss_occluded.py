@@ -140,10 +140,7 @@ def main() -> None:
                 "covered": covered,
             },
         )
-        if args.out.exists():
-            shutil.rmtree(args.out)
-        shutil.move(str(out), args.out)
-    print(f"wrote {args.out}")
+        sa.move_into_place(out, args.out)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from grounder._scan_markers import ScanView, find_scan_markers
+from grounder._scan_markers import find_scan_markers
 from grounder._simulate import quat_angle_rad
 from grounder._track import TrackOptions, read_clip, track
 from grounder._track_markers import (
@@ -29,6 +29,8 @@ from grounder._track_markers import (
 )
 from grounder._track_smooth import matrix_from_quat, quat_from_matrix, rotation_angle_deg
 from grounder.errors import GrounderError
+from reconstruction._texture import TextureView
+from reconstruction._types import CameraIntrinsics
 
 REPO = Path(__file__).resolve().parents[1]
 SCAN = REPO / "samples" / "tabletop_markers"
@@ -56,15 +58,16 @@ def test_scan_markers_are_placed_on_their_objects_within_half_a_millimetre() -> 
     objects = json.loads((SCAN / "truth" / "objects.json").read_text())
     intr = cams["intrinsics"]
     frames, _ = read_clip(SCAN / "video.mp4")
+    intrinsics = CameraIntrinsics(
+        width_px=intr["width"],
+        height_px=intr["height"],
+        fx_px=intr["fx"],
+        fy_px=intr["fy"],
+        cx_px=intr["cx"],
+        cy_px=intr["cy"],
+    )
     views = [
-        ScanView(
-            image_bgr=frame,
-            world_from_cam=np.array(cam["world_from_cam"]),
-            fx_px=intr["fx"],
-            fy_px=intr["fy"],
-            cx_px=intr["cx"],
-            cy_px=intr["cy"],
-        )
+        TextureView(image_bgr=frame, world_from_cam=np.array(cam["world_from_cam"]), intrinsics=intrinsics)
         for frame, cam in zip(frames, cams["frames"], strict=True)
     ]
     bodies = {o["name"]: (_pose(o["pos_m"], o["quat_wxyz"]), np.array(o["extents_m"])) for o in objects["objects"]}
