@@ -51,6 +51,7 @@ from grounder._track_markers import (
     aligned_grid_px,
     check_markers,
     combined_markers,
+    marker_agreement,
     marker_grid_m,
     marker_object_poses,
     marker_template,
@@ -930,10 +931,12 @@ def apply_object_markers(
 ) -> tuple[dict[str, object], ...]:
     """Puts the object markers' poses into the model-based track (`options.marker_use`). In place.
 
-    Markers without a place in the layout are placed from the model-based track (`place_markers`), after the
-    support correction: a marker then keeps the track's absolute position (which the table fixes) and brings its
-    own frame-to-frame precision. Where the track lost an object (hidden texture, blur, a first frame it was not
-    found in) and its marker is seen, the marker's pose fills the frame. Returns each marker's `placement_json`.
+    Markers without a place (from the scan or the layout) are placed from the model-based track
+    (`place_markers`). This runs before the support correction, so the table also fixes the depth of the marker
+    poses where the object rests. Where the track lost an object (hidden texture, blur, a first frame it was not
+    found in) and its marker is seen, the marker's pose fills the frame. A marker whose poses lie more than
+    `marker_max_spread_m` from the model-based track (median) is still used, but a warning says so: its place is
+    likely wrong (moved after the scan). Returns each marker's `placement_json`.
     """
     views = measure_markers(grays, camera, world_from_cam, markers, options.aruco_dictionary, progress=progress)
     model_based = valid & np.array([[s.source in ("track", "detect") for s in row] for row in scores], bool)
@@ -955,6 +958,7 @@ def apply_object_markers(
         ambiguity_ratio=options.marker_ambiguity_ratio,
         max_rms_px=options.marker_max_rms_px,
     )
+    agreement = marker_agreement(measured, poses, model_based)
     for f, i in zip(*np.nonzero(measured.seen), strict=True):
         old = scores[f][i]
         pose = measured.world_from_objects[f, i].copy()
@@ -970,17 +974,32 @@ def apply_object_markers(
             source="marker",
             marker_rms_px=float(measured.rms_px[f, i]),
         )
+    records = []
     for marker, placement in zip(placed, placements, strict=True):
-        if placement.object_name is not None:
-            i = list(names).index(placement.object_name)
-            log.info(
-                "object marker %d on %s: seen in %d of %d frames",
+        if placement.object_name is None:
+            records.append(placement_json(marker, placement))
+            continue
+        i = list(names).index(placement.object_name)
+        frames, off_mm, off_deg = agreement[i]
+        log.info(
+            "object marker %d on %s: seen in %d of %d frames",
+            marker.marker_id,
+            placement.object_name,
+            int(measured.seen[:, i].sum()),
+            len(grays),
+        )
+        if frames and off_mm > 1e3 * options.marker_max_spread_m:
+            log.warning(
+                "object marker %d on %s: its poses lie %.0f mm / %.0f deg from the model-based track (median of %d "
+                "frames); was it moved after the scan? Give its place again (--object-markers) or scan again",
                 marker.marker_id,
                 placement.object_name,
-                int(measured.seen[:, i].sum()),
-                len(grays),
+                off_mm,
+                off_deg,
+                frames,
             )
-    return tuple(placement_json(m, p) for m, p in zip(placed, placements, strict=True))
+        records.append(placement_json(marker, placement, agreement[i]))
+    return tuple(records)
 
 
 # ---------------------------------------------------------------- segments and trajectories

@@ -503,8 +503,30 @@ def marker_object_poses(
     return MarkerPoses(world_from_objects=poses, seen=np.isfinite(error), rms_px=error)
 
 
-def placement_json(marker: ObjectMarker, placement: MarkerPlacement) -> dict[str, object]:
-    """One marker's record for `track.json`: the layout entry it would take, and how it was placed."""
+def marker_agreement(
+    measured: MarkerPoses, world_from_objects: np.ndarray, model_based: np.ndarray
+) -> list[tuple[int, float, float]]:
+    """Per object, how far its marker-measured poses lie from its model-based track where both exist: (frames,
+    median distance in mm, median angle in deg); (0, NaN, NaN) where they never overlap. A marker whose given
+    place is wrong (moved after the scan, a layout typo) shows as a large, steady disagreement."""
+    out = []
+    for i in range(measured.seen.shape[1]):
+        frames = np.nonzero(measured.seen[:, i] & model_based[:, i])[0]
+        if not len(frames):
+            out.append((0, float("nan"), float("nan")))
+            continue
+        marker, model = measured.world_from_objects[frames, i], world_from_objects[frames, i]
+        dist_mm = 1e3 * np.linalg.norm(marker[:, :3, 3] - model[:, :3, 3], axis=1)
+        angle_deg = [rotation_angle_deg(a[:3, :3], b[:3, :3]) for a, b in zip(marker, model, strict=True)]
+        out.append((len(frames), float(np.median(dist_mm)), float(np.median(angle_deg))))
+    return out
+
+
+def placement_json(
+    marker: ObjectMarker, placement: MarkerPlacement, agreement: tuple[int, float, float] | None = None
+) -> dict[str, object]:
+    """One marker's record for `track.json`: the layout entry it would take, how it was placed, and (`agreement`)
+    how its object's marker poses compare with the model-based track."""
     out: dict[str, object] = {
         "id": marker.marker_id,
         "size_m": marker.size_m,
@@ -519,6 +541,12 @@ def placement_json(marker: ObjectMarker, placement: MarkerPlacement) -> dict[str
         value = getattr(placement, key)
         if np.isfinite(value):
             out[key] = round(float(value), 3)
+    if agreement is not None and agreement[0]:
+        out["model_agreement"] = {
+            "frames": agreement[0],
+            "median_mm": round(agreement[1], 2),
+            "median_deg": round(agreement[2], 2),
+        }
     if placement.note:
         out["note"] = placement.note
     return out

@@ -20,11 +20,13 @@ from grounder._scan_markers import find_scan_markers
 from grounder._simulate import quat_angle_rad
 from grounder._track import TrackOptions, read_clip, track
 from grounder._track_markers import (
+    MarkerPoses,
     MarkerViews,
     ObjectMarker,
     check_markers,
     combined_markers,
     load_object_markers,
+    marker_agreement,
     place_markers,
 )
 from grounder._track_smooth import matrix_from_quat, quat_from_matrix, rotation_angle_deg
@@ -154,7 +156,27 @@ def test_markers_on_objects_track_the_toss_to_a_third_of_a_degree(tmp_path: Path
     meta = json.loads((out / "track.json").read_text())
     assert [m["object"] for m in meta["object_markers"]] == ["box", "can"]
     assert all(m["placed_by"] == "layout" for m in meta["object_markers"])
+    # Where both exist, the marker poses and the model-based track agree within the latter's error (box 7.6 mm).
+    assert all(0 < m["model_agreement"]["median_mm"] < 10 for m in meta["object_markers"])
     assert meta["objects"]["bowl"]["scores"][50]["source"] == "track"
+
+
+def test_a_misplaced_marker_shows_as_disagreement_with_the_model_based_track() -> None:
+    """A marker given 30 mm off its true place: its object's poses lie 30 mm from the model-based track in every
+    frame both see (what `track` warns about); an object never seen by both has no figure."""
+    frames = 20
+    model = np.tile(np.eye(4), (frames, 2, 1, 1))
+    model[:, 0, 0, 3] = np.linspace(0.0, 0.2, frames)
+    marker = np.full((frames, 2, 4, 4), np.nan)
+    marker[:, 0] = model[:, 0] @ _pose([0.0, 0.03, 0.0], [1, 0, 0, 0])
+    seen = np.zeros((frames, 2), bool)
+    seen[:, 0] = True
+    measured = MarkerPoses(world_from_objects=marker, seen=seen, rms_px=np.where(seen, 0.05, np.nan))
+    model_based = np.ones((frames, 2), bool)
+    model_based[:5, 0] = False  # e.g. frames the marker filled in
+    (count, off_mm, off_deg), (none, nan_mm, _) = marker_agreement(measured, model, model_based)
+    assert count == 15 and abs(off_mm - 30.0) < 1e-6 and off_deg < 1e-6
+    assert none == 0 and np.isnan(nan_mm)
 
 
 def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
