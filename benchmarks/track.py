@@ -104,6 +104,11 @@ def main() -> None:
     )
     parser.add_argument("--ignore-markers", action="store_true", help="with --markers: track the clip without them")
     parser.add_argument(
+        "--scan-features",
+        action="store_true",
+        help="feature models also from the scan's frames (TrackOptions.scan_features)",
+    )
+    parser.add_argument(
         "--place-from-clip",
         action="store_true",
         help="with --markers: ignore the scan's marker places; place each marker from the clip's model-based track",
@@ -180,7 +185,12 @@ def main() -> None:
         clip_dir / "video.mp4",
         args.scene,
         args.out,
-        TrackOptions(aruco_size_m=0.12, max_frames=args.frames, **marker_fields(args, clip_dir)),
+        TrackOptions(
+            aruco_size_m=0.12,
+            max_frames=args.frames,
+            scan_features=args.scan_features,
+            **marker_fields(args, clip_dir),
+        ),
         overwrite=True,
     )
     print(f"tracked {len(result.time_s)} frames in {time.perf_counter() - tick:.1f} s ({result.seconds})")
@@ -254,7 +264,10 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
         ROOT / f"samples/{'tabletop_markers' if args.markers else 'tabletop'}/video.mp4",
         clip_dir / "video.mp4",
         out,
-        _options(args, track=TrackOptions(aruco_size_m=0.12, **marker_fields(args, clip_dir))),
+        _options(
+            args,
+            track=TrackOptions(aruco_size_m=0.12, scan_features=args.scan_features, **marker_fields(args, clip_dir)),
+        ),
         grounded_scene=scene,
         overwrite=True,
     )

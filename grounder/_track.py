@@ -65,8 +65,11 @@ from grounder._track_render import (
     PinholeCamera,
     PoseRenderer,
     RenderedView,
+    ScanFrame,
     backproject,
     build_feature_models,
+    merged_feature_models,
+    scan_feature_models,
 )
 from grounder._track_smooth import (
     SmoothingOptions,
@@ -119,6 +122,12 @@ class TrackOptions:
             close to the extrapolation of the run's motion, or it is flagged too.
         detect_min_inliers: PnP inliers needed to accept a detection.
         detect_views: rendered directions in each object's feature model.
+        scan_features: also build each object's feature model from the scan's own frames (the scene folder's
+            `reconstruction/`; only when the clip is filmed with the scan's camera, i.e. no `intrinsics_colmap`).
+            Off by default: it finds objects sooner and tracks the toss a little better (1.32 -> 1.26 mm), but the
+            calibration of four scans' tosses came out worse with it (11 of 18 values within 20%, against 14 of
+            17): the windows it adds start in flight, where tracking is least certain (README).
+        scan_feature_frames: at most this many scan frames, evenly spread over the scan.
         min_segment_frames: shorter tracked runs are not written as trajectories (still in track.json).
         smoothing: the velocity fit.
         support_correction: scale each object's depth along the camera ray so that it rests on the table
@@ -161,6 +170,8 @@ class TrackOptions:
     max_edge_deviation_m: float = 0.008
     detect_min_inliers: int = 15
     detect_views: int = 26
+    scan_features: bool = False
+    scan_feature_frames: int = 16
     min_segment_frames: int = 5
     smoothing: SmoothingOptions = field(default_factory=SmoothingOptions)
     support_correction: bool = True
@@ -310,6 +321,51 @@ def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[Pi
     return camera, dist
 
 
+def load_scan(
+    scene_xml: Path,
+    names: Sequence[str],
+    options: TrackOptions,
+    undistort: Callable[[np.ndarray], np.ndarray],
+    size_px: tuple[int, int],
+) -> tuple[list[ScanFrame], list[np.ndarray]] | None:
+    """Up to `scan_feature_frames` registered scan frames (undistorted like the clip) and each object's pose during
+    the scan, for the feature models; None (logged) where the scene folder lacks them or the clip was filmed with
+    another camera or at another size (`size_px`: the clip's height, width)."""
+    rec_dir = scene_xml.parent / "reconstruction"
+    transforms, manifest = rec_dir / "transforms.json", scene_xml.parent / "scene.json"
+    if options.intrinsics_colmap is not None or not (transforms.is_file() and manifest.is_file()):
+        log.info("feature models from renders only (no scan frames, or the clip has its own camera)")
+        return None
+    try:
+        rows = json.loads(transforms.read_text())["frames"]
+        objects = json.loads(manifest.read_text())["objects"]
+        world_from_objects = []
+        for name in names:
+            pose = np.eye(4)
+            pose[:3, :3] = matrix_from_quat(np.asarray(objects[name]["quat_wxyz"], float))
+            pose[:3, 3] = objects[name]["pos_m"]
+            world_from_objects.append(pose)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        log.warning("scan frames not used for the feature models: %s", exc)
+        return None
+    picks = np.unique(np.linspace(0, len(rows) - 1, min(len(rows), options.scan_feature_frames)).round().astype(int))
+    frames = []
+    for k in picks:
+        image = cv2.imread(str(rec_dir / rows[k]["file_path"]))
+        if image is None:
+            continue
+        if image.shape[:2] != tuple(size_px):
+            log.info("feature models from renders only: the scan frames are not the clip's size")
+            return None
+        gray = cv2.cvtColor(undistort(image), cv2.COLOR_BGR2GRAY)
+        # transforms.json: nerfstudio's camera-to-world with OpenGL camera axes (y up, z back).
+        world_from_cam = np.asarray(rows[k]["transform_matrix"], float) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        frames.append(ScanFrame(gray=gray, world_from_cam=world_from_cam))
+    if not frames:
+        return None
+    return frames, world_from_objects
+
+
 # ---------------------------------------------------------------- camera
 
 
@@ -441,9 +497,15 @@ class _Step:
 class _Tracker:
     """Holds the renderer, the feature models and the per-object geometry for one clip."""
 
-    def __init__(self, renderer: PoseRenderer, options: TrackOptions) -> None:
+    def __init__(
+        self,
+        renderer: PoseRenderer,
+        options: TrackOptions,
+        scan: tuple[list[ScanFrame], list[np.ndarray]] | None = None,
+    ) -> None:
         self.renderer = renderer
         self.options = options
+        self.scan = scan
         self.camera = renderer.camera
         self.vertices = [self._object_vertices(i) for i in range(len(renderer.names))]
         self.radii = [float(np.linalg.norm(v, axis=1).max()) for v in self.vertices]
@@ -478,8 +540,19 @@ class _Tracker:
 
     @property
     def features(self) -> list[FeatureModel]:
+        """Per object: SIFT of its textured mesh rendered from `detect_views` directions, plus (where the scene's
+        scan frames are at hand) SIFT of the object in the scan's own frames (`scan_feature_models`)."""
         if self._features is None:
-            self._features = build_feature_models(self.renderer, self.radii, num_views=self.options.detect_views)
+            world_from_cam = self.renderer.world_from_cam.copy()
+            features = build_feature_models(self.renderer, self.radii, num_views=self.options.detect_views)
+            if self.scan is not None:
+                frames, world_from_objects = self.scan
+                features = merged_feature_models(
+                    features, scan_feature_models(self.renderer, frames, world_from_objects)
+                )
+                log.info("feature models from %d scan frames: %s", len(frames), [len(f.descriptors) for f in features])
+            self.renderer.set_camera(world_from_cam)
+            self._features = features
         return self._features
 
     def in_frame(self, index: int, world_from_object: np.ndarray) -> float:
@@ -725,12 +798,13 @@ def track_frames(
     world_from_cam: np.ndarray,
     options: TrackOptions,
     *,
+    scan: tuple[list[ScanFrame], list[np.ndarray]] | None = None,
     progress: ProgressFn | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[list[FrameScore]]]:
     """Tracks every object through undistorted frames; returns poses (F, N, 4, 4) (NaN where lost), valid (F, N)
-    and scores."""
+    and scores. `scan`: the scan's frames and the objects' poses in them, for the feature models (`load_scan`)."""
     report = progress or (lambda stage, done, total: None)
-    tracker = _Tracker(renderer, options)
+    tracker = _Tracker(renderer, options, scan)
     count, num = len(frames_bgr), len(renderer.names)
     poses = np.full((count, num, 4, 4), np.nan)
     valid = np.zeros((count, num), bool)
@@ -935,8 +1009,9 @@ def apply_object_markers(
     (`place_markers`). This runs before the support correction, so the table also fixes the depth of the marker
     poses where the object rests. Where the track lost an object (hidden texture, blur, a first frame it was not
     found in) and its marker is seen, the marker's pose fills the frame. A marker whose poses lie more than
-    `marker_max_spread_m` from the model-based track (median) is still used, but a warning says so: its place is
-    likely wrong (moved after the scan). Returns each marker's `placement_json`.
+    `marker_max_spread_m` across the camera ray from the model-based track, or more than 5 deg off it (medians),
+    is still used, but a warning says so: its place is likely wrong (moved after the scan). Returns each marker's
+    `placement_json`.
     """
     views = measure_markers(grays, camera, world_from_cam, markers, options.aruco_dictionary, progress=progress)
     model_based = valid & np.array([[s.source in ("track", "detect") for s in row] for row in scores], bool)
@@ -958,7 +1033,7 @@ def apply_object_markers(
         ambiguity_ratio=options.marker_ambiguity_ratio,
         max_rms_px=options.marker_max_rms_px,
     )
-    agreement = marker_agreement(measured, poses, model_based)
+    agreement = marker_agreement(measured, poses, model_based, world_from_cam)
     for f, i in zip(*np.nonzero(measured.seen), strict=True):
         old = scores[f][i]
         pose = measured.world_from_objects[f, i].copy()
@@ -988,10 +1063,11 @@ def apply_object_markers(
             int(measured.seen[:, i].sum()),
             len(grays),
         )
-        if frames and off_mm > 1e3 * options.marker_max_spread_m:
+        if frames and (off_mm > 1e3 * options.marker_max_spread_m or off_deg > 5.0):
             log.warning(
-                "object marker %d on %s: its poses lie %.0f mm / %.0f deg from the model-based track (median of %d "
-                "frames); was it moved after the scan? Give its place again (--object-markers) or scan again",
+                "object marker %d on %s: its poses lie %.0f mm across the view / %.0f deg from the model-based track "
+                "(median of %d frames); was it moved after the scan? Give its place again (--object-markers) or "
+                "scan again",
                 marker.marker_id,
                 placement.object_name,
                 off_mm,
@@ -1160,11 +1236,16 @@ def track(
         dist = np.zeros(4)
     else:
         camera, dist = scene_intrinsics(scene_xml, width_px, height_px)
+    maps = None
     if np.abs(dist).max() > 0:
         maps = cv2.initUndistortRectifyMap(
             camera.cv_matrix, dist, None, camera.cv_matrix, (width_px, height_px), cv2.CV_32FC1
         )
-        frames = [cv2.remap(f, maps[0], maps[1], cv2.INTER_LINEAR) for f in frames]
+
+    def undistort(image: np.ndarray) -> np.ndarray:
+        return image if maps is None else cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR)
+
+    frames = [undistort(f) for f in frames]
     grays = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames]
     world_from_cam, static = marker_camera_poses(grays, camera, options)
     seconds["read_and_camera"] = time.perf_counter() - tick
@@ -1175,7 +1256,14 @@ def track(
         if options.scene_markers:
             markers = combined_markers(markers, scene_markers(scene_xml.parent / "scene.json"))
         check_markers(markers, renderer.names, options.aruco_dictionary, options.aruco_id)
-        poses, valid, scores = track_frames(frames, fps, renderer, world_from_cam, options, progress=progress)
+        scan = (
+            load_scan(scene_xml, renderer.names, options, undistort, (height_px, width_px))
+            if options.scan_features
+            else None
+        )
+        poses, valid, scores = track_frames(
+            frames, fps, renderer, world_from_cam, options, scan=scan, progress=progress
+        )
         model: mujoco.MjModel = renderer.model
         names = renderer.names
     seconds["tracking"] = time.perf_counter() - tick

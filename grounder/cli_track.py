@@ -45,6 +45,13 @@ def register(app: typer.Typer) -> None:
         marker_use: Annotated[
             str, typer.Option(help="Where a marker is seen, take its 'pose', or only its 'rotation'.")
         ] = "pose",
+        scan_features: Annotated[
+            bool,
+            typer.Option(
+                help="Also learn each object's appearance from the scan's frames (finds weakly textured objects "
+                "sooner; off by default, see README)."
+            ),
+        ] = False,
         overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once done.")] = False,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
     ) -> None:
@@ -66,6 +73,7 @@ def register(app: typer.Typer) -> None:
                 min_segment_frames=min_segment_frames,
                 object_markers=markers,
                 marker_use=marker_use,
+                scan_features=scan_features,
             )
             with stage_progress() as progress:
                 result = run_track(clip, scene, out, options, overwrite=overwrite, progress=progress)

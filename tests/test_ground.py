@@ -171,3 +171,27 @@ def test_a_failed_background_decomposition_surfaces_as_itself() -> None:
         job = pool.submit(fail)
         with pytest.raises(DecompositionError, match="no usable hulls for object_0"):
             _object_specs([obj], {"object_0": job}, {}, GroundOptions(), lambda stage, done, total: None)
+
+
+def test_scan_frames_for_the_feature_models_read_back_with_their_cameras(scene_dir: Path, tabletop_dir: Path) -> None:
+    """`track --scan-features` reads the scene folder's scan frames back (`load_scan`): each frame's camera pose,
+    converted from transforms.json's OpenGL axes, agrees with the true camera of that video frame (within 5 mm and
+    0.5 deg), and each object's scan pose is the one scene.json gives."""
+    from grounder._track import TrackOptions, load_scan
+    from grounder._track_smooth import rotation_angle_deg
+
+    names = list(json.loads((scene_dir / "scene.json").read_text())["objects"])
+    loaded = load_scan(
+        scene_dir / "scene.xml", names, TrackOptions(scan_feature_frames=6), lambda image: image, (480, 640)
+    )
+    assert loaded is not None
+    frames, poses = loaded
+    assert len(frames) == 6 and len(poses) == len(names)
+    rows = json.loads((scene_dir / "reconstruction" / "transforms.json").read_text())["frames"]
+    truth = json.loads((tabletop_dir / "truth" / "cameras.json").read_text())["frames"]
+    picks = np.unique(np.linspace(0, len(rows) - 1, 6).round().astype(int))
+    for frame, k in zip(frames, picks, strict=True):
+        true_pose = np.array(truth[rows[k]["frame_index"]]["world_from_cam"])
+        assert np.linalg.norm(frame.world_from_cam[:3, 3] - true_pose[:3, 3]) < 5e-3
+        assert rotation_angle_deg(frame.world_from_cam[:3, :3], true_pose[:3, :3]) < 0.5
+        assert frame.gray.shape == (480, 640)

@@ -157,13 +157,14 @@ def test_markers_on_objects_track_the_toss_to_a_third_of_a_degree(tmp_path: Path
     assert [m["object"] for m in meta["object_markers"]] == ["box", "can"]
     assert all(m["placed_by"] == "layout" for m in meta["object_markers"])
     # Where both exist, the marker poses and the model-based track agree within the latter's error (box 7.6 mm).
-    assert all(0 < m["model_agreement"]["median_mm"] < 10 for m in meta["object_markers"])
+    assert all(0 < m["model_agreement"]["median_across_ray_mm"] < 10 for m in meta["object_markers"])
     assert meta["objects"]["bowl"]["scores"][50]["source"] == "track"
 
 
 def test_a_misplaced_marker_shows_as_disagreement_with_the_model_based_track() -> None:
-    """A marker given 30 mm off its true place: its object's poses lie 30 mm from the model-based track in every
-    frame both see (what `track` warns about); an object never seen by both has no figure."""
+    """A marker given 30 mm off its true place, across the camera's view: its object's poses lie 30 mm from the
+    model-based track in every frame both see (what `track` warns about); an offset along the view (the track's
+    weak axis) does not count; an object never seen by both has no figure."""
     frames = 20
     model = np.tile(np.eye(4), (frames, 2, 1, 1))
     model[:, 0, 0, 3] = np.linspace(0.0, 0.2, frames)
@@ -174,9 +175,15 @@ def test_a_misplaced_marker_shows_as_disagreement_with_the_model_based_track() -
     measured = MarkerPoses(world_from_objects=marker, seen=seen, rms_px=np.where(seen, 0.05, np.nan))
     model_based = np.ones((frames, 2), bool)
     model_based[:5, 0] = False  # e.g. frames the marker filled in
-    (count, off_mm, off_deg), (none, nan_mm, _) = marker_agreement(measured, model, model_based)
+    cameras = np.tile(_pose([0.0, 0.0, 1.0], [1, 0, 0, 0]), (frames, 1, 1))  # above, looking down -z
+    cameras[:, :3, 3] += model[:, 0, :3, 3]  # straight above the object: the ray is vertical
+    (count, off_mm, off_deg), (none, nan_mm, _) = marker_agreement(measured, model, model_based, cameras)
     assert count == 15 and abs(off_mm - 30.0) < 1e-6 and off_deg < 1e-6
     assert none == 0 and np.isnan(nan_mm)
+    along = measured.world_from_objects.copy()
+    along[:, 0] = model[:, 0] @ _pose([0.0, 0.0, 0.03], [1, 0, 0, 0])  # 30 mm along the vertical ray
+    shifted = MarkerPoses(world_from_objects=along, seen=seen, rms_px=measured.rms_px)
+    assert marker_agreement(shifted, model, model_based, cameras)[0][1] < 1e-6
 
 
 def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
