@@ -59,6 +59,8 @@ def register(app: typer.Typer) -> None:
         _setup_logging(verbose)
         if not aruco_size > 0 or min_segment_frames < 3 or (max_frames is not None and max_frames < 2):
             fail("--aruco-size must be > 0, --min-segment-frames >= 3 and --max-frames >= 2")
+        if marker_use not in ("pose", "rotation"):
+            fail(f"--marker-use {marker_use}: expected pose or rotation")
         with user_errors_exit_2():
             from grounder._track import TrackOptions
             from grounder._track import track as run_track
