@@ -1335,6 +1335,19 @@ def track(
                 + ", ".join(f"{n} {100 * v:.0f}%" for n, v in zip(names, valid.mean(axis=0), strict=True))
                 + "); check the marker size, the scene and the clip"
             )
+        from grounder._track_overview import track_overview
+
+        overview = track_overview(
+            frames,
+            scene_xml,
+            camera,
+            world_from_cam,
+            poses,
+            valid,
+            np.array([[score.source for score in row] for row in scores]),
+            names,
+            options.start_frame,
+        )
         write_track_output(
             result,
             Path(out_dir),
@@ -1344,6 +1357,7 @@ def track(
             fps=fps,
             options=options,
             overwrite=overwrite,
+            overview_bgr=overview,
         )
     return result
 
@@ -1365,11 +1379,14 @@ def write_track_output(
     fps: float,
     options: TrackOptions,
     overwrite: bool = False,
+    overview_bgr: np.ndarray | None = None,
 ) -> None:
-    """Writes the segment trajectories and `track.json` atomically into `out_dir`."""
+    """Writes the segment trajectories, `track.json` and (if given) `overview.png` atomically into `out_dir`."""
     from reconstruction import staged_output_dir
 
     with staged_output_dir(out_dir, overwrite=overwrite) as stage:
+        if overview_bgr is not None:
+            cv2.imwrite(str(stage / "overview.png"), overview_bgr)
         for traj in result.trajectories:
             save_trajectory(traj, stage / f"{traj.name}.npz")
         objects = {}

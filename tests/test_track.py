@@ -185,6 +185,20 @@ def test_hidden_object_is_flagged_and_excluded_from_trajectories(tmp_path: Path)
     assert not covered_frames & fully_hidden
     assert not any(meta["objects"]["box"]["valid"][k - first] for k in fully_hidden if first <= k < first + count)
     assert hidden  # the sample really hides the box
+    # overview.png shows it: the box's status row (the first of the three at the bottom) is red ("lost") over the
+    # same share of its width as the box's lost frames, the can's and the bowl's rows not at all.
+    import cv2
+
+    from grounder._track_overview import STATUS_COLOURS_BGR
+
+    image = cv2.imread(str(out / "overview.png"))
+    assert image is not None and image.shape[1] == 4 * 320
+    lost_share = []
+    for i in range(3):
+        row = image[image.shape[0] - 3 * 14 + i * 14 + 7, 110:]
+        lost_share.append(float(np.mean(np.all(row == STATUS_COLOURS_BGR["lost"], axis=1))))
+    assert abs(lost_share[0] - float(np.mean(~result.valid[:, 0]))) < 0.03 and lost_share[0] > 0.2, lost_share
+    assert lost_share[1] == 0 and lost_share[2] == 0, lost_share
 
 
 def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
