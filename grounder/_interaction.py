@@ -883,6 +883,7 @@ def _markdown(payload: dict[str, Any]) -> str:
         lines.append(f"- {name}: tracked in {100 * info['tracked_fraction']:.0f}% of the frames, {lost_text}")
     spans = ", ".join(f"{s['first_frame']}-{s['last_frame']}" for s in payload["tracking"]["segments"])
     lines += ["", f"Segments with every object tracked: {spans}. Calibration sees only tracked frames.", ""]
+    lines += ["![tracked outlines and per-frame status](interaction/tracks/overview.png)", ""]
     lines += ["## Calibration", "", f"Status: {payload['calibration']['status']}.", ""]
     params = payload["calibration"].get("parameters", {})
     if params:
