@@ -53,7 +53,7 @@ import numpy as np
 
 from grounder._ground import GroundOptions, ground
 from grounder._track import TrackOptions, TrackResult, object_trajectories, track
-from grounder._track_smooth import SmoothingOptions
+from grounder._track_smooth import SmoothingOptions, quat_from_matrix
 from grounder._trajectory import Trajectory, save_trajectories
 from grounder.errors import GrounderError
 
@@ -279,6 +279,8 @@ def _open_loop_errors(model: Any, trajs: Sequence[Trajectory]) -> list[dict[str,
     its first state (`grounder._simulate.free_body_errors`)."""
     from grounder._simulate import free_body_errors, simulate
 
+    if not trajs:
+        return []
     predicted = simulate(model, list(trajs))
     out = []
     for pred, real in zip(predicted, trajs, strict=True):
@@ -585,6 +587,60 @@ def separable_bodies(scene_xml: Path, trajs: Sequence[Trajectory], clearance_m: 
     return True
 
 
+def tracked_states(model: Any, tracked: TrackResult) -> list[Trajectory]:
+    """Every frame in which at least two objects are tracked, as one whole-scene trajectory (zero velocities), with
+    the untracked objects parked far from the table and from each other: what `separable_bodies` checks when no
+    segment has every object tracked at once."""
+    from grounder._simulate import free_joints
+
+    joints = free_joints(model)
+    rows = np.nonzero(tracked.valid.sum(axis=1) >= 2)[0]
+    if not len(rows):
+        return []
+    qpos = np.tile(model.qpos0, (len(rows), 1))
+    for i, fj in enumerate(joints):
+        qpos[:, fj.pos] = [1000.0 + 10.0 * i, 1000.0, 1000.0]
+        qpos[:, fj.quat] = [1.0, 0.0, 0.0, 0.0]
+        for k, f in enumerate(rows):
+            if tracked.valid[f, i]:
+                qpos[k, fj.pos] = tracked.world_from_objects[f, i, :3, 3]
+                qpos[k, fj.quat] = quat_from_matrix(tracked.world_from_objects[f, i, :3, :3])
+    return [Trajectory(time_s=tracked.time_s[rows], qpos=qpos, qvel=np.zeros((len(rows), model.nv)), name="tracked")]
+
+
+def write_values(scene_xml: Path, values: Mapping[str, float], out: Path) -> Path:
+    """Writes `out/scene.xml` (with the scene folder's files): the scene with the given parameter values, and their
+    record in its `scene.json`. For when the values were fitted per object and no whole-scene trajectory exists to
+    evaluate them on (`calibrate` writes the scene otherwise)."""
+    import mujoco
+
+    from grounder._calibrate import _copy_scene_files
+    from grounder._calibrate_params import apply_to_spec, resolve_parameters
+
+    base = mujoco.MjModel.from_xml_path(str(scene_xml))
+    spec = mujoco.MjSpec.from_file(str(scene_xml))
+    resolved = resolve_parameters(base, list(values))
+    apply_to_spec(spec, base, resolved, [values[p.name] for p in resolved])
+    out.mkdir(parents=True)
+    _copy_scene_files(scene_xml.parent, spec, out)
+    for stray in out.glob(".calibrate_*.xml"):
+        stray.unlink()
+    (out / "scene.xml").write_text(spec.to_xml())
+    reloaded = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
+    if reloaded.nq != base.nq or reloaded.nv != base.nv:
+        raise GrounderError("the written scene.xml does not match the scene's joints")
+    manifest = out / "scene.json"
+    if manifest.is_file():
+        data = json.loads(manifest.read_text())
+        data["calibration"] = {
+            "mode": "per object, no whole-scene evaluation",
+            "parameters": dict(values),
+            "note": "scene.xml holds the calibrated values; per-object entries above are from before calibration",
+        }
+        manifest.write_text(json.dumps(data, indent=1) + "\n")
+    return out / "scene.xml"
+
+
 def _single_body_trajectory(model: Any, traj: Trajectory, body: str) -> Trajectory:
     """The columns of one free body of a trajectory of a scene with free bodies only."""
     from grounder._simulate import free_joints
@@ -691,6 +747,15 @@ def calibrate_per_body(
     if not values:
         entry["status"] = "skipped: the clip constrains none of the parameters (prior kept)"
         return entry, used
+    if not segments:
+        if out is not None:
+            write_values(scene_xml, values, out)
+        entry["status"] = (
+            "calibrated per object; no segment has every object tracked at once, so the values were not evaluated "
+            "on the whole scene"
+            + (f"; unconstrained by the clip, prior kept: {unconstrained}" if unconstrained else "")
+        )
+        return entry, used
     result = calibrate(
         scene_xml.parent if scene_xml.name == "scene.xml" else scene_xml,
         list(segments),
@@ -769,7 +834,18 @@ def ground_with_interaction(
         tracked = track(Path(clip), grounded, tracks_dir, track_options, progress=report)
         seconds["track"] = time.perf_counter() - tick
         segments = list(tracked.trajectories)
-        per_body = options.per_object and bool(segments) and separable_bodies(grounded / "scene.xml", segments)
+        if segments:
+            per_body = options.per_object and separable_bodies(grounded / "scene.xml", segments)
+        else:
+            # No frame has every object: each object's own runs, if the objects never touch where tracked together.
+            import mujoco
+
+            model = mujoco.MjModel.from_xml_path(str(grounded / "scene.xml"))
+            per_body = (
+                options.per_object
+                and options.own_runs
+                and separable_bodies(grounded / "scene.xml", tracked_states(model, tracked))
+            )
         fit_trajs = (
             [] if per_body else windows(segments, options.window_s, options.window_stride_s, options.min_motion_m_s)
         )
@@ -833,6 +909,11 @@ def ground_with_interaction(
                 progress=report,
             )
             seconds["calibrate"] = time.perf_counter() - tick
+        elif not segments:
+            payload["calibration"] = {
+                "status": "skipped: no frame has every object tracked, and the objects cannot be calibrated one at a "
+                "time (they touch where tracked together, or per-object calibration is off)"
+            }
         elif not fit_trajs:
             payload["calibration"] = {"status": "skipped: no tracked window shows motion"}
         else:

@@ -1329,11 +1329,22 @@ def track(
         object_markers=marker_records,
     )
     if out_dir is not None:
-        if not trajectories:
+        own_runs = {
+            n: [r for r in iter_valid_runs(valid[:, i]) if r[1] - r[0] + 1 >= options.min_segment_frames]
+            for i, n in enumerate(names)
+        }
+        if not any(own_runs.values()):
             raise TrackError(
-                f"no run of {options.min_segment_frames} frames has every object tracked (tracked fractions: "
+                f"no object is tracked for {options.min_segment_frames} frames in a row (tracked fractions: "
                 + ", ".join(f"{n} {100 * v:.0f}%" for n, v in zip(names, valid.mean(axis=0), strict=True))
                 + "); check the marker size, the scene and the clip"
+            )
+        if not trajectories:
+            log.warning(
+                "no run of %d frames has every object tracked at once, so no whole-scene trajectory is written; "
+                "each object's own tracked runs are in track.json (%s)",
+                options.min_segment_frames,
+                ", ".join(f"{n}: {len(r)} run(s)" for n, r in own_runs.items()),
             )
         from grounder._track_overview import track_overview
 

@@ -85,5 +85,11 @@ def register(app: typer.Typer) -> None:
         for record in result.object_markers:
             where = record["object"] or f"no object ({record.get('note', '')})"
             typer.echo(f"object marker {record['id']}: on {where}")
-        spans = ", ".join(f"{a}-{b}" for a, b in result.segments)
-        typer.echo(f"{len(result.trajectories)} trajectory file(s) (frames {spans}) and track.json in {out}")
+        if result.trajectories:
+            spans = ", ".join(f"{a}-{b}" for a, b in result.segments)
+            typer.echo(f"{len(result.trajectories)} trajectory file(s) (frames {spans}) and track.json in {out}")
+        else:
+            typer.echo(
+                f"no run of {min_segment_frames} frames has every object tracked at once: no trajectory file; each "
+                f"object's own tracked frames are in {out / 'track.json'}"
+            )

@@ -169,6 +169,33 @@ def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scen
     assert entry["per_object"]["still"]["window_match"] == {}
 
 
+def test_per_object_values_are_written_without_any_segment(tmp_path: Path) -> None:
+    """No frame has both boxes tracked (no segment): each box's own runs still calibrate it, and the values are
+    written into the whole scene (`write_values`), said to be unevaluated on it."""
+    from grounder._interaction import _single_body_trajectory, calibrate_per_body
+
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    model = mujoco.MjModel.from_xml_path(str(xml))
+    half = len(traj.time_s) // 2
+    own = {
+        "slider": [_single_body_trajectory(model, traj, "slider")],
+        "still": [_single_body_trajectory(model, traj, "still")],
+    }
+    own["still"] = [  # the still box is only seen in the second half, the slider in the whole clip
+        Trajectory(time_s=t.time_s[half:], qpos=t.qpos[half:], qvel=t.qvel[half:], name=t.name) for t in own["still"]
+    ]
+    entry, used = calibrate_per_body(xml, [], PARAMS, QUICK, object_tracks=own, out=tmp_path / "calibrated")
+    slider = entry["parameters"]["slider.friction.sliding"]
+    assert "not evaluated on the whole scene" in entry["status"]
+    assert slider["constrained"] and slider["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+    calibrated = mujoco.MjModel.from_xml_path(str(tmp_path / "calibrated" / "scene.xml"))
+    assert calibrated.geom_friction[calibrated.body("slider").geomadr[0], 0] == pytest.approx(slider["value"])
+    assert calibrated.geom_friction[calibrated.body("still").geomadr[0], 0] == pytest.approx(0.8)
+    assert sorted(p.name for p in (tmp_path / "calibrated").iterdir()) == ["scene.xml"]
+    assert used and all(name.startswith("slider:") for name in used)
+
+
 def test_touching_objects_are_not_separable(tmp_path: Path) -> None:
     from grounder._interaction import separable_bodies
 

@@ -445,3 +445,34 @@ def test_scan_frames_give_the_feature_models_many_more_right_matches() -> None:
                 right[name, label] = int((error < 3.0).sum())
     assert all(right[name, "scan"] >= 40 for name in ("box", "can", "bowl")), right
     assert all(right[name, "scan"] >= 2 * right[name, "rendered"] for name in ("box", "bowl")), right
+
+
+def test_a_clip_without_any_segment_still_gives_each_objects_runs(tmp_path: Path) -> None:
+    """The toss with the can painted out of every frame: no frame has every object tracked, so no whole-scene
+    trajectory is written, but track.json is, with the box's and the bowl's own tracked runs (what per-object
+    calibration uses) and the can lost throughout."""
+    import cv2
+
+    from grounder._track import load_object_trajectories
+
+    intr, world_from_cam = _truth_camera()
+    camera = PinholeCamera.from_colmap(intr["width"], intr["height"], intr["fx"], intr["fy"], intr["cx"], intr["cy"])
+    frames, _ = read_clip(TOSS / "video.mp4", 10)
+    qpos = np.load(TOSS / "truth" / "trajectory.npz")["qpos"]
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    with PoseRenderer(TOSS / "truth" / "scene.xml", camera) as renderer:
+        renderer.set_camera(world_from_cam)
+        can = renderer.names.index("can")
+        for f, frame in enumerate(frames):
+            view = renderer.render([_pose(qpos[f, 7 * i : 7 * i + 7]) for i in range(3)], rgb=False)
+            hidden = cv2.dilate((view.object_id == can).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+            painted = frame.copy()
+            painted[hidden] = (90, 120, 160)  # a flat patch where the can is
+            cv2.imwrite(str(clip / f"frame_{f:03d}.png"), painted)
+    out = tmp_path / "traj"
+    result = track(clip, TOSS / "truth", out, _options(detect_views=20))
+    assert not result.valid[:, can].any() and not result.trajectories
+    runs = load_object_trajectories(out / "track.json")
+    assert runs["can"] == [] and len(runs["box"]) == 1 and len(runs["bowl"]) >= 1
+    assert sorted(p.name for p in out.iterdir()) == ["overview.png", "track.json"]
