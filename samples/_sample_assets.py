@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import json
 import shutil
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -450,6 +453,22 @@ def render_states(
         renderer.close()
     print()
     return frames
+
+
+@contextmanager
+def toss_variant(dest: Path, toss_truth: Path, frames: list[np.ndarray], fps: float) -> Iterator[Path]:
+    """Stages a variant of the toss sample (same motion, another picture): its video and copies of the toss's
+    trajectory, objects and camera; yields the staged `truth/` for the variant's own files, then moves the whole
+    folder to `dest` (the old one goes only once the new one is complete)."""
+    with tempfile.TemporaryDirectory(dir=dest.parent if dest.parent.exists() else None) as tmp:
+        out = Path(tmp) / dest.name
+        truth = out / "truth"
+        truth.mkdir(parents=True)
+        encode_video(frames, out / "video.mp4", fps)
+        for name in ("trajectory.npz", "objects.json", "camera.json"):
+            shutil.copy2(toss_truth / name, truth / name)
+        yield truth
+        move_into_place(out, dest)
 
 
 def move_into_place(built: Path, dest: Path) -> None:

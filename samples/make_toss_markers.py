@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -47,13 +46,7 @@ def main() -> None:
         model = spec.compile()
     frames = sa.render_states(model, qpos, "video", make_toss.HEIGHT_PX, make_toss.WIDTH_PX)
 
-    with tempfile.TemporaryDirectory(dir=args.out.parent if args.out.parent.exists() else None) as tmp:
-        out = Path(tmp) / "toss_markers"
-        truth = out / "truth"
-        truth.mkdir(parents=True)
-        sa.encode_video(frames, out / "video.mp4", make_toss.FPS)
-        for name in ("trajectory.npz", "objects.json", "camera.json"):
-            shutil.copy2(truth_in / name, truth / name)
+    with sa.toss_variant(args.out, truth_in, frames, make_toss.FPS) as truth:
         note = (
             "ArUco DICT_4X4_50 markers on the objects of samples/toss/truth/scene.xml; size_m = side of the black "
             "square; pos_m / quat_wxyz = the marker frame (origin at the square's centre, x along its top edge, y "
@@ -65,7 +58,6 @@ def main() -> None:
             truth / "markers_unplaced.json",
             {"convention": "the same markers without their place: for a grounded scene", "markers": unplaced},
         )
-        sa.move_into_place(out, args.out)
 
 
 if __name__ == "__main__":

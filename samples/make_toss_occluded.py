@@ -14,9 +14,7 @@ from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
@@ -120,13 +118,7 @@ def main() -> None:
     print(f"box hidden (>= {HIDDEN_FRACTION:.0%} covered) in frames {hidden}")
     print("most covered: " + ", ".join(f"{n} {max(covered[n]):.0%}" for n in names))
 
-    with tempfile.TemporaryDirectory(dir=args.out.parent if args.out.parent.exists() else None) as tmp:
-        out = Path(tmp) / "toss_occluded"
-        truth = out / "truth"
-        truth.mkdir(parents=True)
-        sa.encode_video(frames, out / "video.mp4", make_toss.FPS)
-        for name in ("trajectory.npz", "objects.json", "camera.json"):
-            shutil.copy2(truth_in / name, truth / name)
+    with sa.toss_variant(args.out, truth_in, frames, make_toss.FPS) as truth:
         sa.write_json(
             truth / "occlusion.json",
             {
@@ -140,7 +132,6 @@ def main() -> None:
                 "covered": covered,
             },
         )
-        sa.move_into_place(out, args.out)
 
 
 if __name__ == "__main__":
