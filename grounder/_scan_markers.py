@@ -73,10 +73,14 @@ class ScanMarker:
 
 
 def _detect(views: Sequence[TextureView], dictionary: str, skip_id: int) -> dict[int, list[tuple[int, np.ndarray]]]:
-    """Per marker id (other than skip_id): (view index, (4, 2) corners refined along the edges, OpenCV pixels)."""
-    from reconstruction._world import aruco_detector, refine_corners_by_edges
+    """Per marker id (other than skip_id): (view index, (4, 2) corners in OpenCV pixels), the corners from aligning
+    the marker's whole image (`aligned_grid_px`, as `track` does), which a thin white border does not bias."""
+    from grounder._track_markers import MIN_ECC, aligned_grid_px, marker_corners_m, marker_template
+    from reconstruction._world import aruco_detector
 
     detector = aruco_detector(dictionary)
+    templates: dict[int, tuple[np.ndarray, float]] = {}
+    unit_corners_m = marker_corners_m(1.0)  # the template is in units of the marker's side: any size will do
     found: dict[int, list[tuple[int, np.ndarray]]] = {}
     for v, view in enumerate(views):
         gray = cv2.cvtColor(view.image_bgr, cv2.COLOR_BGR2GRAY)
@@ -86,9 +90,14 @@ def _detect(views: Sequence[TextureView], dictionary: str, skip_id: int) -> dict
         for quad, marker_id in zip(corners, ids.ravel(), strict=True):
             if int(marker_id) == skip_id:
                 continue
-            refined = refine_corners_by_edges(gray.astype(np.float32), quad.reshape(4, 2).astype(np.float64))
-            if refined is not None:
-                found.setdefault(int(marker_id), []).append((v, refined))
+            if int(marker_id) not in templates:
+                templates[int(marker_id)] = marker_template(dictionary, int(marker_id), 1.0)
+            template, px_per_m = templates[int(marker_id)]
+            aligned = aligned_grid_px(
+                gray, quad.reshape(4, 2), template, px_per_m, unit_corners_m, 1.0, min_ecc=MIN_ECC
+            )
+            if aligned is not None:
+                found.setdefault(int(marker_id), []).append((v, aligned))
     return found
 
 

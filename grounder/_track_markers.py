@@ -262,6 +262,7 @@ def measure_markers(
     slot = {m.marker_id: k for k, m in enumerate(markers)}
     templates = [marker_template(dictionary, m.marker_id, m.size_m) for m in markers]
     grids = [marker_grid_m(m.size_m) for m in markers]
+    object_points = [np.concatenate([grid, np.zeros((len(grid), 1))], axis=1) for grid in grids]
     frames, count = len(grays), len(markers)
     poses = np.full((frames, count, 2, 4, 4), np.nan)
     rms = np.full((frames, count, 2), np.nan)
@@ -283,13 +284,13 @@ def measure_markers(
             )
             if image_px is None:
                 continue
-            object_points = np.concatenate([grid_m, np.zeros((len(grid_m), 1))], axis=1)
+            points = object_points[k]
             solutions, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-                object_points, image_px, camera.cv_matrix, None, flags=cv2.SOLVEPNP_IPPE
+                points, image_px, camera.cv_matrix, None, flags=cv2.SOLVEPNP_IPPE
             )
             for s in range(min(int(solutions), 2)):
-                rvec, tvec = cv2.solvePnPRefineLM(object_points, image_px, camera.cv_matrix, None, rvecs[s], tvecs[s])
-                residual = cv2.projectPoints(object_points, rvec, tvec, camera.cv_matrix, None)[0].reshape(-1, 2)
+                rvec, tvec = cv2.solvePnPRefineLM(points, image_px, camera.cv_matrix, None, rvecs[s], tvecs[s])
+                residual = cv2.projectPoints(points, rvec, tvec, camera.cv_matrix, None)[0].reshape(-1, 2)
                 cam_from_marker = np.eye(4)
                 cam_from_marker[:3, :3] = cv2.Rodrigues(rvec)[0]
                 cam_from_marker[:3, 3] = np.ravel(tvec)
