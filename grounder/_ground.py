@@ -235,14 +235,12 @@ def _scan_object_markers(
 ) -> list[dict[str, object]]:
     """ArUco markers stuck on objects, measured in the scan (`grounder._scan_markers`), as `scene.json` stores them."""
     from grounder._scan_markers import find_scan_markers
-    from grounder._track_smooth import matrix_from_quat
+    from grounder._track_smooth import pose_matrix
 
-    bodies = {}
-    for name, record in objects.items():
-        world_from_body = np.eye(4)
-        world_from_body[:3, :3] = matrix_from_quat(np.asarray(record["quat_wxyz"], float))
-        world_from_body[:3, 3] = record["pos_m"]
-        bodies[name] = (world_from_body, np.asarray(record["extents_m"], float))
+    bodies = {
+        name: (pose_matrix(record["pos_m"], record["quat_wxyz"]), np.asarray(record["extents_m"], float))
+        for name, record in objects.items()
+    }
     markers, notes = find_scan_markers(
         views, bodies, options.reconstruct.aruco_dictionary, options.reconstruct.aruco_id
     )

@@ -75,12 +75,14 @@ class ScanMarker:
 def _detect(views: Sequence[TextureView], dictionary: str, skip_id: int) -> dict[int, list[tuple[int, np.ndarray]]]:
     """Per marker id (other than skip_id): (view index, (4, 2) corners in OpenCV pixels), the corners from aligning
     the marker's whole image (`aligned_grid_px`, as `track` does), which a thin white border does not bias."""
-    from grounder._track_markers import MIN_ECC, aligned_grid_px, marker_corners_m, marker_template
-    from reconstruction._world import aruco_detector
+    from grounder._track_markers import MIN_ECC, aligned_grid_px, marker_template
+    from reconstruction._world import aruco_detector, marker_corners_marker_frame
 
     detector = aruco_detector(dictionary)
     templates: dict[int, tuple[np.ndarray, float]] = {}
-    unit_corners_m = marker_corners_m(1.0)  # the template is in units of the marker's side: any size will do
+    unit_corners_m = marker_corners_marker_frame(1.0)[
+        :, :2
+    ]  # the template is in units of the marker's side: any size will do
     found: dict[int, list[tuple[int, np.ndarray]]] = {}
     for v, view in enumerate(views):
         gray = cv2.cvtColor(view.image_bgr, cv2.COLOR_BGR2GRAY)

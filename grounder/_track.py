@@ -40,7 +40,7 @@ import json
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -75,6 +75,7 @@ from grounder._track_smooth import (
     SmoothingOptions,
     free_body_velocities,
     matrix_from_quat,
+    pose_matrix,
     quat_from_matrix,
     rotation_angle_deg,
 )
@@ -339,12 +340,7 @@ def load_scan(
     try:
         rows = json.loads(transforms.read_text())["frames"]
         objects = json.loads(manifest.read_text())["objects"]
-        world_from_objects = []
-        for name in names:
-            pose = np.eye(4)
-            pose[:3, :3] = matrix_from_quat(np.asarray(objects[name]["quat_wxyz"], float))
-            pose[:3, 3] = objects[name]["pos_m"]
-            world_from_objects.append(pose)
+        world_from_objects = [pose_matrix(objects[n]["pos_m"], objects[n]["quat_wxyz"]) for n in names]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         log.warning("scan frames not used for the feature models: %s", exc)
         return None
@@ -1041,14 +1037,7 @@ def apply_object_markers(
             pose[:3, 3] = poses[f, i, :3, 3]
         poses[f, i] = pose
         valid[f, i] = True
-        scores[f][i] = FrameScore(
-            inliers=old.inliers,
-            inlier_ratio=old.inlier_ratio,
-            ncc=old.ncc,
-            in_frame=old.in_frame,
-            source="marker",
-            marker_rms_px=float(measured.rms_px[f, i]),
-        )
+        scores[f][i] = replace(old, source="marker", reason="", marker_rms_px=float(measured.rms_px[f, i]))
     records = []
     for marker, placement in zip(placed, placements, strict=True):
         if placement.object_name is None:

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 
 from grounder._track_render import PinholeCamera
-from grounder._track_smooth import matrix_from_quat, quat_from_matrix, rotation_angle_deg
+from grounder._track_smooth import pose_matrix, quat_from_matrix, rotation_angle_deg
 from grounder.errors import GrounderError
 
 log = logging.getLogger(__name__)
@@ -71,12 +71,6 @@ def marker_grid_m(size_m: float) -> np.ndarray:
     return np.array([[x, y] for y in axis for x in axis])
 
 
-def marker_corners_m(size_m: float) -> np.ndarray:
-    """(4, 2) corners of the black square in the marker plane, in OpenCV's detection order (top-left first)."""
-    h = size_m / 2
-    return np.array([[-h, h], [h, h], [h, -h], [-h, -h]])
-
-
 def _template_px(points_marker_m: np.ndarray, template: np.ndarray, px_per_m: float) -> np.ndarray:
     """Marker-plane points (N, 2) (x right, y up, metres) -> template pixels (OpenCV convention)."""
     centre = template.shape[0] / 2 - 0.5
@@ -95,8 +89,11 @@ def aligned_grid_px(
 ) -> np.ndarray | None:
     """Where the marker-plane grid points fall in the frame, from an ECC homography fit of the marker's image
     started at the detected corners (OpenCV pixel convention). None where ECC fails or correlates below min_ecc."""
+    from reconstruction._world import marker_corners_marker_frame
+
     warp = cv2.getPerspectiveTransform(
-        _template_px(marker_corners_m(size_m), template, px_per_m).astype(np.float32), corners_px.astype(np.float32)
+        _template_px(marker_corners_marker_frame(size_m)[:, :2], template, px_per_m).astype(np.float32),
+        corners_px.astype(np.float32),
     )
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
     try:
@@ -159,9 +156,7 @@ def _marker_from_row(row: object, where: str, origin: str) -> ObjectMarker:
             raise GrounderError(f"{where}: quat_wxyz has norm {np.linalg.norm(quat):.4f}; give a unit quaternion")
         if name is None:
             raise GrounderError(f"{where}: pos_m is in an object's body frame; name the object too")
-        body_from_marker = np.eye(4)
-        body_from_marker[:3, :3] = matrix_from_quat(quat)
-        body_from_marker[:3, 3] = pos
+        body_from_marker = pose_matrix(pos, quat)
     return ObjectMarker(
         marker_id=marker_id, size_m=size_m, object_name=name, body_from_marker=body_from_marker, origin=origin
     )

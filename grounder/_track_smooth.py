@@ -6,6 +6,7 @@ velocity, then the body-frame angular velocity.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -32,6 +33,14 @@ def matrix_from_quat(quat_wxyz: np.ndarray) -> np.ndarray:
     out = np.zeros(9)
     mujoco.mju_quat2Mat(out, quat)
     return out.reshape(3, 3)
+
+
+def pose_matrix(pos_m: Sequence[float] | np.ndarray, quat_wxyz: Sequence[float] | np.ndarray) -> np.ndarray:
+    """(4, 4) rigid transform from a position and a quaternion w-first (as scene.json and layouts store poses)."""
+    out = np.eye(4)
+    out[:3, :3] = matrix_from_quat(np.asarray(quat_wxyz, np.float64))
+    out[:3, 3] = np.asarray(pos_m, np.float64)
+    return out
 
 
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
