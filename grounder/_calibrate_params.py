@@ -15,7 +15,8 @@ name                                            what it sets                    
                                                 and offset), not its mass or inertia: compensates a
                                                 length bias in the measured geometry
 ``geom:NAME.<friction|solref|solimp|...>``      as above, for one named geom                           as above
-``joint:NAME.damping|frictionloss|armature``    per degree of freedom of the joint                     SI
+``joint:NAME.damping|frictionloss|armature``    per degree of freedom of the joint; by default         SI
+                                                searched in log space, scaled to the joint (below)
 ``joint:NAME.stiffness``                        joint spring stiffness                                 SI
 ``actuator:NAME.gain``                          ``gainprm[0]``                                         SI
 ``actuator:NAME.kp`` / ``.kv``                  position gain (``gainprm[0] = kp``, ``biasprm[1] =     SI
@@ -34,6 +35,9 @@ friction and a solmix-weighted solref would be used). The uncalibrated model kee
 
 A parameter specification string is ``NAME`` (default bounds) or ``NAME=LOW:HIGH`` (explicit bounds). Choices
 (``condim``, ``opt.cone``) take no bounds: the global search picks one, the local refinement keeps it.
+Default bounds of joint damping, friction loss and armature scale with the joint (``_joint_bounds``): four decades
+below the joint inertia / 50 ms, 5 x the joint inertia and half the weight torque of the moving bodies. Explicit
+bounds from 0 (``joint:hinge.damping=0:0.5``) are searched linearly.
 """
 
 from __future__ import annotations
@@ -107,6 +111,8 @@ class Parameter:
             index = np.argmin(np.abs(np.subtract.outer(v, np.asarray(self.choices))), axis=-1)
             return (index + 0.5) / n
         if self.log_scale:
+            # values below the floor (a nominal 0) map below 0, which the search clips to the floor
+            v = np.maximum(v, self.lower * 1e-3)
             return (np.log(v) - math.log(self.lower)) / (math.log(self.upper) - math.log(self.lower))
         return (v - self.lower) / (self.upper - self.lower)
 
@@ -394,6 +400,28 @@ def _nominal_model_for(s: mujoco.MjSpec, model: mujoco.MjModel) -> mujoco.MjMode
     return _NOMINAL.get(id(s), model)
 
 
+JOINT_SEARCH_DECADES = 4.0
+
+
+def _joint_bounds(model: mujoco.MjModel, field: str, dofs: list[int], nominal: float) -> tuple[float, float, bool]:
+    """Search bounds of a joint parameter, scaled to the joint's own inertia and the model's torques.
+
+    Damping, friction loss and armature span decades and are often far below 1 in SI units (a 0.5 kg, 30 cm
+    pendulum has 0.015 kg m^2), so they are searched in log space over ``JOINT_SEARCH_DECADES`` decades below a
+    physical ceiling (the diagnosis' scales): damping up to the joint inertia / 50 ms, armature up to 5 x the joint
+    inertia, friction loss up to half the weight torque of the moving bodies; the ceiling is at least 10 x the
+    nominal value. The floor stands for zero. Stiffness keeps a linear range from 0.
+    """
+    from grounder._effects import dof_inertia_diag, torque_scale
+
+    if field == "stiffness":
+        return 0.0, max(10.0 * nominal, 1.0), False
+    inertia = max(float(np.max(dof_inertia_diag(model)[dofs])), 1e-9)
+    ceiling = {"damping": inertia / 0.05, "armature": 5.0 * inertia, "frictionloss": 0.5 * torque_scale(model)}[field]
+    upper = max(ceiling, 10.0 * nominal)
+    return upper * 10.0**-JOINT_SEARCH_DECADES, upper, True
+
+
 def _joint_parameter(model: mujoco.MjModel, name: str, jname: str, rest: list[str]) -> Parameter:
     jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, jname)
     if jid < 0:
@@ -431,13 +459,13 @@ def _joint_parameter(model: mujoco.MjModel, name: str, jname: str, rest: list[st
                 setattr(s.joints[jid], field, v)
 
         unit = {"damping": "N m s/rad", "frictionloss": "N m", "armature": "kg m^2"}[field]
-    upper = max(10.0 * nominal, 1.0)
+    lower, upper, log = _joint_bounds(model, field, dofs, nominal)
     return Parameter(
         name=name,
         nominal=nominal,
-        lower=0.0,
+        lower=lower,
         upper=upper,
-        log_scale=False,
+        log_scale=log,
         unit=unit,
         needs_set_const=field == "armature",
         set_model=set_model,
@@ -591,9 +619,12 @@ def resolve_parameter(model: mujoco.MjModel, text: str) -> Parameter:
             raise GrounderError(f"bounds of {name!r} must be numbers, got {match['lo']!r}:{match['hi']!r}") from None
         if not (math.isfinite(lower) and math.isfinite(upper) and lower < upper):
             raise GrounderError(f"bounds of {name!r} must be finite with LOW < HIGH, got {lower}:{upper}")
-        if param.log_scale and lower <= 0:
-            raise GrounderError(f"{name} is searched in log space; its lower bound must be > 0, got {lower}")
-        param = Parameter(**{**param.__dict__, "lower": lower, "upper": upper})
+        log = param.log_scale
+        if log and lower <= 0:
+            if not owner.startswith("joint:"):
+                raise GrounderError(f"{name} is searched in log space; its lower bound must be > 0, got {lower}")
+            log = False  # a joint parameter given a range from 0 is searched linearly over it
+        param = Parameter(**{**param.__dict__, "lower": lower, "upper": upper, "log_scale": log})
     return param
 
 

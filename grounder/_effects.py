@@ -103,16 +103,21 @@ def joint_dofs(model: mujoco.MjModel) -> np.ndarray:
     return np.array(out, dtype=np.int64)
 
 
-def _dof_inertia(model: mujoco.MjModel) -> np.ndarray:
-    """Diagonal of the joint-space inertia at qpos0 for the hinge/slide dofs."""
+def dof_inertia_diag(model: mujoco.MjModel) -> np.ndarray:
+    """(nv,) diagonal of the joint-space inertia at qpos0 (kg m^2 for hinges, kg for slides)."""
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     full = np.zeros((model.nv, model.nv))
     mujoco.mj_fullM(model, data, full)
-    return np.diag(full)[joint_dofs(model)]
+    return np.diag(full).copy()
 
 
-def _torque_scale(model: mujoco.MjModel) -> float:
+def _dof_inertia(model: mujoco.MjModel) -> np.ndarray:
+    """Diagonal of the joint-space inertia at qpos0 for the hinge/slide dofs."""
+    return dof_inertia_diag(model)[joint_dofs(model)]
+
+
+def torque_scale(model: mujoco.MjModel) -> float:
     """A typical joint torque: total moving mass x g x model extent (N m)."""
     mass = float(sum(model.body_mass[b] for b in moving_bodies(model)))
     return max(mass * 9.81 * float(model.stat.extent), 1e-6)
@@ -209,7 +214,7 @@ def _solref_effect(name: str, column: int) -> Effect:
 def _dof_effect(name: str, attr: str, what: str) -> Effect:
     def params(model: mujoco.MjModel) -> tuple[Param, ...]:
         inertia = _dof_inertia(model)
-        tau = _torque_scale(model)
+        tau = torque_scale(model)
         if attr == "dof_damping":
             hi = max(float(np.max(inertia)) / 0.05, 1e-6)  # time constants down to 50 ms
         elif attr == "dof_frictionloss":

@@ -188,6 +188,24 @@ def test_calibration_recovers_known_parameters(synthetic, tmp_path: Path) -> Non
     assert report.count("data:image/png;base64,") >= 3 and "cube.friction.sliding" in report
 
 
+def test_joint_defaults_recover_a_small_damping(tmp_path: Path) -> None:
+    """A 0.5 kg, 30 cm pendulum with damping 0.01 N m s/rad: 1% of the old fixed [0, 1] range, which the default
+    search never reached (it settled on friction loss 0.046 instead, 20 x the true model's loss)."""
+    from grounder._cases import make_case
+    from grounder._diagnose_bench import select_cases
+
+    case = make_case(select_cases(["pendulum/joint_damping"])[0], 16, seed=0)
+    scene = tmp_path / "pendulum.xml"
+    scene.write_text(case.scene_xml)
+    result = calibrate(scene, case.trajectories, options=CalibrateOptions(generations=8, local_iterations=4, nthread=2))
+    assert set(result.values) == {"joint:hinge.damping", "joint:hinge.frictionloss", "joint:hinge.armature"}
+    assert result.values["joint:hinge.damping"] == pytest.approx(0.01, rel=0.1), result.values
+    assert result.values["joint:hinge.frictionloss"] < 0.004, result.values  # 10% of the damping torque at 1 rad/s
+    assert result.after["validation"].loss.mean() < 0.1 * result.before["validation"].loss.mean()
+    explicit = resolve_parameters(mujoco.MjModel.from_xml_path(str(scene)), ["joint:hinge.damping=0:0.5"])[0]
+    assert (explicit.lower, explicit.upper, explicit.log_scale) == (0.0, 0.5, False)
+
+
 def test_output_folder_must_be_new(synthetic, tmp_path: Path) -> None:
     trajs, _ = synthetic
     (tmp_path / "taken").mkdir()
