@@ -52,6 +52,34 @@ def metric(model: mujoco.MjModel, trajs: list) -> tuple[np.ndarray, np.ndarray]:
     return np.array(pos), np.array(rot)
 
 
+def outcome_breakdown(model: mujoco.MjModel, trajs: list) -> None:
+    """Where the calibrated error comes from: tosses that end turned another way, and how far the cube turns."""
+    from grounder._simulate import quat_angle_rad, simulate
+
+    preds = simulate(model, trajs)
+    pos, rot = metric(model, trajs)
+    final_deg = np.array(
+        [np.degrees(quat_angle_rad(p.qpos[-1, 3:], r.qpos[-1, 3:])) for p, r in zip(preds, trajs, strict=True)]
+    )
+    off = final_deg > 45.0
+    print(
+        f"  ends more than 45 deg from the recorded final orientation: {off.sum()} of {len(trajs)} tosses, "
+        f"{pos[off].mean():.1f}% / {rot[off].mean():.1f} deg; the other {(~off).sum()}: "
+        f"{pos[~off].mean():.1f}% / {rot[~off].mean():.1f} deg"
+    )
+
+    def turned_deg(qpos: np.ndarray) -> float:  # first to last orientation (a path sum would add tracking noise)
+        return float(np.degrees(quat_angle_rad(qpos[0, 3:], qpos[-1, 3:])))
+
+    real = np.array([turned_deg(r.qpos) for r in trajs])
+    sim = np.array([turned_deg(p.qpos) for p in preds])
+    print(
+        f"  net turn from first to last frame: recorded {real.mean():.0f} deg, calibrated {sim.mean():.0f} deg; "
+        f"among the tosses that end turned another way {real[off].mean():.0f} vs {sim[off].mean():.0f} deg "
+        f"(less than recorded in {100 * np.mean(sim[off] < real[off]):.0f}% of them)"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--max-train", type=int, default=40, help="training tosses used by the fit (seeded subset)")
@@ -62,6 +90,12 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the global search")
     parser.add_argument("--split-seed", type=int, default=0, help="seed of the train/validation split")
     parser.add_argument("--out", type=Path, default=None, help="write the calibrated scene folder here")
+    parser.add_argument(
+        "--rotation-weight",
+        type=float,
+        default=0.0,
+        help="percent of the cube width per degree of rotation error in the loss (0: position only)",
+    )
     args = parser.parse_args()
     if not (DATA / "tosses").is_dir():
         sys.exit(f"real cube tosses not found at {DATA}")
@@ -79,6 +113,7 @@ def main() -> None:
         popsize=args.popsize,
         generations=args.generations,
         local_iterations=args.local_iterations,
+        rotation_weight=args.rotation_weight,
     )
     tick = time.perf_counter()
     result = calibrate(CUBE_XML, trajs, options=options, out=args.out)
@@ -104,6 +139,7 @@ def main() -> None:
             f"  {label:13s} position {pos.mean():5.1f}% +- {pos.std():4.1f} of cube width, "
             f"rotation {rot.mean():5.1f} +- {rot.std():4.1f} deg"
         )
+    outcome_breakdown(result.model, val)
     train = result.after["train"]
     print(
         f"  (training split, calibrated: {train.position_pct.mean():.1f}% / {train.rotation_deg.mean():.1f} deg; "

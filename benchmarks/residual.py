@@ -17,6 +17,9 @@ toss is rolled out with each of 75 variants of the calibrated contact (sliding f
 damping ratio, each scaled over a grid around the calibrated value) and the best variant *for that toss* is kept.
 No model learned from other tosses sees the toss it is scored on, so this per-toss choice is an optimistic bound
 for what a state-independent change of contact parameters can reach on this protocol.
+
+``--ablation`` also rolls the validation tosses out with only the pose outputs (position, rotation) or only the
+velocity outputs of the trained residual, at forced gains 0.25, 0.5 and 1, to show which part helps or hurts.
 """
 
 from __future__ import annotations
@@ -149,7 +152,9 @@ def calibrated_scene(
     return grid_calibrate(train, work / "grid")
 
 
-def cube_tosses(options: ResidualOptions, force_grid: bool, quick: bool, calibrated: Path | None) -> None:
+def cube_tosses(
+    options: ResidualOptions, force_grid: bool, quick: bool, calibrated: Path | None, ablation: bool = False
+) -> None:
     trajs = load_dair_pll_cube(DATA)
     train, val = split(trajs)
     if quick:
@@ -184,7 +189,36 @@ def cube_tosses(options: ResidualOptions, force_grid: bool, quick: bool, calibra
             for name, sim in sims:
                 pos, rot = metric(sim.rollout(tosses), tosses)
                 print(f"{label:11s} {name:34s} {fmt(pos, rot)}")
+        if ablation:
+            output_ablation(work / "residual", val)
         print("\ntarget (validation, residual): <= 10% of cube width and <= 10 deg")
+
+
+def output_ablation(residual_dir: Path, val: list[Trajectory]) -> None:
+    """Validation rollouts with only the pose outputs, or only the velocity outputs, of the trained residual."""
+    import shutil
+
+    import torch
+
+    from grounder._residual import WEIGHTS_FILE
+
+    state = torch.load(residual_dir / WEIGHTS_FILE, weights_only=True)
+    last = max(int(k.split(".")[2]) for k in state if k.startswith("nets.0."))
+    print("\nvalidation, one group of outputs switched off (rows of the output layer zeroed), forced gain:")
+    for label, off in (("pose outputs only", slice(6, 12)), ("velocity outputs only", slice(0, 6))):
+        with tempfile.TemporaryDirectory() as tmp:
+            folder = Path(tmp) / "ablated"
+            shutil.copytree(residual_dir, folder)
+            ablated = {k: v.clone() for k, v in state.items()}
+            for key in list(ablated):
+                if key.startswith("nets.") and key.split(".")[2] == str(last):
+                    ablated[key][off] = 0.0
+            torch.save(ablated, folder / WEIGHTS_FILE)
+            for gain in (0.25, 0.5, 1.0):
+                sim = Simulator(folder)
+                assert sim.residual is not None
+                sim.residual.out_gain[:] = gain
+                print(f"  {label:22s} gain {gain:4g}  {fmt(*metric(sim.rollout(val), val))}")
 
 
 ORACLE_SCALES = {  # factors applied to the calibrated value; 1 is the calibrated scene itself
@@ -260,6 +294,9 @@ def main() -> None:
     parser.add_argument(
         "--oracle", action="store_true", help="with --calibrated: only the per-toss hindsight bound of contact changes"
     )
+    parser.add_argument(
+        "--ablation", action="store_true", help="also roll out with only the pose or only the velocity outputs"
+    )
     parser.add_argument("--steps", type=int, default=ResidualOptions().steps)
     parser.add_argument("--smooth", type=int, default=ResidualOptions().smooth_window)
     parser.add_argument("--rounds", type=int, default=ResidualOptions().dagger_rounds)
@@ -273,7 +310,7 @@ def main() -> None:
     if not DATA.is_dir():
         print(f"{DATA} is absent: skipping the cube tosses")
     else:
-        cube_tosses(options, args.grid, args.quick, args.calibrated)
+        cube_tosses(options, args.grid, args.quick, args.calibrated, args.ablation)
     if not args.no_synthetic:
         synthetic_drag(options)
 
