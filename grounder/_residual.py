@@ -1,5 +1,8 @@
 """Learned residual dynamics on top of MuJoCo: features, the bounded and gated correction, and its files.
 
+This module is the residual of free bodies; scenes of hinge and slide joints only get the joint-space residual of
+``grounder/_residual_joint.py`` (same files, ``"space": "joint"`` in ``residual.json``).
+
 What the residual is. Every ``period_steps`` model steps (one sample interval of the training data, 1/148 s for the
 cube tosses) each free body's state is corrected after MuJoCo has stepped:
 
@@ -43,12 +46,15 @@ import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 import mujoco
 import numpy as np
 
 from grounder.errors import GrounderError
+
+if TYPE_CHECKING:
+    from grounder._residual_joint import NumpyJointResidual
 
 RESIDUAL_FORMAT = "image2sim-residual"
 RESIDUAL_VERSION = 1
@@ -396,6 +402,9 @@ class ResidualMeta:
         gate: The gate thresholds.
         scene_xml_sha256: Hash of the scene.xml the residual was trained on.
         training: Free-form training summary (data, seeds, errors), for provenance.
+        space: ``free`` (body-frame corrections of free bodies, this module) or ``joint`` (hinge and slide joints,
+            ``grounder._residual_joint``; ``bodies`` then names the joints).
+        feature_names, output_names: The network's inputs and outputs (fixed for ``free``, per scene for ``joint``).
     """
 
     period_steps: int
@@ -406,6 +415,9 @@ class ResidualMeta:
     gate: GateOptions
     scene_xml_sha256: str
     training: dict[str, Any]
+    space: str = "free"
+    feature_names: tuple[str, ...] = FEATURE_NAMES
+    output_names: tuple[str, ...] = OUTPUT_NAMES
 
     @property
     def period_s(self) -> float:
@@ -415,13 +427,18 @@ class ResidualMeta:
         return {
             "format": RESIDUAL_FORMAT,
             "version": RESIDUAL_VERSION,
-            "kind": "body-frame state correction at the data rate, bounded and gated",
+            "kind": (
+                "body-frame state correction at the data rate, bounded and gated"
+                if self.space == "free"
+                else "joint-space state correction at the data rate, bounded and gated"
+            ),
+            "space": self.space,
             "period_steps": self.period_steps,
             "timestep_s": self.timestep_s,
             "period_s": self.period_s,
             "bodies": list(self.bodies),
-            "features": list(FEATURE_NAMES),
-            "outputs": list(OUTPUT_NAMES),
+            "features": list(self.feature_names),
+            "outputs": list(self.output_names),
             "hidden": self.hidden,
             "layers": self.layers,
             "gate": {
@@ -444,7 +461,11 @@ class ResidualMeta:
                 f"{where}: not an {RESIDUAL_FORMAT} v{RESIDUAL_VERSION} file (format={raw.get('format')!r}, "
                 f"version={raw.get('version')!r}); retrain with `image2sim residual train`"
             )
-        if list(raw.get("features", [])) != list(FEATURE_NAMES) or list(raw.get("outputs", [])) != list(OUTPUT_NAMES):
+        space = raw.get("space", "free")
+        if space not in ("free", "joint"):
+            raise GrounderError(f"{where}: unknown residual space {space!r}; retrain the residual")
+        features, outputs = list(raw.get("features", [])), list(raw.get("outputs", []))
+        if space == "free" and (features != list(FEATURE_NAMES) or outputs != list(OUTPUT_NAMES)):
             raise GrounderError(f"{where}: features or outputs differ from this version's; retrain the residual")
         try:
             gate = raw["gate"]
@@ -464,9 +485,38 @@ class ResidualMeta:
                 ),
                 scene_xml_sha256=str(raw.get("scene_xml_sha256", "")),
                 training=dict(raw.get("training", {})),
+                space=space,
+                feature_names=tuple(str(f) for f in features),
+                output_names=tuple(str(o) for o in outputs),
             )
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise GrounderError(f"{where}: malformed residual metadata ({type(exc).__name__}: {exc})") from exc
+
+
+class CoverageStats(Protocol):
+    """What :func:`coverage_gate` reads: the training statistics a numpy residual holds (see ``NumpyResidual``)."""
+
+    range_lo: np.ndarray  # (B, F)
+    range_hi: np.ndarray
+    feat_mean: np.ndarray
+    feat_std: np.ndarray
+    centres: np.ndarray  # (B, K, F), standardised
+    coverage_dist: np.ndarray  # (B,)
+    meta: ResidualMeta
+
+
+def coverage_gate(stats: CoverageStats, feats: np.ndarray) -> np.ndarray:
+    """(N, B, F) -> (N, B): inside the training ranges (fading over ``range_margin`` of each range) times near the
+    training states (distance to the nearest k-means centre, fading from ``coverage_dist`` to twice that)."""
+    margin = stats.meta.gate.range_margin * (stats.range_hi - stats.range_lo) + 1e-9
+    outside = np.maximum(np.maximum(stats.range_lo - feats, feats - stats.range_hi), 0.0) / margin
+    in_range = np.prod(1.0 - smoothstep(outside), axis=-1)
+    z = (feats - stats.feat_mean) / stats.feat_std
+    # squared distances to every centre: |z|^2 - 2 z.c + |c|^2
+    centre_sq = np.sum(stats.centres**2, axis=-1)
+    d2 = np.sum(z * z, axis=-1)[..., None] - 2.0 * np.einsum("nbf,bkf->nbk", z, stats.centres) + centre_sq
+    dist = np.sqrt(np.maximum(np.min(d2, axis=-1), 0.0))
+    return in_range * (1.0 - smoothstep(dist / stats.coverage_dist - 1.0))
 
 
 class _FastBody(NamedTuple):
@@ -632,14 +682,7 @@ class NumpyResidual:
         moving = smoothstep((speed - g.rest_speed_m_s[0]) / (g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
         flying = smoothstep((feats[..., 0] - g.air_clearance_m[0]) / (g.air_clearance_m[1] - g.air_clearance_m[0]))
         active = 1.0 - (1.0 - moving) * (1.0 - flying)
-        outside = np.maximum(np.maximum(self.range_lo - feats, feats - self.range_hi), 0.0) / self._margin
-        in_range = np.prod(1.0 - smoothstep(outside), axis=-1)
-        z = (feats - self.feat_mean) / self.feat_std
-        # squared distances to every centre: |z|^2 - 2 z.c + |c|^2
-        d2 = np.sum(z * z, axis=-1)[..., None] - 2.0 * np.einsum("nbf,bkf->nbk", z, self.centres) + self._centre_sq
-        dist = np.sqrt(np.maximum(np.min(d2, axis=-1), 0.0))
-        near = 1.0 - smoothstep(dist / self.coverage_dist - 1.0)
-        return active * in_range * near
+        return active * coverage_gate(self, feats)
 
     def raw(self, feats: np.ndarray) -> np.ndarray:
         """(N, B, F) -> (N, B, 12) bounded correction before the gate."""
@@ -888,13 +931,18 @@ def has_residual_files(scene_dir: Path) -> bool:
     return scene_dir.is_dir() and (scene_dir / META_FILE).is_file() and (scene_dir / WEIGHTS_FILE).is_file()
 
 
-def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual:
+def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual | NumpyJointResidual:
     """Reads ``residual.json`` and ``residual.pt`` from a scene folder, checked against the scene's model.
+
+    Returns:
+        The free-body residual, or the joint-space one (``grounder._residual_joint``) for an articulated scene.
 
     Raises:
         GrounderError: missing or malformed files, or a residual trained for other bodies or another timestep.
     """
     import torch
+
+    from grounder._residual_joint import JOINT_SPACE, NumpyJointResidual, check_joint_meta, joint_space
 
     scene_dir = Path(scene_dir)
     meta_path, weights_path = scene_dir / META_FILE, scene_dir / WEIGHTS_FILE
@@ -902,12 +950,17 @@ def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual:
         meta = ResidualMeta.from_json(json.loads(meta_path.read_text()), meta_path)
     except (OSError, json.JSONDecodeError) as exc:
         raise GrounderError(f"{meta_path}: could not be read ({type(exc).__name__}: {exc})") from exc
-    bodies = free_bodies(model)
-    if tuple(b.name for b in bodies) != meta.bodies:
-        raise GrounderError(
-            f"{meta_path}: the residual corrects bodies {list(meta.bodies)} but the scene's free bodies are "
-            f"{[b.name for b in bodies]}; retrain it on this scene"
-        )
+    if meta.space == JOINT_SPACE:
+        space = joint_space(model)
+        check_joint_meta(meta, space, str(meta_path))
+        bodies: list[FreeBody] = []
+    else:
+        bodies = free_bodies(model)
+        if tuple(b.name for b in bodies) != meta.bodies:
+            raise GrounderError(
+                f"{meta_path}: the residual corrects bodies {list(meta.bodies)} but the scene's free bodies are "
+                f"{[b.name for b in bodies]}; retrain it on this scene"
+            )
     if not np.isclose(meta.timestep_s, model.opt.timestep, rtol=1e-9, atol=0.0):
         raise GrounderError(
             f"{meta_path}: trained with timestep {meta.timestep_s:.6g} s but the scene has {model.opt.timestep:.6g} s; "
@@ -921,6 +974,8 @@ def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual:
         raise GrounderError(f"{weights_path}: expected a state_dict of tensors")
     arrays = {k: v.detach().to(torch.float64).numpy() for k, v in state.items()}
     try:
+        if meta.space == JOINT_SPACE:
+            return NumpyJointResidual(arrays, meta, space)
         return NumpyResidual(arrays, meta, bodies, model.opt.gravity)
     except KeyError as exc:
         raise GrounderError(f"{weights_path}: missing tensor {exc}; retrain the residual") from exc

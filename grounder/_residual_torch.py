@@ -37,40 +37,56 @@ class ResidualModel(nn.Module):
     out_gain: torch.Tensor
     radius_m: torch.Tensor
 
-    def __init__(self, *, num_bodies: int, hidden: int, layers: int, gate: GateOptions, radius_m: np.ndarray):
+    def __init__(
+        self,
+        *,
+        num_bodies: int,
+        hidden: int,
+        layers: int,
+        gate: GateOptions,
+        radius_m: np.ndarray,
+        num_features: int = NUM_FEATURES,
+        num_outputs: int = NUM_OUTPUTS,
+    ):
         super().__init__()
         self.gate_options = gate
+        self.num_features = num_features
         nets = []
         for _ in range(num_bodies):
             mods: list[nn.Module] = []
-            width = NUM_FEATURES
+            width = num_features
             for _ in range(layers):
                 mods += [nn.Linear(width, hidden), nn.Tanh()]
                 width = hidden
-            mods.append(nn.Linear(width, NUM_OUTPUTS))
+            mods.append(nn.Linear(width, num_outputs))
             nets.append(nn.Sequential(*mods))
         self.nets = nn.ModuleList(nets)
-        b, k = num_bodies, gate.coverage_centres
-        self.register_buffer("feat_mean", torch.zeros(b, NUM_FEATURES, dtype=torch.float64))
-        self.register_buffer("feat_std", torch.ones(b, NUM_FEATURES, dtype=torch.float64))
-        self.register_buffer("out_scale", torch.ones(b, NUM_OUTPUTS, dtype=torch.float64))
-        self.register_buffer("out_bound", torch.ones(b, NUM_OUTPUTS, dtype=torch.float64))
-        self.register_buffer("range_lo", torch.zeros(b, NUM_FEATURES, dtype=torch.float64))
-        self.register_buffer("range_hi", torch.ones(b, NUM_FEATURES, dtype=torch.float64))
-        self.register_buffer("centres", torch.zeros(b, k, NUM_FEATURES, dtype=torch.float64))
+        b, k, f, o = num_bodies, gate.coverage_centres, num_features, num_outputs
+        self.register_buffer("feat_mean", torch.zeros(b, f, dtype=torch.float64))
+        self.register_buffer("feat_std", torch.ones(b, f, dtype=torch.float64))
+        self.register_buffer("out_scale", torch.ones(b, o, dtype=torch.float64))
+        self.register_buffer("out_bound", torch.ones(b, o, dtype=torch.float64))
+        self.register_buffer("range_lo", torch.zeros(b, f, dtype=torch.float64))
+        self.register_buffer("range_hi", torch.ones(b, f, dtype=torch.float64))
+        self.register_buffer("centres", torch.zeros(b, k, f, dtype=torch.float64))
         self.register_buffer("coverage_dist", torch.ones(b, dtype=torch.float64))
         self.register_buffer("out_gain", torch.ones(b, dtype=torch.float64))
         self.register_buffer("radius_m", torch.as_tensor(np.asarray(radius_m, dtype=np.float64)))
         self.double()
 
-    def gate(self, feats: torch.Tensor) -> torch.Tensor:
+    def active(self, feats: torch.Tensor) -> torch.Tensor:
+        """(N, B) 0 for a body at rest in contact, 1 when moving or in flight."""
         g = self.gate_options
         speed = torch.linalg.vector_norm(feats[..., 5:8], dim=-1) + self.radius_m * torch.linalg.vector_norm(
             feats[..., 8:11], dim=-1
         )
         moving = _smoothstep((speed - g.rest_speed_m_s[0]) / (g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
         flying = _smoothstep((feats[..., 0] - g.air_clearance_m[0]) / (g.air_clearance_m[1] - g.air_clearance_m[0]))
-        active = 1.0 - (1.0 - moving) * (1.0 - flying)
+        return 1.0 - (1.0 - moving) * (1.0 - flying)
+
+    def gate(self, feats: torch.Tensor) -> torch.Tensor:
+        g = self.gate_options
+        active = self.active(feats)
         margin = g.range_margin * (self.range_hi - self.range_lo) + 1e-9
         outside = torch.clamp(torch.maximum(self.range_lo - feats, feats - self.range_hi), min=0.0) / margin
         in_range = torch.prod(1.0 - _smoothstep(outside), dim=-1)
@@ -96,13 +112,42 @@ class ResidualModel(nn.Module):
         return self.raw(feats) * (self.gate(feats) * self.out_gain).unsqueeze(-1)
 
 
+class JointResidualModel(ResidualModel):
+    """The joint-space residual (``grounder._residual_joint``): one MLP over all hinge and slide joints.
+
+    Features (N, 1, F) -> gated, bounded correction (N, 1, 2 x joints); the gate's rest test is the fastest joint
+    speed (columns ``speed_columns``) against ``gate.rest_speed_m_s`` read as rad/s (m/s for slide joints).
+    """
+
+    speed_columns: torch.Tensor
+
+    def __init__(
+        self, *, num_features: int, num_outputs: int, hidden: int, layers: int, gate: GateOptions, speed_columns: list
+    ):
+        super().__init__(
+            num_bodies=1,
+            hidden=hidden,
+            layers=layers,
+            gate=gate,
+            radius_m=np.zeros(1),
+            num_features=num_features,
+            num_outputs=num_outputs,
+        )
+        self.register_buffer("speed_columns", torch.as_tensor(np.asarray(speed_columns, dtype=np.int64)))
+
+    def active(self, feats: torch.Tensor) -> torch.Tensor:
+        g = self.gate_options
+        speed = torch.amax(torch.abs(feats[..., self.speed_columns]), dim=-1)
+        return _smoothstep((speed - g.rest_speed_m_s[0]) / (g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
+
+
 def export_onnx(model: ResidualModel, path: Path) -> None:
     """Writes the features -> gated correction function as ONNX (float64, dynamic batch) and checks the graph."""
     import onnx
 
     model.eval()
-    example = torch.zeros(2, len(model.nets), NUM_FEATURES, dtype=torch.float64)
-    example[..., 4] = 1.0
+    example = torch.zeros(2, len(model.nets), model.num_features, dtype=torch.float64)
+    example[..., min(4, model.num_features - 1)] = 1.0
     torch.onnx.export(
         model,
         (example,),

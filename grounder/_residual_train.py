@@ -40,6 +40,14 @@ from grounder._residual import (
     free_bodies,
     smooth_free_bodies,
 )
+from grounder._residual_joint import (
+    JOINT_SPACE,
+    JointSpace,
+    NumpyJointResidual,
+    joint_features,
+    joint_space,
+    joint_targets,
+)
 from grounder._simulate import quat_angle_rad, step_indices
 from grounder._simulator import SCENE_XML, Simulator, scene_xml_path
 from grounder._trajectory import Trajectory, validate_against_model
@@ -128,7 +136,9 @@ class ResidualTrainResult:
         seconds: Wall time.
         gain: The output gain chosen on held-out rollouts (0: the residual is switched off).
         gain_scores: Held-out rollout score per candidate gain (mean over trajectories of the time-averaged
-            position error / body size + time-averaged rotation error / 100 deg).
+            position error / body size + time-averaged rotation error / 100 deg; jointed scenes: joint error).
+        space: ``free`` (free bodies) or ``joint`` (hinge and slide joints; the one-step RMS tuples are then
+            (joint position, 0, joint velocity, 0) in rad or m, and rad/s or m/s).
     """
 
     out: Path
@@ -139,6 +149,7 @@ class ResidualTrainResult:
     one_step_rms_before: tuple[float, float, float, float]
     one_step_rms_after: tuple[float, float, float, float]
     seconds: float
+    space: str = "free"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -154,8 +165,17 @@ def _period_steps(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> int:
     return int(values[np.argmax(counts)])
 
 
-def _group_rms(err: np.ndarray) -> tuple[float, float, float, float]:
-    """(N, B, 12) -> RMS norm of each 3-vector group."""
+def _has_free_joint(model: mujoco.MjModel) -> bool:
+    return any(int(t) == mujoco.mjtJoint.mjJNT_FREE for t in model.jnt_type)
+
+
+def _group_rms(err: np.ndarray, joint: bool = False) -> tuple[float, float, float, float]:
+    """(N, B, 12) -> RMS norm of each 3-vector group; joint corrections (N, 1, 2J) -> (position, 0, velocity, 0)."""
+    if joint:
+        half = err.shape[-1] // 2
+        pos = float(np.sqrt(np.mean(np.sum(err[..., :half] ** 2, axis=-1))))
+        vel = float(np.sqrt(np.mean(np.sum(err[..., half:] ** 2, axis=-1))))
+        return (pos, 0.0, vel, 0.0)
     groups = err.reshape(*err.shape[:-1], 4, 3)
     rms = np.sqrt(np.mean(np.sum(groups**2, axis=-1), axis=tuple(range(groups.ndim - 2))))
     return (float(rms[0]), float(rms[1]), float(rms[2]), float(rms[3]))
@@ -168,7 +188,14 @@ class _Trainer:
         self.model = self.sim.model
         for traj in trajs:
             validate_against_model(traj, self.model)
-        self.bodies: list[FreeBody] = free_bodies(self.model)
+        # free bodies get the body-frame residual; a scene of hinge and slide joints the joint-space one
+        self.space: JointSpace | None = None if _has_free_joint(self.model) else joint_space(self.model)
+        self.bodies: list[FreeBody] = free_bodies(self.model) if self.space is None else []
+        if self.space is not None and (options.smooth_window or options.dagger_rounds):
+            raise GrounderError(
+                "smoothing and aggregation rounds are for free bodies; train a jointed scene with smooth_window=0 "
+                "and dagger_rounds=0 (--rounds 0)"
+            )
         self.period = _period_steps(self.model, trajs)
         self.sim.period_steps = self.period
         nq, nv = self.model.nq, self.model.nv
@@ -222,8 +249,11 @@ class _Trainer:
                 ]
             )
         qs, vs = self._one_period(q0, v0, ctrl)
-        feats, rots = body_features(q0, v0, self.bodies)
         groups = np.concatenate([np.full(len(q) - 1, i) for i, q in enumerate(self.qpos)])
+        if self.space is not None:
+            feats = joint_features(q0, v0, ctrl, self.space)
+            return _Transitions(feats=feats, targets=joint_targets(qs, vs, q1, v1, self.space), groups=groups)
+        feats, rots = body_features(q0, v0, self.bodies)
         return _Transitions(feats=feats, targets=correction_targets(qs, vs, q1, v1, rots, self.bodies), groups=groups)
 
     def aggregate(self, residual: NumpyResidual) -> _Transitions:
@@ -376,9 +406,11 @@ def _fit(torch_model: Any, data: _Transitions, options: ResidualOptions, round_i
     torch_model.eval()
 
 
-def _numpy_residual(torch_model: Any, meta: ResidualMeta, bodies: list[FreeBody], gravity: np.ndarray) -> NumpyResidual:
+def _numpy_residual(torch_model: Any, meta: ResidualMeta, trainer: _Trainer) -> NumpyResidual | NumpyJointResidual:
     state = {k: v.detach().numpy().copy() for k, v in torch_model.state_dict().items()}
-    return NumpyResidual(state, meta, bodies, gravity)
+    if trainer.space is not None:
+        return NumpyJointResidual(state, meta, trainer.space)
+    return NumpyResidual(state, meta, trainer.bodies, trainer.model.opt.gravity)
 
 
 def _copy_scene(scene_xml: Path, staging: Path) -> None:
@@ -416,7 +448,7 @@ def train_residual(
     """
     import torch
 
-    from grounder._residual_torch import ResidualModel, export_onnx
+    from grounder._residual_torch import JointResidualModel, ResidualModel, export_onnx
 
     options = options or ResidualOptions()
     started = time.perf_counter()
@@ -446,13 +478,32 @@ def train_residual(
             scene_xml_sha256=file_sha256(scene_xml),
             training={},
         )
-        torch_model = ResidualModel(
-            num_bodies=len(trainer.bodies),
-            hidden=options.hidden,
-            layers=options.layers,
-            gate=options.gate,
-            radius_m=np.array([b.radius_m for b in trainer.bodies]),
-        )
+        space = trainer.space
+        torch_model: ResidualModel
+        if space is not None:
+            meta = replace(
+                meta,
+                bodies=space.names,
+                space=JOINT_SPACE,
+                feature_names=space.feature_names,
+                output_names=space.output_names,
+            )
+            torch_model = JointResidualModel(
+                num_features=len(space.feature_names),
+                num_outputs=len(space.output_names),
+                hidden=options.hidden,
+                layers=options.layers,
+                gate=options.gate,
+                speed_columns=space.speed_columns,
+            )
+        else:
+            torch_model = ResidualModel(
+                num_bodies=len(trainer.bodies),
+                hidden=options.hidden,
+                layers=options.layers,
+                gate=options.gate,
+                radius_m=np.array([b.radius_m for b in trainer.bodies]),
+            )
         data = base
         rounds = options.dagger_rounds + 1
         for r in range(rounds):
@@ -466,16 +517,18 @@ def train_residual(
             _fit(torch_model, data, options, r)
             log.info("round %d: %d samples", r, len(data.feats))
             if r + 1 < rounds:
-                extra = trainer.aggregate(_numpy_residual(torch_model, meta, trainer.bodies, trainer.model.opt.gravity))
+                free_residual = _numpy_residual(torch_model, meta, trainer)
+                assert isinstance(free_residual, NumpyResidual)  # aggregation rounds are refused for joints
+                extra = trainer.aggregate(free_residual)
                 data = _Transitions(
                     feats=np.concatenate([base.feats, extra.feats]),
                     targets=np.concatenate([base.targets, extra.targets]),
                     groups=np.concatenate([base.groups, extra.groups]),
                 )
         report("residual: training rounds", rounds, rounds)
-        residual = _numpy_residual(torch_model, meta, trainer.bodies, trainer.model.opt.gravity)
-        before = _group_rms(base.targets)
-        after = _group_rms(base.targets - residual(base.feats))  # at gain 1, before the gain is chosen
+        residual = _numpy_residual(torch_model, meta, trainer)
+        before = _group_rms(base.targets, joint=space is not None)
+        after = _group_rms(base.targets - residual(base.feats), joint=space is not None)  # gain 1, before choosing
         report("residual: gain on held-out rollouts", 0, 1)
         gain, scores = _select_gain(trainer.sim, residual, select_trajs, options.gains)
         report("residual: gain on held-out rollouts", 1, 1)
@@ -488,6 +541,7 @@ def train_residual(
                 "it is saved with gain 0 (MuJoCo alone)"
             )
         seconds = time.perf_counter() - started
+        rms_keys = ("pos_m", "rot_rad", "vel_m_s", "omega_rad_s") if space is None else ("joint_pos", "joint_vel")
         meta = replace(
             meta,
             training={
@@ -498,8 +552,8 @@ def train_residual(
                 "gain_selection_trajectories": [t.name for t in select_trajs],
                 "gain_scores": {f"{g:g}": v for g, v in scores.items()},
                 "selected_gain": gain,
-                "one_step_rms_before": dict(zip(("pos_m", "rot_rad", "vel_m_s", "omega_rad_s"), before, strict=True)),
-                "one_step_rms_after": dict(zip(("pos_m", "rot_rad", "vel_m_s", "omega_rad_s"), after, strict=True)),
+                "one_step_rms_before": dict(zip(rms_keys, before if space is None else before[::2], strict=True)),
+                "one_step_rms_after": dict(zip(rms_keys, after if space is None else after[::2], strict=True)),
                 "options": _options_json(options),
                 "seconds": seconds,
                 "torch_version": torch.__version__,
@@ -530,6 +584,7 @@ def train_residual(
         one_step_rms_before=before,
         one_step_rms_after=after,
         seconds=seconds,
+        space="free" if space is None else JOINT_SPACE,
     )
 
 
@@ -549,8 +604,17 @@ def rollout_score(model: mujoco.MjModel, preds: Sequence[Trajectory], real: Sequ
     """Mean over trajectories and free bodies of time-averaged position error / body size + rotation error / 100 deg.
 
     Body size: twice the largest distance of a collision point from the body origin, scaled by 1/sqrt(3) (a
-    cube's edge; for the cube tosses exactly the cube width).
+    cube's edge; for the cube tosses exactly the cube width). A scene without free bodies: the mean over
+    trajectories and joints of the time-averaged joint error (rad for hinges, m for slides).
     """
+    if not _has_free_joint(model):
+        space = joint_space(model)
+        errors = []
+        for pred, rec in zip(preds, real, strict=True):
+            diff = pred.qpos[:, space.qpos_adr] - rec.qpos[:, space.qpos_adr]
+            diff[:, space.hinge] = np.angle(np.exp(1j * diff[:, space.hinge]))
+            errors.append(float(np.mean(np.abs(diff))))
+        return float(np.mean(errors))
     bodies = free_bodies(model)
     scores = []
     for pred, rec in zip(preds, real, strict=True):
@@ -564,7 +628,7 @@ def rollout_score(model: mujoco.MjModel, preds: Sequence[Trajectory], real: Sequ
 
 
 def _select_gain(
-    sim: Simulator, residual: NumpyResidual, trajs: Sequence[Trajectory], gains: Sequence[float]
+    sim: Simulator, residual: NumpyResidual | NumpyJointResidual, trajs: Sequence[Trajectory], gains: Sequence[float]
 ) -> tuple[float, dict[float, float]]:
     if not trajs:
         return 1.0, {}

@@ -21,6 +21,7 @@ from grounder._residual import (
     has_residual_files,
     load_residual,
 )
+from grounder._residual_joint import NumpyJointResidual
 from grounder._simulate import FULLPHYSICS, _offsets, default_nthread, prepare, simulate
 from grounder._trajectory import Trajectory
 from grounder.errors import GrounderError
@@ -72,7 +73,7 @@ class Simulator:
         scene_dir = xml.parent
         residual = load_residual(scene_dir, self.model) if has_residual(scene_dir) else None
         self.period_steps = residual.meta.period_steps if residual is not None else 1
-        self.residual: NumpyResidual | None = residual if use_residual else None
+        self.residual: NumpyResidual | NumpyJointResidual | None = residual if use_residual else None
         self._data = mujoco.MjData(self.model)
         self._datas: list[mujoco.MjData] = []
         template = mujoco.MjData(self.model)
@@ -90,7 +91,7 @@ class Simulator:
         """Seconds per :meth:`step`."""
         return self.period_steps * float(self.model.opt.timestep)
 
-    def _set_residual(self, residual: NumpyResidual | None) -> None:
+    def _set_residual(self, residual: NumpyResidual | NumpyJointResidual | None) -> None:
         """Swaps the residual (training evaluates candidates with it)."""
         if residual is not None:
             self.period_steps = residual.meta.period_steps
@@ -119,6 +120,12 @@ class Simulator:
             for _ in range(self.period_steps):
                 mujoco.mj_step(m, d)
             return d.qpos.copy(), d.qvel.copy()
+        if isinstance(residual, NumpyJointResidual):
+            q0, v0, u0 = d.qpos.copy()[None], d.qvel.copy()[None], d.ctrl.copy()[None]
+            for _ in range(self.period_steps):
+                mujoco.mj_step(m, d)
+            qpos1, qvel1 = residual.correct(q0, v0, d.qpos.copy()[None], d.qvel.copy()[None], u0)
+            return qpos1[0], qvel1[0]
         q0, v0 = d.qpos.tolist(), d.qvel.tolist()
         for _ in range(self.period_steps):
             mujoco.mj_step(m, d)
@@ -146,16 +153,19 @@ class Simulator:
         )
         return out
 
-    def _correct(self, states0: np.ndarray, states1: np.ndarray) -> np.ndarray:
-        """Applies the residual to states after one period; ``states0`` are the period's starting states."""
+    def _correct(self, states0: np.ndarray, states1: np.ndarray, ctrl: np.ndarray | None = None) -> np.ndarray:
+        """Applies the residual to states after one period; ``states0`` are the period's starting states and
+        ``ctrl`` (N, nu) the controls held over it (the joint-space residual sees them)."""
         residual = self.residual
         if residual is None:
             return states1
         nq, nv = self.model.nq, self.model.nv
         qa, va = self._qpos_at, self._qvel_at
-        qpos, qvel = residual.correct(
-            states0[:, qa : qa + nq], states0[:, va : va + nv], states1[:, qa : qa + nq], states1[:, va : va + nv]
-        )
+        args = (states0[:, qa : qa + nq], states0[:, va : va + nv], states1[:, qa : qa + nq], states1[:, va : va + nv])
+        if isinstance(residual, NumpyJointResidual):
+            qpos, qvel = residual.correct(*args, ctrl)
+        else:
+            qpos, qvel = residual.correct(*args)
         out = states1.copy()
         out[:, qa : qa + nq] = qpos
         out[:, va : va + nv] = qvel
@@ -184,7 +194,8 @@ class Simulator:
             held = np.zeros((len(qpos), self.model.nu)) if ctrl is None else np.asarray(ctrl, np.float64)
             controls = np.repeat(held[:, None, :], self.period_steps, axis=1)
         states0 = self._states(qpos, qvel)
-        states1 = self._correct(states0, self._physics(states0, controls, self.period_steps)[:, -1])
+        held_ctrl = None if controls is None else controls[:, 0]
+        states1 = self._correct(states0, self._physics(states0, controls, self.period_steps)[:, -1], held_ctrl)
         nq, nv = self.model.nq, self.model.nv
         return (
             states1[:, self._qpos_at : self._qpos_at + nq].copy(),
@@ -236,7 +247,7 @@ class Simulator:
         for k in range(num_periods):
             ctrl = None if controls is None else controls[:, k * period : (k + 1) * period]
             block = self._physics(state, ctrl, period)
-            block[:, -1] = self._correct(state, block[:, -1])
+            block[:, -1] = self._correct(state, block[:, -1], None if ctrl is None else ctrl[:, 0])
             out[:, k * period + 1 : (k + 1) * period + 1] = block
             state = block[:, -1]
         return out[:, : batch.nstep + 1]

@@ -55,10 +55,19 @@ def register(app: typer.Typer) -> None:
             with stage_progress() as progress:
                 result = train_residual(scene, trajs, out, options, overwrite=overwrite, progress=progress)
         before, after = result.one_step_rms_before, result.one_step_rms_after
+        if result.space == "free":
+            errors = (
+                f"one-step RMS position {before[0] * 1e3:.2f} -> {after[0] * 1e3:.2f} mm, "
+                f"velocity {before[2]:.3f} -> {after[2]:.3f} m/s"
+            )
+        else:
+            errors = (
+                f"joint-space residual; one-step RMS joint position {before[0] * 1e3:.2f} -> {after[0] * 1e3:.2f} "
+                f"mrad (mm for slides), joint velocity {before[2]:.3f} -> {after[2]:.3f} rad/s"
+            )
         typer.echo(
             f"trained on {result.num_trajectories} trajectories ({result.num_samples} samples) in "
-            f"{result.seconds:.1f} s; one-step RMS position {before[0] * 1e3:.2f} -> {after[0] * 1e3:.2f} mm, "
-            f"velocity {before[2]:.3f} -> {after[2]:.3f} m/s; output gain chosen on held-out rollouts: "
+            f"{result.seconds:.1f} s; {errors}; output gain chosen on held-out rollouts: "
             f"{result.gain:g}" + (" (the residual did not help: MuJoCo alone)" if result.gain == 0 else "")
         )
         typer.echo(f"residual scene: {result.out}")

@@ -1,0 +1,189 @@
+"""The residual for articulated scenes: a bounded, gated correction of hinge and slide joints at the data rate.
+
+Scenes whose moving parts hang on hinge and slide joints (a pendulum, an arm) have no free body for the
+body-frame residual of ``grounder/_residual.py``. Here one MLP sees the whole joint space and corrects it after
+every period of ``period_steps`` model steps, like the free-body residual:
+
+    q[t+1], qdot[t+1] = mujoco^P(q[t], qdot[t], u[t]) + gain * gate * bound * tanh(mlp(features) * scale / bound)
+
+Features (in this order): per hinge joint sin q and cos q, per slide joint q (metres); every joint's velocity
+(rad/s or m/s); every actuator's control over the period. Outputs: per joint a position correction (rad or m)
+then per joint a velocity correction. Only the control held over the period is seen, so an actuator delay is
+learnt only as far as the state and the present control reveal it.
+
+Safety, as for free bodies: every output is capped at the ``bound`` quantile of the training corrections; the gate
+is exactly 0 when every joint is slower than ``rest_speed_m_s[0]`` (read as rad/s, or m/s for slide joints), so a
+mechanism at rest is never pushed; it fades to 0 outside the training ranges and k-means coverage; the output gain
+is chosen on held-out multi-step rollouts (0: MuJoCo alone). There is no energy cap: a driven mechanism's energy
+is not bounded by its start, and a passive one at rest is already held by the rest gate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from grounder._residual import ResidualMeta, coverage_gate, smoothstep
+from grounder.errors import GrounderError
+
+JOINT_SPACE = "joint"
+
+
+@dataclass(frozen=True, kw_only=True)
+class JointSpace:
+    """The hinge and slide joints a joint-space residual corrects, in joint order.
+
+    Attributes:
+        names: Joint names.
+        qpos_adr: (J,) qpos address of each joint.
+        dof_adr: (J,) qvel address of each joint.
+        hinge: (J,) True for hinge joints (angles; features sin and cos), False for slide joints.
+        nu: Number of actuators (controls are features).
+    """
+
+    names: tuple[str, ...]
+    qpos_adr: np.ndarray
+    dof_adr: np.ndarray
+    hinge: np.ndarray
+    nu: int
+
+    @property
+    def num_joints(self) -> int:
+        return len(self.names)
+
+    @property
+    def feature_names(self) -> tuple[str, ...]:
+        out: list[str] = []
+        for name, is_hinge in zip(self.names, self.hinge, strict=True):
+            out += [f"sin_{name}", f"cos_{name}"] if is_hinge else [f"pos_{name}_m"]
+        out += [f"vel_{n}" for n in self.names]
+        return (*out, *(f"ctrl_{i}" for i in range(self.nu)))
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return (*(f"dpos_{n}" for n in self.names), *(f"dvel_{n}" for n in self.names))
+
+    @property
+    def speed_columns(self) -> list[int]:
+        start = int(2 * self.hinge.sum() + (~self.hinge).sum())
+        return list(range(start, start + self.num_joints))
+
+
+def joint_space(model: mujoco.MjModel) -> JointSpace:
+    """The model's hinge and slide joints.
+
+    Raises:
+        GrounderError: the model has a free or ball joint (use the free-body residual), or no joint at all.
+    """
+    kinds = [int(t) for t in model.jnt_type]
+    if any(k in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL) for k in kinds):
+        raise GrounderError("the joint-space residual corrects hinge and slide joints only; this scene has others")
+    if not kinds:
+        raise GrounderError("the scene has no joint; there is nothing for a residual to correct")
+    names = tuple(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}" for j in range(model.njnt))
+    return JointSpace(
+        names=names,
+        qpos_adr=np.array(model.jnt_qposadr, dtype=np.int64),
+        dof_adr=np.array(model.jnt_dofadr, dtype=np.int64),
+        hinge=np.array([k == mujoco.mjtJoint.mjJNT_HINGE for k in kinds]),
+        nu=int(model.nu),
+    )
+
+
+def joint_features(qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None, space: JointSpace) -> np.ndarray:
+    """(N, nq), (N, nv), (N, nu) or None -> features (N, 1, F) in the order of ``space.feature_names``."""
+    q = qpos[:, space.qpos_adr]
+    cols: list[np.ndarray] = []
+    for j, is_hinge in enumerate(space.hinge):
+        cols += [np.sin(q[:, j]), np.cos(q[:, j])] if is_hinge else [q[:, j]]
+    cols += [qvel[:, d] for d in space.dof_adr]
+    if space.nu:
+        held = np.zeros((len(qpos), space.nu)) if ctrl is None else np.asarray(ctrl, dtype=np.float64)
+        cols += [held[:, i] for i in range(space.nu)]
+    return np.stack(cols, axis=1)[:, None, :]
+
+
+def joint_targets(
+    qpos_sim: np.ndarray, qvel_sim: np.ndarray, qpos_true: np.ndarray, qvel_true: np.ndarray, space: JointSpace
+) -> np.ndarray:
+    """The correction (N, 1, 2J) that turns the simulated into the true joint states (angles wrapped to +-pi)."""
+    dq = qpos_true[:, space.qpos_adr] - qpos_sim[:, space.qpos_adr]
+    dq[:, space.hinge] = np.angle(np.exp(1j * dq[:, space.hinge]))
+    dv = qvel_true[:, space.dof_adr] - qvel_sim[:, space.dof_adr]
+    return np.concatenate([dq, dv], axis=1)[:, None, :]
+
+
+def apply_joint_correction(
+    qpos: np.ndarray, qvel: np.ndarray, correction: np.ndarray, space: JointSpace
+) -> tuple[np.ndarray, np.ndarray]:
+    """Adds a correction (N, 1, 2J) to states after MuJoCo stepped; returns new (qpos, qvel), inputs untouched."""
+    qpos, qvel = qpos.copy(), qvel.copy()
+    j = space.num_joints
+    qpos[:, space.qpos_adr] += correction[:, 0, :j]
+    qvel[:, space.dof_adr] += correction[:, 0, j:]
+    return qpos, qvel
+
+
+class NumpyJointResidual:
+    """The joint-space residual evaluated with numpy from a ``state_dict`` (same function as the torch model)."""
+
+    def __init__(self, state: dict[str, np.ndarray], meta: ResidualMeta, space: JointSpace):
+        self.meta = meta
+        self.space = space
+        self.bodies: list = []  # no free body (the Simulator's ``bodies``)
+        self.feat_mean = state["feat_mean"]  # (1, F)
+        self.feat_std = state["feat_std"]
+        self.out_scale = state["out_scale"]  # (1, O)
+        self.out_bound = state["out_bound"]
+        self.out_gain = np.array(state["out_gain"], dtype=np.float64)  # (1,)
+        self.range_lo = state["range_lo"]
+        self.range_hi = state["range_hi"]
+        self.centres = state["centres"]  # (1, K, F)
+        self.coverage_dist = state["coverage_dist"]
+        self.layers = [
+            (np.ascontiguousarray(state[f"nets.0.{2 * i}.weight"].T), state[f"nets.0.{2 * i}.bias"])
+            for i in range(meta.layers + 1)
+        ]
+        self._speed = np.array(space.speed_columns, dtype=np.int64)
+
+    def gate(self, feats: np.ndarray) -> np.ndarray:
+        """(N, 1, F) -> (N, 1) in [0, 1]: moving x inside the training ranges x near the training states."""
+        g = self.meta.gate
+        speed = np.max(np.abs(feats[..., self._speed]), axis=-1)
+        moving = smoothstep((speed - g.rest_speed_m_s[0]) / (g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
+        return moving * coverage_gate(self, feats)
+
+    def raw(self, feats: np.ndarray) -> np.ndarray:
+        """(N, 1, F) -> (N, 1, O) bounded correction before the gate."""
+        h = (feats[:, 0] - self.feat_mean[0]) / self.feat_std[0]
+        for weight, bias in self.layers[:-1]:
+            h = np.tanh(h @ weight + bias)
+        u = h @ self.layers[-1][0] + self.layers[-1][1]
+        return (self.out_bound[0] * np.tanh(u * self.out_scale[0] / self.out_bound[0]))[:, None, :]
+
+    def __call__(self, feats: np.ndarray) -> np.ndarray:
+        return self.raw(feats) * (self.gate(feats) * self.out_gain)[..., None]
+
+    def correct(
+        self,
+        qpos0: np.ndarray,
+        qvel0: np.ndarray,
+        qpos_sim: np.ndarray,
+        qvel_sim: np.ndarray,
+        ctrl: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """States after one period: MuJoCo's ``(qpos_sim, qvel_sim)`` from ``(qpos0, qvel0)`` under ``ctrl``,
+        corrected. All (N, nq) / (N, nv) / (N, nu)."""
+        feats = joint_features(qpos0, qvel0, ctrl, self.space)
+        return apply_joint_correction(qpos_sim, qvel_sim, self(feats), self.space)
+
+
+def check_joint_meta(meta: ResidualMeta, space: JointSpace, where: str) -> None:
+    """Raises GrounderError when a joint-space residual was trained on other joints or actuators."""
+    if tuple(meta.bodies) != space.names or tuple(meta.feature_names) != space.feature_names:
+        raise GrounderError(
+            f"{where}: the residual corrects joints {list(meta.bodies)} with features {list(meta.feature_names)}, "
+            f"but the scene has {list(space.names)} and {list(space.feature_names)}; retrain it on this scene"
+        )

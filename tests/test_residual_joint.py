@@ -1,0 +1,191 @@
+"""The joint-space residual (articulated scenes): learns a withheld joint damping and an actuator's weak gain from
+recorded motion, never moves a mechanism at rest, stays bounded, agrees across numpy / torch / ONNX, and steps the
+same one at a time, in a batch and in a rollout with controls."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from grounder._cases import make_case
+from grounder._diagnose_bench import select_cases
+from grounder._residual import META_FILE, ONNX_FILE, WEIGHTS_FILE
+from grounder._residual_joint import NumpyJointResidual, joint_features, joint_space, joint_targets
+from grounder._residual_train import ResidualOptions, rollout_score, train_residual
+from grounder._simulator import Simulator
+from grounder._trajectory import Trajectory
+from grounder.errors import GrounderError
+
+SMALL = ResidualOptions(steps=800, hidden=32, seed=0)
+
+
+def _case(name: str, count: int, seed: int) -> tuple[str, list[Trajectory]]:
+    case = make_case(select_cases([name])[0], count, seed=seed)
+    return case.scene_xml, case.trajectories
+
+
+@pytest.fixture(scope="module")
+def pendulum(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(nominal scene without damping, residual trained on the damped pendulum's recordings)."""
+    xml, trajs = _case("pendulum/joint_damping", 24, seed=0)
+    nominal = tmp_path_factory.mktemp("pendulum")
+    (nominal / "scene.xml").write_text(xml)
+    out = tmp_path_factory.mktemp("trained") / "residual"
+    train_residual(nominal, trajs, out, SMALL)
+    return nominal, out
+
+
+def test_targets_invert_apply_across_the_angle_wrap() -> None:
+    xml, _ = _case("arm/actuator_gain", 1, seed=0)
+    model = mujoco.MjModel.from_xml_string(xml)
+    space = joint_space(model)
+    rng = np.random.default_rng(0)
+    q_sim, v_sim = rng.uniform(-3.1, 3.1, (50, 2)), rng.normal(size=(50, 2))
+    q_true = q_sim + rng.normal(scale=0.05, size=(50, 2))
+    q_true[:5] += 2 * np.pi  # the same angle a turn later: a small correction, not a turn
+    v_true = v_sim + rng.normal(scale=0.1, size=(50, 2))
+    target = joint_targets(q_sim, v_sim, q_true, v_true, space)
+    assert np.abs(target[:, 0, :2]).max() < 0.3
+    from grounder._residual_joint import apply_joint_correction
+
+    q, v = apply_joint_correction(q_sim, v_sim, target, space)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (q - q_true))), 0.0, atol=1e-12)
+    np.testing.assert_allclose(v, v_true, atol=1e-12)
+
+
+def test_learns_a_withheld_damping(pendulum: tuple[Path, Path]) -> None:
+    nominal, trained = pendulum
+    _, held_out = _case("pendulum/joint_damping", 8, seed=1)
+    plain = Simulator(nominal)
+    hybrid = Simulator(trained)
+    before = rollout_score(plain.model, plain.rollout(held_out), held_out)
+    after = rollout_score(hybrid.model, hybrid.rollout(held_out), held_out)
+    assert before > 0.08  # rad: the undamped pendulum swings on
+    assert after < 0.15 * before, (before, after)
+    meta = json.loads((trained / META_FILE).read_text())
+    assert meta["space"] == "joint" and meta["bodies"] == ["hinge"]
+    assert meta["features"] == ["sin_hinge", "cos_hinge", "vel_hinge"]
+    assert meta["training"]["selected_gain"] > 0
+
+
+def test_mechanism_at_rest_stays_at_rest(pendulum: tuple[Path, Path]) -> None:
+    _, trained = pendulum
+    sim = Simulator(trained)
+    assert isinstance(sim.residual, NumpyJointResidual)
+    sim.residual.out_gain[:] = 1.0
+    qpos, qvel = np.zeros(1), np.zeros(1)  # hanging straight down, still
+    feats = joint_features(qpos[None], qvel[None], None, sim.residual.space)
+    assert np.all(sim.residual(feats) == 0.0)
+    for _ in range(round(2.0 / sim.dt_s)):
+        qpos, qvel = sim.step(qpos, qvel)
+    assert abs(qpos[0]) < 1e-9 and abs(qvel[0]) < 1e-9
+
+
+def test_bounded_and_fades_outside_training(pendulum: tuple[Path, Path]) -> None:
+    _, trained = pendulum
+    residual = Simulator(trained).residual
+    assert isinstance(residual, NumpyJointResidual)
+    rng = np.random.default_rng(2)
+    feats = rng.normal(size=(2000, 1, 3)) * 30.0
+    assert np.all(np.abs(residual(feats)) <= residual.out_bound[None] + 1e-12)
+    far = np.array([[[0.0, 1.0, 200.0]]])  # 200 rad/s: never seen
+    assert residual.gate(far)[0, 0] == 0.0
+
+
+def test_numpy_torch_onnx_agree(pendulum: tuple[Path, Path]) -> None:
+    import onnx
+    import torch
+    from onnx.reference import ReferenceEvaluator
+
+    from grounder._residual_torch import JointResidualModel
+
+    _, trained = pendulum
+    residual = Simulator(trained).residual
+    assert isinstance(residual, NumpyJointResidual)
+    space = residual.space
+    model = JointResidualModel(
+        num_features=len(space.feature_names),
+        num_outputs=len(space.output_names),
+        hidden=residual.meta.hidden,
+        layers=residual.meta.layers,
+        gate=residual.meta.gate,
+        speed_columns=space.speed_columns,
+    )
+    model.load_state_dict(torch.load(trained / WEIGHTS_FILE, weights_only=True))
+    _, held_out = _case("pendulum/joint_damping", 2, seed=3)
+    feats = joint_features(
+        np.concatenate([t.qpos for t in held_out]), np.concatenate([t.qvel for t in held_out]), None, space
+    )
+    expected = residual(feats)
+    assert np.abs(expected).max() > 0
+    with torch.no_grad():
+        np.testing.assert_allclose(model(torch.as_tensor(feats)).numpy(), expected, rtol=1e-9, atol=1e-12)
+    graph = onnx.load(str(trained / ONNX_FILE))
+    (out,) = ReferenceEvaluator(graph).run(None, {"features": feats})
+    np.testing.assert_allclose(out, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_driven_arm_single_batch_and_rollout_agree(tmp_path: Path) -> None:
+    """The arm's controls are features: one state at a time, a batch and a rollout must hand them over alike."""
+    xml, trajs = _case("arm/actuator_gain", 16, seed=0)
+    nominal = tmp_path / "arm"
+    nominal.mkdir()
+    (nominal / "scene.xml").write_text(xml)
+    result = train_residual(nominal, trajs, tmp_path / "residual", ResidualOptions(steps=400, hidden=32, seed=0))
+    sim = Simulator(tmp_path / "residual")
+    assert isinstance(sim.residual, NumpyJointResidual)
+    assert sim.residual.meta.feature_names[-2:] == ("ctrl_0", "ctrl_1")
+    sim.residual.out_gain[:] = 1.0  # whatever was chosen, exercise the correction
+    traj = trajs[0]
+    assert traj.ctrl is not None
+    pred = sim.rollout([traj])[0]
+    qpos, qvel = traj.qpos[0].copy(), traj.qvel[0].copy()
+    for k in range(1, 20):
+        qpos, qvel = sim.step(qpos, qvel, traj.ctrl[k - 1])
+        np.testing.assert_allclose(qpos, pred.qpos[k], atol=1e-9)
+    q_b, v_b = sim.step_batch(traj.qpos[:5], traj.qvel[:5], traj.ctrl[:5])
+    for i in range(5):
+        q_s, v_s = sim.step(traj.qpos[i], traj.qvel[i], traj.ctrl[i])
+        np.testing.assert_allclose(q_s, q_b[i], atol=1e-9)
+        np.testing.assert_allclose(v_s, v_b[i], atol=1e-9)
+    assert result.one_step_rms_after[2] < result.one_step_rms_before[2]  # the weak motors are learnt
+
+
+def test_errors(pendulum: tuple[Path, Path], tmp_path: Path) -> None:
+    _, trained = pendulum
+    arm_xml, arm_trajs = _case("arm/actuator_gain", 6, seed=0)
+    (trained_copy := tmp_path / "other").mkdir()
+    for f in trained.iterdir():
+        (trained_copy / f.name).write_bytes(f.read_bytes())
+    (trained_copy / "scene.xml").write_text(arm_xml)
+    with pytest.raises(GrounderError, match="retrain it on this scene"):
+        Simulator(trained_copy)
+    (arm := tmp_path / "arm").mkdir()
+    (arm / "scene.xml").write_text(arm_xml)
+    with pytest.raises(GrounderError, match="dagger_rounds=0"):
+        train_residual(arm, arm_trajs, tmp_path / "out", ResidualOptions(dagger_rounds=1))
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_trains_and_rolls_out_a_jointed_scene(pendulum: tuple[Path, Path], tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from grounder._trajectory import save_trajectories
+    from grounder.cli import app
+
+    nominal, _ = pendulum
+    _, trajs = _case("pendulum/joint_damping", 6, seed=4)
+    traj_dir = save_trajectories(trajs, tmp_path / "trajs")
+    out = tmp_path / "out"
+    runner = CliRunner()
+    args = ["residual", "train", str(nominal), str(traj_dir), "-o", str(out), "--steps", "50"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "joint-space residual" in result.output and (out / ONNX_FILE).is_file()
+    result = runner.invoke(app, ["rollout", str(out), str(traj_dir), "-o", str(tmp_path / "pred")])
+    assert result.exit_code == 0, result.output
+    assert len(list((tmp_path / "pred").glob("*.npz"))) == 6
