@@ -15,9 +15,9 @@ Each case of `grounder._cases.BENCHMARK` (true system = nominal + hidden effect 
   gain is chosen on multi-step rollouts of a fifth of the training trajectories).
 
 Every model is then rolled out open loop over each held-out trajectory from its first recorded state. Figures per
-case: time-averaged position error (mm) and rotation error (deg) of the free body, or joint-angle error (mrad) for
-jointed scenes, mean over held-out trajectories. The residual corrects free bodies only: jointed cases (pendulum,
-arm) list it as not applicable.
+case: time-averaged position error (mm) and rotation error (deg) of the free body, or joint-angle error (mrad, a
+full turn counts as none) for jointed scenes, mean over held-out trajectories. Jointed scenes (pendulum, arm) get
+the joint-space residual (`grounder/_residual_joint.py`).
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ from grounder._diagnose import DiagnoseOptions, diagnose
 from grounder._diagnose_bench import select_cases
 from grounder._effects import Transforms, apply_effects
 from grounder._gap import make_windows, predict
+from grounder._residual_joint import joint_space
 from grounder._residual_train import ResidualOptions, train_residual
 from grounder._simulate import quat_angle_rad
 from grounder._simulator import Simulator
@@ -62,7 +63,12 @@ def errors(model: mujoco.MjModel, pred_qpos: list[np.ndarray], real: list[Trajec
             for p, r in zip(pred_qpos, real, strict=True)
         ]
         return {"pos_mm": 1e3 * float(np.mean(pos)), "rot_deg": float(np.degrees(np.mean(rot)))}
-    err = [np.abs(p - r.qpos).mean() for p, r in zip(pred_qpos, real, strict=True)]
+    space = joint_space(model)
+    err = []
+    for p, r in zip(pred_qpos, real, strict=True):
+        diff = p[:, space.qpos_adr] - r.qpos[:, space.qpos_adr]
+        diff[:, space.hinge] = np.angle(np.exp(1j * diff[:, space.hinge]))  # a full turn is no error
+        err.append(np.abs(diff).mean())
     return {"joint_mrad": 1e3 * float(np.mean(err))}
 
 
@@ -106,13 +112,11 @@ def run_case(name: str, n_train: int, n_held: int, rotation_weight: float, quiet
             "calibrated": open_loop(cal.model, Transforms(), held),
             "diagnosed": open_loop(diagnosed, transforms, held),
         }
-        free = any(nominal.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE for j in range(nominal.njnt))
-        if free:
-            t0 = time.perf_counter()
-            res = train_residual(root / "calibrated", train, root / "residual", ResidualOptions())
-            row["seconds"]["residual"] = time.perf_counter() - t0
-            row["residual_gain"] = res.gain
-            preds["calibrated + residual"] = [t.qpos for t in Simulator(root / "residual").rollout(held)]
+        t0 = time.perf_counter()
+        res = train_residual(root / "calibrated", train, root / "residual", ResidualOptions())
+        row["seconds"]["residual"] = time.perf_counter() - t0
+        row["residual_gain"] = res.gain
+        preds["calibrated + residual"] = [t.qpos for t in Simulator(root / "residual").rollout(held)]
     row["errors"] = {k: errors(nominal, v, held) for k, v in preds.items()}
     if not quiet:
         print(json.dumps(row, default=float), flush=True)

@@ -17,7 +17,8 @@ then:
   ``mujoco.rollout``, the residual vectorised with numpy), with and without the residual.
 
 Run: ``.venv/bin/python benchmarks/residual_step_time.py [--rounds 15] [--no-batch]`` (target: the residual adds
-<= 50% to the single simulation's step time; the batch of 1024 rolls out).
+<= 50% to the single simulation's step time; the batch of 1024 rolls out). ``--arm`` times the joint-space
+residual instead, on the withheld-effect two-link arm (one period = 5 model steps of 2 ms, controls as features).
 """
 
 from __future__ import annotations
@@ -145,12 +146,54 @@ def _time_mujoco_rollout(sim: Simulator, starts: list[tuple[np.ndarray, np.ndarr
     return best
 
 
+def arm(rounds: int) -> None:
+    """The joint-space residual on the withheld-effect arm (weak motors): one period from each recorded state."""
+    from grounder._cases import make_case
+    from grounder._diagnose_bench import select_cases
+    from grounder._residual_joint import NumpyJointResidual, joint_features
+
+    case = make_case(select_cases(["arm/actuator_gain"])[0], 36, seed=0)
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = Path(tmp) / "nominal"
+        scene.mkdir()
+        (scene / "scene.xml").write_text(case.scene_xml)
+        train_residual(scene, case.trajectories[:16], Path(tmp) / "residual", ResidualOptions(steps=300, gains=(1.0,)))
+        plain = Simulator(Path(tmp) / "residual", use_residual=False)
+        hybrid = Simulator(Path(tmp) / "residual")
+        rows = [(q, v, u) for t in case.trajectories[16:] for q, v, u in zip(t.qpos, t.qvel, t.ctrl, strict=True)]
+
+        def timed(sim: Simulator) -> tuple[float, float]:
+            cpu0, wall0 = time.process_time(), time.perf_counter()
+            for q, v, u in rows:
+                sim.step(q, v, u)
+            return (time.process_time() - cpu0) / len(rows), (time.perf_counter() - wall0) / len(rows)
+
+        for sim in (plain, hybrid):  # warm up
+            timed(sim)
+        times = _interleaved(lambda: timed(plain), lambda: timed(hybrid), rounds)
+        residual = hybrid.residual
+        assert isinstance(residual, NumpyJointResidual)
+        feats = joint_features(*(np.stack([r[i] for r in rows]) for i in range(3)), residual.space)
+        share = float(np.mean(residual.gate(feats) * residual.out_gain > 0.0))
+        _report(
+            f"two-link arm (joint-space residual, controls as features): one period ({plain.period_steps} model "
+            f"steps) from each of the {len(rows)} recorded states of 20 held-out trajectories",
+            times,
+            plain.period_steps,
+            share,
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rounds", type=int, default=15, help="interleaved timing rounds (medians over them)")
     parser.add_argument("--periods", type=int, default=100, help="periods per toss in each round")
     parser.add_argument("--no-batch", action="store_true", help="skip the batch of 1024")
+    parser.add_argument("--arm", action="store_true", help="only the joint-space residual on a two-link arm")
     args = parser.parse_args()
+    if args.arm:
+        arm(args.rounds)
+        return
     trajs = _tosses()
     with tempfile.TemporaryDirectory() as tmp:
         scene = Path(tmp) / "nominal"

@@ -20,6 +20,7 @@ is not bounded by its start, and a passive one at rest is already held by the re
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import mujoco
@@ -126,6 +127,12 @@ def apply_joint_correction(
     return qpos, qvel
 
 
+def _smoothstep1(x: float) -> float:
+    """:func:`grounder._residual.smoothstep` of one number, in plain Python."""
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
 class NumpyJointResidual:
     """The joint-space residual evaluated with numpy from a ``state_dict`` (same function as the torch model)."""
 
@@ -147,6 +154,25 @@ class NumpyJointResidual:
             for i in range(meta.layers + 1)
         ]
         self._speed = np.array(space.speed_columns, dtype=np.int64)
+        # single-state constants (``correct_one``)
+        g = meta.gate
+        self._rest = (float(g.rest_speed_m_s[0]), float(g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
+        self._lo, self._hi = self.range_lo[0], self.range_hi[0]
+        self._inv_margin = 1.0 / (g.range_margin * (self._hi - self._lo) + 1e-9)
+        self._mean, self._inv_std = self.feat_mean[0], 1.0 / self.feat_std[0]
+        centres = self.centres[0]
+        self._centre_rows = np.column_stack([-2.0 * centres, np.sum(centres**2, axis=1)])  # [z, 1] -> |c|^2 - 2 z.c
+        self._scale_over_bound = self.out_scale[0] / self.out_bound[0]
+        self._hinge_q = space.qpos_adr[space.hinge]
+        self._slide_q = space.qpos_adr[~space.hinge]
+        names = space.feature_names
+        pairs = list(zip(space.names, space.hinge, strict=True))
+        self._sin_cols = np.array([names.index(f"sin_{n}") for n, h in pairs if h], dtype=np.int64)
+        self._slide_cols = np.array([names.index(f"pos_{n}_m") for n, h in pairs if not h], dtype=np.int64)
+        self._ctrl_cols = np.arange(len(names) - space.nu, len(names))
+        self._coverage_dist = float(self.coverage_dist[0])
+        self._feats = np.empty(len(names))
+        self._z_one = np.ones(len(names) + 1)
 
     def gate(self, feats: np.ndarray) -> np.ndarray:
         """(N, 1, F) -> (N, 1) in [0, 1]: moving x inside the training ranges x near the training states."""
@@ -165,6 +191,50 @@ class NumpyJointResidual:
 
     def __call__(self, feats: np.ndarray) -> np.ndarray:
         return self.raw(feats) * (self.gate(feats) * self.out_gain)[..., None]
+
+    def correct_one(
+        self, qpos0: np.ndarray, qvel0: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None
+    ) -> None:
+        """:meth:`correct` for one state ((nq,), (nv,), (nu,)), in place on ``qpos``/``qvel``; written for speed
+        (a small arm steps in microseconds): it stops as soon as the gate is 0, so a still mechanism costs a test."""
+        space = self.space
+        vel = qvel0[space.dof_adr]
+        speed = float(np.max(np.abs(vel)))
+        rest0, rest_span = self._rest
+        if speed <= rest0:
+            return
+        f = self._feats
+        angles = qpos0[self._hinge_q]
+        f[self._sin_cols] = np.sin(angles)
+        f[self._sin_cols + 1] = np.cos(angles)
+        f[self._slide_cols] = qpos0[self._slide_q]
+        f[self._speed] = vel
+        if space.nu:
+            f[self._ctrl_cols] = 0.0 if ctrl is None else ctrl
+        outside = np.maximum(self._lo - f, f - self._hi) * self._inv_margin
+        worst = float(outside.max())
+        if worst >= 1.0:
+            return
+        in_range = 1.0 if worst <= 0.0 else float(np.prod(1.0 - smoothstep(outside)))
+        z = self._z_one[:-1]
+        np.multiply(f - self._mean, self._inv_std, out=z)
+        dist = math.sqrt(max(float(np.min(self._centre_rows @ self._z_one)) + float(z @ z), 0.0))
+        ratio = dist / self._coverage_dist - 1.0
+        if ratio >= 1.0:
+            return
+        gate = (
+            float(self.out_gain[0]) * in_range * _smoothstep1((speed - rest0) / rest_span) * (1.0 - _smoothstep1(ratio))
+        )
+        if gate == 0.0:
+            return
+        h = z
+        for weight, bias in self.layers[:-1]:
+            h = np.tanh(h @ weight + bias)
+        corr = self.out_bound[0] * np.tanh((h @ self.layers[-1][0] + self.layers[-1][1]) * self._scale_over_bound)
+        corr *= gate
+        j = space.num_joints
+        qpos[space.qpos_adr] += corr[:j]
+        qvel[space.dof_adr] += corr[j:]
 
     def correct(
         self,

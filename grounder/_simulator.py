@@ -121,11 +121,12 @@ class Simulator:
                 mujoco.mj_step(m, d)
             return d.qpos.copy(), d.qvel.copy()
         if isinstance(residual, NumpyJointResidual):
-            q0, v0, u0 = d.qpos.copy()[None], d.qvel.copy()[None], d.ctrl.copy()[None]
+            q0, v0 = d.qpos.copy(), d.qvel.copy()
             for _ in range(self.period_steps):
                 mujoco.mj_step(m, d)
-            qpos1, qvel1 = residual.correct(q0, v0, d.qpos.copy()[None], d.qvel.copy()[None], u0)
-            return qpos1[0], qvel1[0]
+            qpos1, qvel1 = d.qpos.copy(), d.qvel.copy()
+            residual.correct_one(q0, v0, qpos1, qvel1, None if ctrl is None or not m.nu else np.asarray(ctrl))
+            return qpos1, qvel1
         q0, v0 = d.qpos.tolist(), d.qvel.tolist()
         for _ in range(self.period_steps):
             mujoco.mj_step(m, d)

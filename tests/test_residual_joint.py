@@ -189,3 +189,25 @@ def test_cli_trains_and_rolls_out_a_jointed_scene(pendulum: tuple[Path, Path], t
     result = runner.invoke(app, ["rollout", str(out), str(traj_dir), "-o", str(tmp_path / "pred")])
     assert result.exit_code == 0, result.output
     assert len(list((tmp_path / "pred").glob("*.npz"))) == 6
+
+
+def test_single_state_path_equals_the_vectorised_one(pendulum: tuple[Path, Path]) -> None:
+    """``correct_one`` (what ``Simulator.step`` uses; it stops early where the gate is 0) is ``correct``."""
+    _, trained = pendulum
+    residual = Simulator(trained).residual
+    assert isinstance(residual, NumpyJointResidual)
+    residual.out_gain[:] = 1.0
+    _, trajs = _case("pendulum/joint_damping", 3, seed=5)
+    qpos0 = np.concatenate([t.qpos for t in trajs] + [np.zeros((2, 1)), np.full((1, 1), 3.0)])
+    qvel0 = np.concatenate([t.qvel for t in trajs] + [np.array([[0.0], [0.005]]), np.full((1, 1), 80.0)])
+    rng = np.random.default_rng(6)
+    qpos_sim, qvel_sim = qpos0 + rng.normal(scale=0.01, size=qpos0.shape), qvel0 + rng.normal(size=qvel0.shape)
+    expected_q, expected_v = residual.correct(qpos0, qvel0, qpos_sim, qvel_sim)
+    moved = 0
+    for i in range(len(qpos0)):
+        q, v = qpos_sim[i].copy(), qvel_sim[i].copy()
+        residual.correct_one(qpos0[i], qvel0[i], q, v, None)
+        np.testing.assert_allclose(q, expected_q[i], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(v, expected_v[i], rtol=0, atol=1e-12)
+        moved += bool(np.any(v != qvel_sim[i]))
+    assert 0 < moved < len(qpos0)  # some states corrected, the still and the far ones not
