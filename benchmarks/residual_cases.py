@@ -40,7 +40,7 @@ from grounder._diagnose import DiagnoseOptions, diagnose
 from grounder._diagnose_bench import select_cases
 from grounder._effects import Transforms, apply_effects
 from grounder._gap import make_windows, predict
-from grounder._residual_joint import joint_space
+from grounder._residual_joint import joint_error, joint_space
 from grounder._residual_train import ResidualOptions, train_residual
 from grounder._simulate import quat_angle_rad
 from grounder._simulator import Simulator
@@ -64,11 +64,7 @@ def errors(model: mujoco.MjModel, pred_qpos: list[np.ndarray], real: list[Trajec
         ]
         return {"pos_mm": 1e3 * float(np.mean(pos)), "rot_deg": float(np.degrees(np.mean(rot)))}
     space = joint_space(model)
-    err = []
-    for p, r in zip(pred_qpos, real, strict=True):
-        diff = p[:, space.qpos_adr] - r.qpos[:, space.qpos_adr]
-        diff[:, space.hinge] = np.angle(np.exp(1j * diff[:, space.hinge]))  # a full turn is no error
-        err.append(np.abs(diff).mean())
+    err = [np.abs(joint_error(p, r.qpos, space)).mean() for p, r in zip(pred_qpos, real, strict=True)]
     return {"joint_mrad": 1e3 * float(np.mean(err))}
 
 

@@ -106,12 +106,18 @@ def joint_features(qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None, 
     return np.stack(cols, axis=1)[:, None, :]
 
 
+def joint_error(qpos_a: np.ndarray, qpos_b: np.ndarray, space: JointSpace) -> np.ndarray:
+    """(N, nq) x 2 -> (N, J) joint positions a - b, hinge angles wrapped to (-pi, pi] (a full turn is no error)."""
+    diff = qpos_a[:, space.qpos_adr] - qpos_b[:, space.qpos_adr]
+    diff[:, space.hinge] = np.angle(np.exp(1j * diff[:, space.hinge]))
+    return diff
+
+
 def joint_targets(
     qpos_sim: np.ndarray, qvel_sim: np.ndarray, qpos_true: np.ndarray, qvel_true: np.ndarray, space: JointSpace
 ) -> np.ndarray:
     """The correction (N, 1, 2J) that turns the simulated into the true joint states (angles wrapped to +-pi)."""
-    dq = qpos_true[:, space.qpos_adr] - qpos_sim[:, space.qpos_adr]
-    dq[:, space.hinge] = np.angle(np.exp(1j * dq[:, space.hinge]))
+    dq = joint_error(qpos_true, qpos_sim, space)
     dv = qvel_true[:, space.dof_adr] - qvel_sim[:, space.dof_adr]
     return np.concatenate([dq, dv], axis=1)[:, None, :]
 

@@ -44,11 +44,12 @@ from grounder._residual_joint import (
     JOINT_SPACE,
     JointSpace,
     NumpyJointResidual,
+    joint_error,
     joint_features,
     joint_space,
     joint_targets,
 )
-from grounder._simulate import quat_angle_rad, step_indices
+from grounder._simulate import free_joints, quat_angle_rad, step_indices
 from grounder._simulator import SCENE_XML, Simulator, scene_xml_path
 from grounder._trajectory import Trajectory, validate_against_model
 from grounder.errors import GrounderError
@@ -165,10 +166,6 @@ def _period_steps(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> int:
     return int(values[np.argmax(counts)])
 
 
-def _has_free_joint(model: mujoco.MjModel) -> bool:
-    return any(int(t) == mujoco.mjtJoint.mjJNT_FREE for t in model.jnt_type)
-
-
 def _group_rms(err: np.ndarray, joint: bool = False) -> tuple[float, float, float, float]:
     """(N, B, 12) -> RMS norm of each 3-vector group; joint corrections (N, 1, 2J) -> (position, 0, velocity, 0)."""
     if joint:
@@ -189,7 +186,7 @@ class _Trainer:
         for traj in trajs:
             validate_against_model(traj, self.model)
         # free bodies get the body-frame residual; a scene of hinge and slide joints the joint-space one
-        self.space: JointSpace | None = None if _has_free_joint(self.model) else joint_space(self.model)
+        self.space: JointSpace | None = None if free_joints(self.model) else joint_space(self.model)
         self.bodies: list[FreeBody] = free_bodies(self.model) if self.space is None else []
         if self.space is not None and (options.smooth_window or options.dagger_rounds):
             raise GrounderError(
@@ -607,14 +604,10 @@ def rollout_score(model: mujoco.MjModel, preds: Sequence[Trajectory], real: Sequ
     cube's edge; for the cube tosses exactly the cube width). A scene without free bodies: the mean over
     trajectories and joints of the time-averaged joint error (rad for hinges, m for slides).
     """
-    if not _has_free_joint(model):
+    if not free_joints(model):
         space = joint_space(model)
-        errors = []
-        for pred, rec in zip(preds, real, strict=True):
-            diff = pred.qpos[:, space.qpos_adr] - rec.qpos[:, space.qpos_adr]
-            diff[:, space.hinge] = np.angle(np.exp(1j * diff[:, space.hinge]))
-            errors.append(float(np.mean(np.abs(diff))))
-        return float(np.mean(errors))
+        pairs = zip(preds, real, strict=True)
+        return float(np.mean([np.mean(np.abs(joint_error(p.qpos, r.qpos, space))) for p, r in pairs]))
     bodies = free_bodies(model)
     scores = []
     for pred, rec in zip(preds, real, strict=True):
