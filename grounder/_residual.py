@@ -942,7 +942,7 @@ def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual | Num
     """
     import torch
 
-    from grounder._residual_joint import JOINT_SPACE, NumpyJointResidual, check_joint_meta, joint_space
+    from grounder._residual_joint import JOINT_SPACE, NumpyJointResidual, check_joint_meta, history_of, joint_space
 
     scene_dir = Path(scene_dir)
     meta_path, weights_path = scene_dir / META_FILE, scene_dir / WEIGHTS_FILE
@@ -951,7 +951,7 @@ def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual | Num
     except (OSError, json.JSONDecodeError) as exc:
         raise GrounderError(f"{meta_path}: could not be read ({type(exc).__name__}: {exc})") from exc
     if meta.space == JOINT_SPACE:
-        space = joint_space(model)
+        space = joint_space(model, history_of(meta.feature_names))
         check_joint_meta(meta, space, str(meta_path))
         bodies: list[FreeBody] = []
     else:

@@ -7,9 +7,9 @@ every period of ``period_steps`` model steps, like the free-body residual:
     q[t+1], qdot[t+1] = mujoco^P(q[t], qdot[t], u[t]) + gain * gate * bound * tanh(mlp(features) * scale / bound)
 
 Features (in this order): per hinge joint sin q and cos q, per slide joint q (metres); every joint's velocity
-(rad/s or m/s); every actuator's control over the period. Outputs: per joint a position correction (rad or m)
-then per joint a velocity correction. Only the control held over the period is seen, so an actuator delay is
-learnt only as far as the state and the present control reveal it.
+(rad/s or m/s); every actuator's control over the period; then the controls of the ``history`` periods before
+(most recent first; ``ResidualOptions.ctrl_history_s``, 50 ms by default), from which an actuator's delay or lag
+can be learnt. Outputs: per joint a position correction (rad or m) then per joint a velocity correction.
 
 Safety, as for free bodies: every output is capped at the ``bound`` quantile of the training corrections; the gate
 is exactly 0 when every joint is slower than ``rest_speed_m_s[0]`` (read as rad/s, or m/s for slide joints), so a
@@ -42,6 +42,8 @@ class JointSpace:
         dof_adr: (J,) qvel address of each joint.
         hinge: (J,) True for hinge joints (angles; features sin and cos), False for slide joints.
         nu: Number of actuators (controls are features).
+        history: Periods of earlier controls that are features too (most recent first), so that an actuator's
+            delay or lag can be learnt; ``ctrl_prev`` arguments carry them as (N, history, nu).
     """
 
     names: tuple[str, ...]
@@ -49,6 +51,7 @@ class JointSpace:
     dof_adr: np.ndarray
     hinge: np.ndarray
     nu: int
+    history: int = 0
 
     @property
     def num_joints(self) -> int:
@@ -60,7 +63,8 @@ class JointSpace:
         for name, is_hinge in zip(self.names, self.hinge, strict=True):
             out += [f"sin_{name}", f"cos_{name}"] if is_hinge else [f"pos_{name}_m"]
         out += [f"vel_{n}" for n in self.names]
-        return (*out, *(f"ctrl_{i}" for i in range(self.nu)))
+        out += [f"ctrl_{i}" for i in range(self.nu)]
+        return (*out, *(f"ctrl_{i}_prev{k}" for k in range(1, self.history + 1) for i in range(self.nu)))
 
     @property
     def output_names(self) -> tuple[str, ...]:
@@ -72,8 +76,8 @@ class JointSpace:
         return list(range(start, start + self.num_joints))
 
 
-def joint_space(model: mujoco.MjModel) -> JointSpace:
-    """The model's hinge and slide joints.
+def joint_space(model: mujoco.MjModel, history: int = 0) -> JointSpace:
+    """The model's hinge and slide joints (``history``: periods of earlier controls as features, if it has actuators).
 
     Raises:
         GrounderError: the model has a free or ball joint (use the free-body residual), or no joint at all.
@@ -90,11 +94,24 @@ def joint_space(model: mujoco.MjModel) -> JointSpace:
         dof_adr=np.array(model.jnt_dofadr, dtype=np.int64),
         hinge=np.array([k == mujoco.mjtJoint.mjJNT_HINGE for k in kinds]),
         nu=int(model.nu),
+        history=history if model.nu else 0,
     )
 
 
-def joint_features(qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None, space: JointSpace) -> np.ndarray:
-    """(N, nq), (N, nv), (N, nu) or None -> features (N, 1, F) in the order of ``space.feature_names``."""
+def history_of(feature_names: tuple[str, ...]) -> int:
+    """The ``history`` of a joint space from its feature names (as stored in ``residual.json``)."""
+    return sum(1 for name in feature_names if name.startswith("ctrl_0_prev"))
+
+
+def joint_features(
+    qpos: np.ndarray,
+    qvel: np.ndarray,
+    ctrl: np.ndarray | None,
+    space: JointSpace,
+    ctrl_prev: np.ndarray | None = None,
+) -> np.ndarray:
+    """(N, nq), (N, nv), (N, nu) or None, (N, history, nu) or None -> features (N, 1, F) in the order of
+    ``space.feature_names``. Without ``ctrl_prev`` the earlier controls are taken as the present one (held)."""
     q = qpos[:, space.qpos_adr]
     cols: list[np.ndarray] = []
     for j, is_hinge in enumerate(space.hinge):
@@ -103,6 +120,9 @@ def joint_features(qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None, 
     if space.nu:
         held = np.zeros((len(qpos), space.nu)) if ctrl is None else np.asarray(ctrl, dtype=np.float64)
         cols += [held[:, i] for i in range(space.nu)]
+        if space.history:
+            prev = np.repeat(held[:, None], space.history, axis=1) if ctrl_prev is None else np.asarray(ctrl_prev)
+            cols += [prev[:, k, i] for k in range(space.history) for i in range(space.nu)]
     return np.stack(cols, axis=1)[:, None, :]
 
 
@@ -175,7 +195,9 @@ class NumpyJointResidual:
         pairs = list(zip(space.names, space.hinge, strict=True))
         self._sin_cols = np.array([names.index(f"sin_{n}") for n, h in pairs if h], dtype=np.int64)
         self._slide_cols = np.array([names.index(f"pos_{n}_m") for n, h in pairs if not h], dtype=np.int64)
-        self._ctrl_cols = np.arange(len(names) - space.nu, len(names))
+        first_ctrl = len(names) - space.nu * (1 + space.history)
+        self._ctrl_cols = np.arange(first_ctrl, first_ctrl + space.nu)
+        self._prev_cols = np.arange(first_ctrl + space.nu, len(names))
         self._coverage_dist = float(self.coverage_dist[0])
         self._feats = np.empty(len(names))
         self._z_one = np.ones(len(names) + 1)
@@ -199,7 +221,13 @@ class NumpyJointResidual:
         return self.raw(feats) * (self.gate(feats) * self.out_gain)[..., None]
 
     def correct_one(
-        self, qpos0: np.ndarray, qvel0: np.ndarray, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None
+        self,
+        qpos0: np.ndarray,
+        qvel0: np.ndarray,
+        qpos: np.ndarray,
+        qvel: np.ndarray,
+        ctrl: np.ndarray | None,
+        ctrl_prev: np.ndarray | None = None,
     ) -> None:
         """:meth:`correct` for one state ((nq,), (nv,), (nu,)), in place on ``qpos``/``qvel``; written for speed
         (a small arm steps in microseconds): it stops as soon as the gate is 0, so a still mechanism costs a test."""
@@ -216,7 +244,10 @@ class NumpyJointResidual:
         f[self._slide_cols] = qpos0[self._slide_q]
         f[self._speed] = vel
         if space.nu:
-            f[self._ctrl_cols] = 0.0 if ctrl is None else ctrl
+            held = np.zeros(space.nu) if ctrl is None else ctrl
+            f[self._ctrl_cols] = held
+            if space.history:
+                f[self._prev_cols] = np.tile(held, space.history) if ctrl_prev is None else np.ravel(ctrl_prev)
         outside = np.maximum(self._lo - f, f - self._hi) * self._inv_margin
         worst = float(outside.max())
         if worst >= 1.0:
@@ -249,10 +280,11 @@ class NumpyJointResidual:
         qpos_sim: np.ndarray,
         qvel_sim: np.ndarray,
         ctrl: np.ndarray | None = None,
+        ctrl_prev: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """States after one period: MuJoCo's ``(qpos_sim, qvel_sim)`` from ``(qpos0, qvel0)`` under ``ctrl``,
-        corrected. All (N, nq) / (N, nv) / (N, nu)."""
-        feats = joint_features(qpos0, qvel0, ctrl, self.space)
+        corrected. All (N, nq) / (N, nv) / (N, nu); ``ctrl_prev`` (N, history, nu) the earlier controls."""
+        feats = joint_features(qpos0, qvel0, ctrl, self.space, ctrl_prev)
         return apply_joint_correction(qpos_sim, qvel_sim, self(feats), self.space)
 
 

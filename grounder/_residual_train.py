@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import secrets
 import shutil
@@ -79,6 +80,9 @@ class ResidualOptions:
         dagger_pull: Fraction of a rollout state's drift from the recording that its target takes back in one
             period; the rest of the target matches the recorded increment (1 is plain data-as-demonstrator, whose
             one-period jumps back to the recording are not learnable from the state alone).
+        ctrl_history_s: A joint-space residual (scenes of hinge and slide joints with actuators) also sees the
+            controls of the periods within this many seconds before the present one, so that an actuator's delay
+            or lag can be learnt.
         smooth_window: Train on free-body poses smoothed over this many samples and velocities re-estimated
             from them (``grounder._residual.smooth_free_bodies``); 0 (default) trains on the recording as it is.
             On the real cube tosses smoothing over 5 samples made rollouts worse (it blurs the impacts).
@@ -105,6 +109,7 @@ class ResidualOptions:
     dagger_max_rot_error_deg: float = 30.0
     dagger_pull: float = 0.2
     smooth_window: int = 0
+    ctrl_history_s: float = 0.05
     selection_fraction: float = 0.2
     gains: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0)
     bound_quantile: float = 0.995
@@ -117,6 +122,8 @@ class ResidualOptions:
             raise GrounderError("hidden, layers, steps and batch_size must be >= 1")
         if self.dagger_rounds < 0 or self.dagger_horizon < 1 or self.dagger_stride < 1:
             raise GrounderError("dagger_rounds must be >= 0, dagger_horizon and dagger_stride >= 1")
+        if not 0.0 <= self.ctrl_history_s <= 1.0:
+            raise GrounderError(f"ctrl_history_s must be in [0, 1] s, got {self.ctrl_history_s}")
         if self.smooth_window < 0 or (self.smooth_window > 2 and self.smooth_window % 2 == 0):
             raise GrounderError(f"smooth_window must be 0 or odd, got {self.smooth_window}")
         if not 0.5 < self.bound_quantile <= 1.0:
@@ -185,16 +192,20 @@ class _Trainer:
         self.model = self.sim.model
         for traj in trajs:
             validate_against_model(traj, self.model)
-        # free bodies get the body-frame residual; a scene of hinge and slide joints the joint-space one
-        self.space: JointSpace | None = None if free_joints(self.model) else joint_space(self.model)
+        self.period = _period_steps(self.model, trajs)
+        self.sim.period_steps = self.period
+        # free bodies get the body-frame residual; a scene of hinge and slide joints the joint-space one, which
+        # also sees the controls of the last ctrl_history_s
+        self.space: JointSpace | None = None
+        if not free_joints(self.model):
+            period_s = self.period * float(self.model.opt.timestep)
+            self.space = joint_space(self.model, math.ceil(options.ctrl_history_s / period_s - 1e-9))
         self.bodies: list[FreeBody] = free_bodies(self.model) if self.space is None else []
         if self.space is not None and (options.smooth_window or options.dagger_rounds):
             raise GrounderError(
                 "smoothing and aggregation rounds are for free bodies; train a jointed scene with smooth_window=0 "
                 "and dagger_rounds=0 (--rounds 0)"
             )
-        self.period = _period_steps(self.model, trajs)
-        self.sim.period_steps = self.period
         nq, nv = self.model.nq, self.model.nv
         # Recorded segments: per trajectory the runs of samples spaced exactly one period apart.
         self.qpos: list[np.ndarray] = []
@@ -248,7 +259,17 @@ class _Trainer:
         qs, vs = self._one_period(q0, v0, ctrl)
         groups = np.concatenate([np.full(len(q) - 1, i) for i, q in enumerate(self.qpos)])
         if self.space is not None:
-            feats = joint_features(q0, v0, ctrl, self.space)
+            prev = None
+            if self.space.history:  # the controls of the periods before each sample (the first one held)
+                rows = [np.arange(len(q) - 1)[:, None] - np.arange(1, self.space.history + 1)[None] for q in self.qpos]
+                nu = self.model.nu
+                prev = np.concatenate(
+                    [
+                        np.zeros((*r.shape, nu)) if c is None else c[np.maximum(r, 0)]
+                        for r, c in zip(rows, self.ctrl, strict=True)
+                    ]
+                )
+            feats = joint_features(q0, v0, ctrl, self.space, prev)
             return _Transitions(feats=feats, targets=joint_targets(qs, vs, q1, v1, self.space), groups=groups)
         feats, rots = body_features(q0, v0, self.bodies)
         return _Transitions(feats=feats, targets=correction_targets(qs, vs, q1, v1, rots, self.bodies), groups=groups)

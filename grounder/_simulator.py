@@ -99,13 +99,21 @@ class Simulator:
 
     # --- one simulation ------------------------------------------------------------------------------------------
 
-    def step(self, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def step(
+        self,
+        qpos: np.ndarray,
+        qvel: np.ndarray,
+        ctrl: np.ndarray | None = None,
+        ctrl_prev: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Advances one state by one period (``period_steps`` model steps, then the residual).
 
         Args:
             qpos: (nq,) generalised positions.
             qvel: (nv,) generalised velocities.
             ctrl: (nu,) control held over the period, or None for zeros.
+            ctrl_prev: (history, nu) the controls of the periods before, most recent first, for a joint-space
+                residual that learnt from them (``residual.space.history``); None: ``ctrl`` was held throughout.
 
         Returns:
             The new ``(qpos (nq,), qvel (nv,))``.
@@ -125,7 +133,8 @@ class Simulator:
             for _ in range(self.period_steps):
                 mujoco.mj_step(m, d)
             qpos1, qvel1 = d.qpos.copy(), d.qvel.copy()
-            residual.correct_one(q0, v0, qpos1, qvel1, None if ctrl is None or not m.nu else np.asarray(ctrl))
+            held = None if ctrl is None or not m.nu else np.asarray(ctrl)
+            residual.correct_one(q0, v0, qpos1, qvel1, held, ctrl_prev)
             return qpos1, qvel1
         q0, v0 = d.qpos.tolist(), d.qvel.tolist()
         for _ in range(self.period_steps):
@@ -154,9 +163,16 @@ class Simulator:
         )
         return out
 
-    def _correct(self, states0: np.ndarray, states1: np.ndarray, ctrl: np.ndarray | None = None) -> np.ndarray:
-        """Applies the residual to states after one period; ``states0`` are the period's starting states and
-        ``ctrl`` (N, nu) the controls held over it (the joint-space residual sees them)."""
+    def _correct(
+        self,
+        states0: np.ndarray,
+        states1: np.ndarray,
+        ctrl: np.ndarray | None = None,
+        ctrl_prev: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Applies the residual to states after one period; ``states0`` are the period's starting states,
+        ``ctrl`` (N, nu) the controls held over it and ``ctrl_prev`` (N, history, nu) the earlier ones (the
+        joint-space residual sees them)."""
         residual = self.residual
         if residual is None:
             return states1
@@ -164,7 +180,7 @@ class Simulator:
         qa, va = self._qpos_at, self._qvel_at
         args = (states0[:, qa : qa + nq], states0[:, va : va + nv], states1[:, qa : qa + nq], states1[:, va : va + nv])
         if isinstance(residual, NumpyJointResidual):
-            qpos, qvel = residual.correct(*args, ctrl)
+            qpos, qvel = residual.correct(*args, ctrl, ctrl_prev)
         else:
             qpos, qvel = residual.correct(*args)
         out = states1.copy()
@@ -173,7 +189,11 @@ class Simulator:
         return out
 
     def step_batch(
-        self, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None = None
+        self,
+        qpos: np.ndarray,
+        qvel: np.ndarray,
+        ctrl: np.ndarray | None = None,
+        ctrl_prev: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Advances N states by one period each (MuJoCo batched over threads, the residual vectorised).
 
@@ -181,6 +201,7 @@ class Simulator:
             qpos: (N, nq) generalised positions.
             qvel: (N, nv) generalised velocities.
             ctrl: (N, nu) controls held over the period, or None for zeros.
+            ctrl_prev: (N, history, nu) the earlier periods' controls (see :meth:`step`).
 
         Returns:
             The new ``(qpos (N, nq), qvel (N, nv))``.
@@ -196,7 +217,9 @@ class Simulator:
             controls = np.repeat(held[:, None, :], self.period_steps, axis=1)
         states0 = self._states(qpos, qvel)
         held_ctrl = None if controls is None else controls[:, 0]
-        states1 = self._correct(states0, self._physics(states0, controls, self.period_steps)[:, -1], held_ctrl)
+        states1 = self._correct(
+            states0, self._physics(states0, controls, self.period_steps)[:, -1], held_ctrl, ctrl_prev
+        )
         nq, nv = self.model.nq, self.model.nv
         return (
             states1[:, self._qpos_at : self._qpos_at + nq].copy(),
@@ -245,10 +268,14 @@ class Simulator:
         out = np.empty((len(trajs), total + 1, batch.states0.shape[1]))
         out[:, 0] = batch.states0
         state = batch.states0
+        history = self.residual.space.history if isinstance(self.residual, NumpyJointResidual) else 0
         for k in range(num_periods):
             ctrl = None if controls is None else controls[:, k * period : (k + 1) * period]
+            prev = None
+            if controls is not None and history:  # earlier periods' controls, the first one held before the start
+                prev = np.stack([controls[:, max(k - j, 0) * period] for j in range(1, history + 1)], axis=1)
             block = self._physics(state, ctrl, period)
-            block[:, -1] = self._correct(state, block[:, -1], None if ctrl is None else ctrl[:, 0])
+            block[:, -1] = self._correct(state, block[:, -1], None if ctrl is None else ctrl[:, 0], prev)
             out[:, k * period + 1 : (k + 1) * period + 1] = block
             state = block[:, -1]
         return out[:, : batch.nstep + 1]

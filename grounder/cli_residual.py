@@ -29,6 +29,12 @@ def register(app: typer.Typer) -> None:
         rounds: Annotated[int, typer.Option(help="Data-aggregation rounds along rollouts after the first.")] = 0,
         hidden: Annotated[int, typer.Option(help="Width of the MLP's hidden layers.")] = 64,
         seed: Annotated[int, typer.Option(help="Random seed (initialisation, shuffling, k-means).")] = 0,
+        ctrl_history: Annotated[
+            float,
+            typer.Option(
+                help="Jointed scenes with actuators: seconds of earlier controls the residual sees (actuator delay)."
+            ),
+        ] = 0.05,
         overwrite: Annotated[
             bool, typer.Option(help="Replace a non-empty output folder once training is done.")
         ] = False,
@@ -51,7 +57,9 @@ def register(app: typer.Typer) -> None:
             except ValueError as exc:
                 fail(f"{xml}: MuJoCo could not load it ({exc})")
             trajs = load_trajectories(traj_dir, model)
-            options = ResidualOptions(steps=steps, dagger_rounds=rounds, hidden=hidden, seed=seed)
+            options = ResidualOptions(
+                steps=steps, dagger_rounds=rounds, hidden=hidden, seed=seed, ctrl_history_s=ctrl_history
+            )
             with stage_progress() as progress:
                 result = train_residual(scene, trajs, out, options, overwrite=overwrite, progress=progress)
         before, after = result.one_step_rms_before, result.one_step_rms_after

@@ -138,21 +138,45 @@ def test_driven_arm_single_batch_and_rollout_agree(tmp_path: Path) -> None:
     result = train_residual(nominal, trajs, tmp_path / "residual", ResidualOptions(steps=400, hidden=32, seed=0))
     sim = Simulator(tmp_path / "residual")
     assert isinstance(sim.residual, NumpyJointResidual)
-    assert sim.residual.meta.feature_names[-2:] == ("ctrl_0", "ctrl_1")
+    space = sim.residual.space
+    assert space.history == 5  # 50 ms of earlier controls at 100 Hz
+    assert sim.residual.meta.feature_names[6:10] == ("ctrl_0", "ctrl_1", "ctrl_0_prev1", "ctrl_1_prev1")
     sim.residual.out_gain[:] = 1.0  # whatever was chosen, exercise the correction
     traj = trajs[0]
     assert traj.ctrl is not None
+    ctrl = traj.ctrl
+
+    def earlier(k: int) -> np.ndarray:  # the controls of the periods before period k, the first one held
+        return np.stack([ctrl[max(k - j, 0)] for j in range(1, space.history + 1)])
+
     pred = sim.rollout([traj])[0]
     qpos, qvel = traj.qpos[0].copy(), traj.qvel[0].copy()
     for k in range(1, 20):
-        qpos, qvel = sim.step(qpos, qvel, traj.ctrl[k - 1])
+        qpos, qvel = sim.step(qpos, qvel, ctrl[k - 1], earlier(k - 1))
         np.testing.assert_allclose(qpos, pred.qpos[k], atol=1e-9)
-    q_b, v_b = sim.step_batch(traj.qpos[:5], traj.qvel[:5], traj.ctrl[:5])
-    for i in range(5):
-        q_s, v_s = sim.step(traj.qpos[i], traj.qvel[i], traj.ctrl[i])
-        np.testing.assert_allclose(q_s, q_b[i], atol=1e-9)
-        np.testing.assert_allclose(v_s, v_b[i], atol=1e-9)
+    starts = range(3, 8)
+    history = np.stack([earlier(i) for i in starts])
+    q_b, v_b = sim.step_batch(traj.qpos[3:8], traj.qvel[3:8], ctrl[3:8], history)
+    for row, i in enumerate(starts):
+        q_s, v_s = sim.step(traj.qpos[i], traj.qvel[i], ctrl[i], earlier(i))
+        np.testing.assert_allclose(q_s, q_b[row], atol=1e-9)
+        np.testing.assert_allclose(v_s, v_b[row], atol=1e-9)
+    assert not np.allclose(sim.step(traj.qpos[5], traj.qvel[5], ctrl[5])[1], v_b[2])  # the history matters
     assert result.one_step_rms_after[2] < result.one_step_rms_before[2]  # the weak motors are learnt
+
+
+def test_learns_an_actuator_delay_from_earlier_controls(tmp_path: Path) -> None:
+    """A 30 ms motor delay: only the controls of the periods before show it (the present one does not)."""
+    xml, trajs = _case("arm/actuator_delay", 24, seed=0)
+    _, held_out = _case("arm/actuator_delay", 8, seed=1)
+    nominal = tmp_path / "arm"
+    nominal.mkdir()
+    (nominal / "scene.xml").write_text(xml)
+    train_residual(nominal, trajs, tmp_path / "residual", SMALL)
+    plain, hybrid = Simulator(nominal), Simulator(tmp_path / "residual")
+    before = rollout_score(plain.model, plain.rollout(held_out), held_out)
+    after = rollout_score(hybrid.model, hybrid.rollout(held_out), held_out)
+    assert after < 0.5 * before, (before, after)
 
 
 def test_errors(pendulum: tuple[Path, Path], tmp_path: Path) -> None:
