@@ -39,11 +39,12 @@ DEFAULT_PARAMS = (
 )
 
 
-def metric(model: mujoco.MjModel, trajs: list) -> tuple[np.ndarray, np.ndarray]:
-    """Independent of the calibration code: grounder._simulate.simulate + free_body_errors, per toss."""
+def metric(model: mujoco.MjModel, trajs: list, preds: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Independent of the calibration code: grounder._simulate.simulate + free_body_errors, per toss (``preds``:
+    the rollouts, when already simulated)."""
     from grounder._simulate import free_body_errors, simulate
 
-    preds = simulate(model, trajs)
+    preds = simulate(model, trajs) if preds is None else preds  # type: ignore[assignment]
     pos, rot = [], []
     for pred, real in zip(preds, trajs, strict=True):
         p, r = free_body_errors(model, pred, real)["cube"]  # type: ignore[arg-type]
@@ -57,7 +58,7 @@ def outcome_breakdown(model: mujoco.MjModel, trajs: list) -> None:
     from grounder._simulate import quat_angle_rad, simulate
 
     preds = simulate(model, trajs)
-    pos, rot = metric(model, trajs)
+    pos, rot = metric(model, trajs, preds)  # type: ignore[arg-type]
     final_deg = np.array(
         [np.degrees(quat_angle_rad(p.qpos[-1, 3:], r.qpos[-1, 3:])) for p, r in zip(preds, trajs, strict=True)]
     )

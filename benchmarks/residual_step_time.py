@@ -27,7 +27,7 @@ import argparse
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import mujoco
@@ -65,11 +65,11 @@ def _time_single(sim: Simulator, starts: list[tuple[np.ndarray, np.ndarray]], pe
     return (time.process_time() - cpu0) / calls, (time.perf_counter() - wall0) / calls
 
 
-def _time_states(sim: Simulator, states: list[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
-    """(CPU, wall) seconds per call of Simulator.step, one call from each of the given states."""
+def _time_states(sim: Simulator, states: Sequence[tuple[np.ndarray, ...]]) -> tuple[float, float]:
+    """(CPU, wall) seconds per call of Simulator.step, one call from each of the given (qpos, qvel[, ctrl])."""
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    for qpos, qvel in states:
-        sim.step(qpos, qvel)
+    for state in states:
+        sim.step(*state)
     return (time.process_time() - cpu0) / len(states), (time.perf_counter() - wall0) / len(states)
 
 
@@ -161,16 +161,9 @@ def arm(rounds: int) -> None:
         plain = Simulator(Path(tmp) / "residual", use_residual=False)
         hybrid = Simulator(Path(tmp) / "residual")
         rows = [(q, v, u) for t in case.trajectories[16:] for q, v, u in zip(t.qpos, t.qvel, t.ctrl, strict=True)]
-
-        def timed(sim: Simulator) -> tuple[float, float]:
-            cpu0, wall0 = time.process_time(), time.perf_counter()
-            for q, v, u in rows:
-                sim.step(q, v, u)
-            return (time.process_time() - cpu0) / len(rows), (time.perf_counter() - wall0) / len(rows)
-
         for sim in (plain, hybrid):  # warm up
-            timed(sim)
-        times = _interleaved(lambda: timed(plain), lambda: timed(hybrid), rounds)
+            _time_states(sim, rows)
+        times = _interleaved(lambda: _time_states(plain, rows), lambda: _time_states(hybrid, rows), rounds)
         residual = hybrid.residual
         assert isinstance(residual, NumpyJointResidual)
         feats = joint_features(*(np.stack([r[i] for r in rows]) for i in range(3)), residual.space)
