@@ -379,15 +379,37 @@ def fuse_views(
     voxel_ijk = np.round(coords.numpy()[observed] / voxel).astype(np.int64)
     tsdf_values = grid.attribute("tsdf").numpy().reshape(-1)[flat][observed]
     mesh.compute_vertex_normals()
+    vertex_order, faces = canonical_mesh_order(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    voxel_order = np.argsort(_voxel_keys(voxel_ijk), kind="stable")
     return DenseResult(
-        vertices_world=np.asarray(mesh.vertices),
-        faces=np.asarray(mesh.triangles),
-        vertex_rgb=(np.clip(np.asarray(mesh.vertex_colors), 0, 1) * 255).round().astype(np.uint8),
-        vertex_normals=np.asarray(mesh.vertex_normals),
+        vertices_world=np.asarray(mesh.vertices)[vertex_order],
+        faces=faces,
+        vertex_rgb=(np.clip(np.asarray(mesh.vertex_colors)[vertex_order], 0, 1) * 255).round().astype(np.uint8),
+        vertex_normals=np.asarray(mesh.vertex_normals)[vertex_order],
         voxel_size=voxel,
         num_pairs=used,
         depth_maps=tuple(depth_maps),
-        tsdf_voxels=voxel_ijk,
-        tsdf_values=tsdf_values.astype(np.float32),
-        tsdf_weights=weights[observed].astype(np.float32),
+        tsdf_voxels=voxel_ijk[voxel_order],
+        tsdf_values=tsdf_values[voxel_order].astype(np.float32),
+        tsdf_weights=weights[observed][voxel_order].astype(np.float32),
     )
+
+
+def canonical_mesh_order(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh's vertices and faces in an order fixed by its geometry alone: ``(vertex_order, faces)``, where
+    ``vertices[vertex_order]`` are sorted by (x, y, z) and ``faces`` index them, each face rotated to start at its
+    smallest index (winding kept), faces sorted.
+
+    Open3D's TSDF grid allocates blocks from several threads, so the same fusion lists its surface in a different
+    order from run to run. The surface is the same, but everything after it (clustering, the winding-number inside
+    test, marching cubes) sums in that order, and on the tabletop sample the bowl came out 0.1% different in volume
+    between two runs of one reconstruction.
+    """
+    vertex_order = np.lexsort(np.asarray(vertices).T[::-1])
+    new_index = np.empty(len(vertex_order), np.int64)
+    new_index[vertex_order] = np.arange(len(vertex_order))
+    remapped = new_index[np.asarray(faces, np.int64)].reshape(-1, 3)
+    shift = np.argmin(remapped, axis=1)
+    rows = np.arange(len(remapped))[:, None]
+    rotated = remapped[rows, (shift[:, None] + np.arange(3)[None, :]) % 3]
+    return vertex_order, rotated[np.lexsort(rotated.T[::-1])]

@@ -248,3 +248,31 @@ def test_clusters_stacked_one_over_the_other_are_one_object() -> None:
         assert segment.points_world[:, 2].max() == pytest.approx(top_m)  # the higher piece is part of it
         radius_m = np.hypot(segment.points_world[:, 0] - x_m, segment.points_world[:, 1])
         assert radius_m[segment.points_world[:, 2] > 0.01].max() == pytest.approx(0.04, abs=0.002)  # so are the walls
+
+
+def test_canonical_mesh_order_is_the_same_for_any_listing_of_one_surface() -> None:
+    """Open3D lists the fused surface in a thread-dependent order; the canonical order depends on the surface only,
+    keeps every face's winding (the signed volume) and the same triangles."""
+    import trimesh
+
+    from reconstruction._dense import canonical_mesh_order
+
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
+    rng = np.random.default_rng(0)
+    results = []
+    for _ in range(3):
+        perm = rng.permutation(len(box.vertices))  # vertex i of the shuffled listing is box vertex perm[i]
+        inverse = np.argsort(perm)
+        faces = inverse[box.faces][rng.permutation(len(box.faces))]
+        faces = np.roll(faces, int(rng.integers(3)), axis=1)  # each face starts at another corner, same winding
+        vertices = box.vertices[perm]
+        order, canonical = canonical_mesh_order(vertices, faces)
+        results.append((vertices[order], canonical))
+        mesh = trimesh.Trimesh(vertices[order], canonical, process=False)
+        assert mesh.volume == pytest.approx(box.volume, rel=1e-12)  # winding kept: still outward
+        assert sorted(map(tuple, np.sort(vertices[order][canonical].reshape(-1, 9), axis=1))) == sorted(
+            map(tuple, np.sort(box.vertices[box.faces].reshape(-1, 9), axis=1))
+        )
+    for vertices, faces in results[1:]:
+        np.testing.assert_array_equal(vertices, results[0][0])
+        np.testing.assert_array_equal(faces, results[0][1])
