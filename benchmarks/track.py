@@ -340,17 +340,18 @@ def restitution(dampratio: float) -> float:
 
 
 def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, str]) -> None:
-    """Per parameter: rendered value, calibrated value, whether the clip constrains it, its resolution range and
-    interval, and the relative error (restitution also as e)."""
+    """Per parameter: rendered value, calibrated value, whether the clip constrains it, its resolution range, the
+    relative error (restitution also as e), and its best values with the windows' start speeds off by a typical
+    tracking error (`grounder._interaction.start_error_ranges`)."""
     truth_xml = clip_dir / "truth/scene.xml"
     if not truth_xml.exists():  # samples/toss_occluded: the same simulated toss, re-rendered with a card in front
         truth_xml = ROOT / "samples/toss/truth/scene.xml"
     contact = contact_values(truth_xml, clip_dir)
     print(
         "| parameter | object | rendered | calibrated | constrained by the clip | indistinguishable range | "
-        "error | as restitution e: rendered / calibrated / error |"
+        "error | as restitution e: rendered / calibrated / error | best value with start speeds off (flag) |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name, p in params.items():
         body, field = name.split(".", 1)
         true_name = true_names.get(body, body)
@@ -365,7 +366,15 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
             as_e = f"{e_true:.3f} / {e_cal:.3f} / " + (
                 f"{100 * (e_cal - e_true) / e_true:+.0f}%" if constrained else "n/a"
             )
-        print(f"| {name} | {true_name} | {rendered:.3f} | {value:.3f} | {_seen(p)} | {span} | {error} | {as_e} |")
+        starts = "-"
+        if "start_error_range" in p:
+            starts = "{:.3f}..{:.3f}".format(*p["start_error_range"]) + (
+                " (start-sensitive)" if p.get("start_sensitive") else ""
+            )
+        print(
+            f"| {name} | {true_name} | {rendered:.3f} | {value:.3f} | {_seen(p)} | {span} | {error} | {as_e} | "
+            f"{starts} |"
+        )
 
 
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:

@@ -486,3 +486,26 @@ def test_robust_scale_keeps_one_badly_measured_trajectory_from_deciding(tmp_path
         CalibrateOptions(robust_scale=0.0)
     with pytest.raises(GrounderError, match="raw mode only"):
         CalibrateOptions(robust_scale=0.5, mode="embedding")
+
+
+def test_start_error_ranges_follow_the_slide_length_a_start_speed_error_implies(tmp_path: Path) -> None:
+    """The slider is thrown at 1.5 m/s and slides to rest: its slide length v^2 / (2 mu g) trades friction against
+    the start speed. With the start 10% too fast (slow), the friction that fits best is about 1.1^2 (0.9^2) times the
+    true one; the report's range must span that, and no range is computed when the error is 0."""
+    from grounder._interaction import start_error_ranges
+    from grounder.errors import GrounderError
+
+    traj = _recorded(tmp_path)
+    base = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
+    params = ["slider.friction.sliding"]
+    at_truth = np.array([TRUE_FRICTION])
+    options = replace(QUICK, start_speed_error_m_s=0.15)
+    low, high = start_error_ranges(base, [traj], params, at_truth, options)["slider.friction.sliding"]
+    assert low == pytest.approx(TRUE_FRICTION * 0.9**2, rel=0.08)
+    assert high == pytest.approx(TRUE_FRICTION * 1.1**2, rel=0.08)
+    small = start_error_ranges(base, [traj], params, at_truth, replace(QUICK, start_speed_error_m_s=0.01))
+    assert small["slider.friction.sliding"][0] >= TRUE_FRICTION * 0.95  # 0.7% of the speed: within a scan step
+    assert small["slider.friction.sliding"][1] <= TRUE_FRICTION * 1.05
+    assert start_error_ranges(base, [traj], params, at_truth, replace(QUICK, start_speed_error_m_s=0.0)) == {}
+    with pytest.raises(GrounderError, match="start_speed_error_m_s"):
+        InteractionOptions(start_speed_error_m_s=-0.1)
