@@ -42,6 +42,7 @@ samples: install
 	$(PY) samples/make_tabletop.py
 	$(PY) samples/make_toss.py
 	$(PY) samples/make_toss_occluded.py
+	$(PY) samples/make_toss_moving.py
 	$(PY) samples/make_tabletop.py --object-markers --out samples/tabletop_markers
 	$(PY) samples/make_toss_markers.py
 

@@ -68,6 +68,25 @@ def ground_scene(scene: Path, scan: str = "tabletop") -> None:
     print(f"grounded the tabletop scan in {time.perf_counter() - tick:.1f} s -> {scene}")
 
 
+def print_camera_error(clip_dir: Path, world_from_cam: np.ndarray, static: bool) -> None:
+    """Camera poses found from the table's marker against the true ones, where the clip's truth has them per frame
+    (`samples/toss_moving`): median and max camera-centre error (mm) and view-direction error (deg)."""
+    truth = json.loads((clip_dir / "truth/camera.json").read_text())
+    if "world_from_cam_per_frame" not in truth:
+        return
+    true_poses = np.array(truth["world_from_cam_per_frame"])
+    found = np.broadcast_to(world_from_cam, true_poses.shape) if static else np.asarray(world_from_cam)
+    seen = np.isfinite(found).all(axis=(1, 2))
+    centre_mm = 1000 * np.linalg.norm(found[seen, :3, 3] - true_poses[seen, :3, 3], axis=1)
+    cosine = np.clip(np.sum(found[seen, :3, 2] * true_poses[seen, :3, 2], axis=1), -1.0, 1.0)
+    view_deg = np.degrees(np.arccos(cosine))
+    print(
+        f"camera ({'one static pose' if static else 'a pose per frame'}, found in {int(seen.sum())}/{len(seen)} "
+        f"frames): centre error median {np.median(centre_mm):.2f} mm, max {centre_mm.max():.2f}; view direction "
+        f"error median {np.median(view_deg):.3f} deg, max {view_deg.max():.3f}"
+    )
+
+
 def truth_offsets(scene: Path) -> dict[str, tuple[str, np.ndarray]]:
     """Grounded object name -> (true object name, offset = truth_body_from_grounded_body at the scan)."""
     grounded = json.loads((scene / "scene.json").read_text())["objects"]
@@ -94,6 +113,9 @@ def main() -> None:
     )
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--occluded", action="store_true", help="track samples/toss_occluded instead")
+    parser.add_argument(
+        "--moving", action="store_true", help="track samples/toss_moving instead (the toss filmed by a moving camera)"
+    )
     parser.add_argument(
         "--markers",
         action="store_true",
@@ -157,7 +179,13 @@ def main() -> None:
     )
     args = parser.parse_args()
     clip_dir = ROOT / (
-        "samples/toss_occluded" if args.occluded else "samples/toss_markers" if args.markers else "samples/toss"
+        "samples/toss_occluded"
+        if args.occluded
+        else "samples/toss_moving"
+        if args.moving
+        else "samples/toss_markers"
+        if args.markers
+        else "samples/toss"
     )
     if args.truth:
         truth_benchmark(clip_dir, args)
@@ -195,6 +223,7 @@ def main() -> None:
     )
     print(f"tracked {len(result.time_s)} frames in {time.perf_counter() - tick:.1f} s ({result.seconds})")
     print(f"segments: {list(result.segments)}")
+    print_camera_error(clip_dir, result.world_from_cam, result.static_camera)
     for record in result.object_markers:
         print(f"object marker: {record}")
     all_pos: list[float] = []
