@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 
 
@@ -79,6 +80,12 @@ def register(app: typer.Typer) -> None:
             )
             with stage_progress() as progress:
                 result = run_track(clip, scene, out, options, overwrite=overwrite, progress=progress)
+        if result.static_camera:
+            typer.echo("camera: static (one pose from the table's marker)")
+        else:
+            placed = int(np.isfinite(result.world_from_cam).all(axis=(1, 2)).sum())
+            total = len(result.world_from_cam)
+            typer.echo(f"camera: moving, placed from the table's marker in {placed}/{total} frames")
         for i, name in enumerate(result.object_names):
             lost = int((~result.valid[:, i]).sum())
             typer.echo(f"{name}: tracked {len(result.valid) - lost}/{len(result.valid)} frames")
