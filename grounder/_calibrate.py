@@ -339,6 +339,12 @@ class _JointError:
     scale: float  # error units per "percent": hinge 0.01 rad, slide 0.001 m
 
 
+def pseudo_huber_residuals(res: np.ndarray, scale: float) -> np.ndarray:
+    """Residuals whose squares are the pseudo-Huber function of `res` with this scale: quadratic below it, linear
+    above, so least squares (and sums of squares) over them are robust to a few large residuals."""
+    return scale * np.sqrt(2.0 * (np.sqrt(1.0 + (res / scale) ** 2) - 1.0))
+
+
 class Evaluator:
     """Losses of many candidate parameter vectors on a fixed set of trajectories, each batch one `mujoco.rollout`.
 
@@ -505,9 +511,8 @@ class _Problem:
         u_rows = np.atleast_2d(u_rows)
         loss = self.ev.loss_of_values(self.values(u_rows))
         res = np.sqrt(np.maximum(loss, 0.0)) / self.data_scale
-        if self.robust_c is not None:  # sqrt of the pseudo-Huber function: least squares minimise its sum
-            c = self.robust_c
-            res = c * np.sqrt(2.0 * (np.sqrt(1.0 + (res / c) ** 2) - 1.0))
+        if self.robust_c is not None:
+            res = pseudo_huber_residuals(res, self.robust_c)
         if self.prior is not None:
             res = np.concatenate([res, self.prior(u_rows)], axis=1)
         return res

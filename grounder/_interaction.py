@@ -571,13 +571,13 @@ def start_error_ranges(
     other parameters held at the fit; the calibration's loss over the windows, pseudo-Huber as fitted). A range
     wider than the screen's step (`identify_relative_change`) says the value rests on the starts' accuracy.
     """
-    from grounder._calibrate import Evaluator
+    import mujoco
+
+    from grounder._calibrate import Evaluator, pseudo_huber_residuals
     from grounder._calibrate_params import resolve_parameters
 
     if options.start_speed_error_m_s <= 0.0 or not fit:
         return {}
-    import mujoco
-
     resolved = resolve_parameters(base, list(fit))
     free = [int(base.jnt_dofadr[j]) for j in range(base.njnt) if base.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
     settings = {"rotation_weight": options.rotation_weight, **_view_settings(options, view_point_m), "nthread": 1}
@@ -587,9 +587,7 @@ def start_error_ranges(
 
     def objective(loss: np.ndarray) -> np.ndarray:
         r = np.sqrt(np.maximum(loss, 0.0))
-        if c is not None:
-            r = c * np.sqrt(2.0 * (np.sqrt(1.0 + (r / c) ** 2) - 1.0))
-        return np.sum(r**2, axis=1)
+        return np.sum((r if c is None else pseudo_huber_residuals(r, c)) ** 2, axis=1)
 
     scan = np.geomspace(0.5, 2.0, 29)
     ranges = {p.name: [float(values[i]), float(values[i])] for i, p in enumerate(resolved)}

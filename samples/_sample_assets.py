@@ -435,17 +435,35 @@ def write_json(path: Path, payload: object) -> None:
 
 
 def render_states(
-    model: mujoco.MjModel, qpos: np.ndarray, camera: str, height_px: int, width_px: int
+    model: mujoco.MjModel,
+    qpos: np.ndarray,
+    camera: str,
+    height_px: int,
+    width_px: int,
+    world_from_cam: np.ndarray | None = None,
 ) -> list[np.ndarray]:
-    """(H, W, 3) uint8 frames of `model` seen from `camera` at each row of qpos (T, nq), with progress."""
+    """(H, W, 3) uint8 frames of `model` seen from `camera` at each row of qpos (T, nq), with progress.
+
+    `world_from_cam` (T, 4, 4), OpenCV axes: move the camera (a child of the world body) to that pose in each frame
+    (a moving camera); the camera MuJoCo then renders from is checked against it."""
     data = mujoco.MjData(model)
     cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
     renderer = mujoco.Renderer(model, height_px, width_px)
     frames = []
     try:
         for k, row in enumerate(qpos):
+            if world_from_cam is not None:
+                # MuJoCo cameras look along -z with y up: the OpenCV axes with y and z flipped.
+                quat = np.zeros(4)
+                mujoco.mju_mat2Quat(quat, (world_from_cam[k, :3, :3] @ np.diag([1.0, -1.0, -1.0])).flatten())
+                model.cam_pos[cam_id] = world_from_cam[k, :3, 3]
+                model.cam_quat[cam_id] = quat
             data.qpos[:] = row
             mujoco.mj_forward(model, data)
+            if world_from_cam is not None and not np.allclose(
+                world_from_cam_opencv(data, cam_id), world_from_cam[k], atol=1e-9
+            ):
+                raise RuntimeError(f"frame {k}: the rendered camera is not the planned one")
             renderer.update_scene(data, camera=cam_id)
             frames.append(renderer.render()[:, :, :3].copy())
             print(f"\rrendered {k + 1}/{len(qpos)}", end="", flush=True)

@@ -69,25 +69,7 @@ def main() -> None:
     cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "video")
     mujoco.mj_forward(model, data)
     poses = camera_poses(sa.world_from_cam_opencv(data, cam_id), len(qpos))
-    renderer = mujoco.Renderer(model, make_toss.HEIGHT_PX, make_toss.WIDTH_PX)
-    frames: list[np.ndarray] = []
-    try:
-        for k in range(len(qpos)):
-            # MuJoCo cameras look along -z with y up: the OpenCV axes with y and z flipped.
-            quat = np.zeros(4)
-            mujoco.mju_mat2Quat(quat, (poses[k, :3, :3] @ np.diag([1.0, -1.0, -1.0])).flatten())
-            model.cam_pos[cam_id] = poses[k, :3, 3]
-            model.cam_quat[cam_id] = quat
-            data.qpos[:] = qpos[k]
-            mujoco.mj_forward(model, data)
-            if not np.allclose(sa.world_from_cam_opencv(data, cam_id), poses[k], atol=1e-9):
-                raise RuntimeError(f"frame {k}: the rendered camera is not the planned one")
-            renderer.update_scene(data, camera=cam_id)
-            frames.append(renderer.render()[:, :, :3].copy())
-            print(f"\rrendered {k + 1}/{len(qpos)}", end="", flush=True)
-    finally:
-        renderer.close()
-    print()
+    frames = sa.render_states(model, qpos, "video", make_toss.HEIGHT_PX, make_toss.WIDTH_PX, world_from_cam=poses)
     travel_mm = 1000 * np.linalg.norm(poses[:, :3, 3] - poses[0, :3, 3], axis=1).max()
     print(f"camera moves up to {travel_mm:.0f} mm from its start")
     with sa.toss_variant(args.out, truth_in, frames, make_toss.FPS) as truth:
