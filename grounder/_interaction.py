@@ -568,7 +568,8 @@ def start_error_ranges(
     speed. On `samples/toss` (scan D) the bowl's tracked start speeds were off by 0.002-0.07 m/s (median about
     0.03), its friction came out -45%, and rollouts from the true starts of the same windows fit best at the
     rendered value. So each parameter is profiled again with the starts moved along their velocity, both ways (the
-    other parameters held at the fit; the calibration's loss over the windows, pseudo-Huber as fitted). A range
+    other parameters held at the fit; the calibration's loss over the windows, through the same pseudo-Huber
+    function, its scale taken from the windows' errors at the fit rather than at the prior). A range
     wider than the screen's step (`identify_relative_change`) says the value rests on the starts' accuracy.
     """
     import mujoco
