@@ -39,6 +39,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from cube_toss import DEFAULT_PARAMS as CUBE_TOSS_PARAMS  # noqa: E402  (benchmarks/cube_toss.py's fit)
+
 from grounder._import import load_dair_pll_cube  # noqa: E402
 from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
 from grounder._simulate import quat_angle_rad, simulate  # noqa: E402
@@ -110,20 +112,6 @@ def grid_calibrate(train: list[Trajectory], out_dir: Path) -> tuple[Path, str]:
     return out_dir, f"grid search in this benchmark: {best[2]}"
 
 
-CALIBRATED_PARAMS = (  # benchmarks/cube_toss.py's defaults
-    "cube.friction.sliding",
-    "cube.friction.torsional",
-    "cube.friction.rolling",
-    "cube.solref.timeconst",
-    "cube.solref.dampratio",
-    "cube.condim",
-    "opt.cone",
-    "opt.impratio",
-    "opt.gravity_scale",
-    "cube.size_scale",
-)
-
-
 def calibrated_scene(
     trajs: list[Trajectory], train: list[Trajectory], work: Path, force_grid: bool
 ) -> tuple[Path, str]:
@@ -139,7 +127,7 @@ def calibrated_scene(
             (nominal / "scene.xml").write_text(NOMINAL_XML.read_text())
             out = work / "calibrated"
             options = CalibrateOptions(
-                params=CALIBRATED_PARAMS,
+                params=CUBE_TOSS_PARAMS,
                 validation_fraction=1.0 - TRAIN_FRACTION,
                 split_seed=SPLIT_SEED,
                 max_train_trajectories=40,

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 import mujoco
 import numpy as np
 
+from grounder._track_smooth import quat_conj, quat_mul
 from grounder.errors import GrounderError
 
 if TYPE_CHECKING:
@@ -110,25 +111,6 @@ def quat_to_mat(quat_wxyz: np.ndarray) -> np.ndarray:
     out[..., 2, 1] = 2 * (y * z + w * x)
     out[..., 2, 2] = 1 - 2 * (x * x + y * y)
     return out
-
-
-def quat_mul(a_wxyz: np.ndarray, b_wxyz: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b, (..., 4)."""
-    aw, ax, ay, az = np.moveaxis(a_wxyz, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b_wxyz, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_conj(quat_wxyz: np.ndarray) -> np.ndarray:
-    return quat_wxyz * np.array([1.0, -1.0, -1.0, -1.0])
 
 
 def rotvec_to_quat(rotvec: np.ndarray) -> np.ndarray:

@@ -15,12 +15,9 @@ from __future__ import annotations
 import json
 import math
 import re
-import shutil
-import tempfile
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -28,6 +25,7 @@ from typing import Any, NamedTuple
 import mujoco
 import numpy as np
 
+from reconstruction._outdir import staged_output_dir
 from reconstruction._types import CameraIntrinsics, TexturedMesh
 from scene_export._collision import CollisionGeometry
 from scene_export._mesh import as_mesh_arrays, solid_trimesh
@@ -308,29 +306,6 @@ def _write_png_rgb(path: Path, image_rgb: np.ndarray) -> None:
         raise SceneExportError(f"could not write {path}; check the folder is writable")
 
 
-@contextmanager
-def _staged_output_dir(out_dir: Path, *, overwrite: bool) -> Iterator[Path]:
-    """A temporary sibling folder, moved onto `out_dir` only when the block succeeds (never half-written)."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise OutputExistsError(f"output {out_dir} is a file; pass a folder path")
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise OutputExistsError(f"output folder {out_dir} exists and is not empty; pass overwrite=True or another one")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
-    try:
-        yield staging
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    backup = None
-    if out_dir.exists():
-        backup = out_dir.with_name(f".{out_dir.name}.old-{staging.name.rsplit('-', 1)[-1]}")
-        out_dir.rename(backup)
-    staging.rename(out_dir)
-    if backup is not None:
-        shutil.rmtree(backup, ignore_errors=True)
-
-
 # ---------------------------------------------------------------- export
 
 
@@ -422,7 +397,7 @@ def export_scene(
         _check_visual(obj)
     mass_props = {obj.name: _mass_properties(obj) for obj in objects}
 
-    with _staged_output_dir(out_dir, overwrite=overwrite) as staging:
+    with staged_output_dir(out_dir, overwrite=overwrite, error=OutputExistsError) as staging:
         assets = staging / "assets"
         assets.mkdir()
         spec = _new_spec(staging, options, cameras)
