@@ -82,6 +82,7 @@ from grounder._track_smooth import (
 from grounder._track_support import SupportFit, apply_support_scale, collision_points_body, fit_support_scale
 from grounder._trajectory import Trajectory, save_trajectory
 from grounder.errors import GrounderError
+from reconstruction._frames import open_video
 
 log = logging.getLogger(__name__)
 
@@ -271,7 +272,7 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
             frames.append(image)
         fps = 30.0
     else:
-        capture = cv2.VideoCapture(str(clip))
+        capture = open_video(clip)
         fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
         index = 0
         while max_frames is None or len(frames) < max_frames:

@@ -63,7 +63,7 @@ def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     console = Console(stderr=True)
-    with Progress(
+    progress = Progress(
         TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
@@ -71,18 +71,24 @@ def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
         console=console,
         transient=False,
         disable=not console.is_terminal and "CI" in os.environ,
-    ) as progress:
-        tasks: dict[str, Any] = {}
+    )
+    tasks: dict[str, Any] = {}
 
-        def report(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                for other in tasks.values():
-                    task = progress.tasks[other]
-                    progress.update(other, completed=task.total)
-                tasks[stage] = progress.add_task(stage, total=max(total, 1))
-            progress.update(tasks[stage], completed=done, total=max(total, 1))
+    def report(stage: str, done: int, total: int) -> None:
+        if not tasks:  # shown from the first stage on: input rejected before any work is one error line alone
+            progress.start()
+        if stage not in tasks:
+            for other in tasks.values():
+                task = progress.tasks[other]
+                progress.update(other, completed=task.total)
+            tasks[stage] = progress.add_task(stage, total=max(total, 1))
+        progress.update(tasks[stage], completed=done, total=max(total, 1))
 
+    try:
         yield report
+    finally:
+        if tasks:
+            progress.stop()
 
 
 def _setup_logging(verbose: bool) -> None:

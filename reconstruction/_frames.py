@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,32 +40,61 @@ def is_video(source: Path) -> bool:
     return source.is_file()
 
 
+def open_video(path: Path) -> cv2.VideoCapture:
+    """`cv2.VideoCapture` of a video file with FFmpeg's own console messages off while it opens (an unreadable file
+    then gives the caller's one error line, not FFmpeg's "moov atom not found" before it), unless the user set
+    `OPENCV_FFMPEG_LOGLEVEL`."""
+    key = "OPENCV_FFMPEG_LOGLEVEL"
+    if key in os.environ:
+        return cv2.VideoCapture(str(path))
+    os.environ[key] = "-8"  # AV_LOG_QUIET
+    try:
+        return cv2.VideoCapture(str(path))
+    finally:
+        del os.environ[key]
+
+
+def check_source(source: Path) -> None:
+    """Fails fast, before any work is shown, on a source `read_frames` cannot read at all.
+
+    Raises:
+        InputError: the source is missing, a folder without images, or a file no video decoder opens.
+    """
+    if not source.exists():
+        raise InputError(f"{source} does not exist; pass a video file or a folder of images")
+    if source.is_dir():
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
+            raise InputError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)}); pass a video or an image folder")
+        return
+    capture = open_video(source)
+    try:
+        if not capture.isOpened():
+            raise InputError(f"{source} is not a readable video; pass an .mp4/.mov/.avi file or a folder of images")
+    finally:
+        capture.release()
+
+
 def read_frames(source: Path) -> list[Frame]:
     """Decodes every frame of a video file, or every image of a folder in natural name order.
 
     Raises:
         InputError: the source is missing, unreadable, has frames of different sizes or too few frames.
     """
-    if not source.exists():
-        raise InputError(f"{source} does not exist; pass a video file or a folder of images")
+    check_source(source)
     frames: list[Frame] = []
     if source.is_dir():
         paths = sorted(
             (p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
             key=lambda p: [int(t) if t.isdigit() else t for t in _split_digits(p.name)],
         )
-        if not paths:
-            raise InputError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)}); pass a video or an image folder")
         for i, path in enumerate(paths):
             image = cv2.imread(str(path), cv2.IMREAD_COLOR)
             if image is None:
                 raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG")
             frames.append(Frame(index=i, name=path.name, image_bgr=image))
     else:
-        capture = cv2.VideoCapture(str(source))
+        capture = open_video(source)
         try:
-            if not capture.isOpened():
-                raise InputError(f"{source} is not a readable video; pass an .mp4/.mov/.avi file or a folder of images")
             while True:
                 ok, image = capture.read()
                 if not ok:

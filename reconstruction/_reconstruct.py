@@ -107,6 +107,7 @@ def reconstruct(
     report = progress or (lambda stage, done, total: None)
     seconds: dict[str, float] = {}
     _sfm._quiet_colmap()
+    _frames.check_source(source)
 
     with staged_output_dir(Path(out_dir), overwrite=overwrite) as stage_dir:
         tick = time.perf_counter()

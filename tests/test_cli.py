@@ -24,10 +24,14 @@ def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str
     )
 
 
-def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str) -> None:
+def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str, alone: bool = False) -> None:
+    """Exit code 2 and one error line naming `needles`; `alone`: nothing else on stderr either (input rejected before
+    any work: no progress line, no decoder chatter)."""
     assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
     lines = [line for line in proc.stderr.splitlines() if line.startswith("image2sim: error:")]
     assert len(lines) == 1, proc.stderr
+    if alone:
+        assert [line for line in proc.stderr.splitlines() if line.strip()] == lines, proc.stderr
     assert "Traceback" not in proc.stderr
     for needle in needles:
         assert needle in lines[0], lines[0]
@@ -91,7 +95,7 @@ def _tabletop_frames(tabletop_dir: Path, indices: list[int]) -> list[np.ndarray]
 
 def test_missing_source(tmp_path: Path) -> None:
     proc = run_cli("reconstruct", str(tmp_path / "nope.mp4"), "-o", str(tmp_path / "out"))
-    assert_one_line_error(proc, "does not exist")
+    assert_one_line_error(proc, "does not exist", alone=True)
     assert not (tmp_path / "out").exists()
 
 
@@ -99,7 +103,7 @@ def test_unreadable_video(tmp_path: Path) -> None:
     fake = tmp_path / "clip.mp4"
     fake.write_text("this is not a video")
     proc = run_cli("reconstruct", str(fake), "-o", str(tmp_path / "out"))
-    assert_one_line_error(proc, "clip.mp4")
+    assert_one_line_error(proc, "clip.mp4", alone=True)
     assert not (tmp_path / "out").exists()
 
 
