@@ -259,6 +259,13 @@ def load_trajectory(path: str | os.PathLike[str]) -> Trajectory:
         raise TrajectoryError(f"{path}: trajectory file does not exist; check the path")
     if not path.is_file():
         raise TrajectoryError(f"{path}: expected a trajectory .npz file, but found a directory or special file")
+    with path.open("rb") as head:
+        magic = head.read(6)
+    if not (magic.startswith(b"PK") or magic == b"\x93NUMPY"):
+        # numpy would try the file as a pickle and refuse it, with a message that suggests allow_pickle
+        raise TrajectoryError(
+            f"{path}: not an .npz archive (no zip header: {magic!r}); write it with save_trajectory or numpy.savez"
+        )
     try:
         archive = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:

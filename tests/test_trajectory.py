@@ -320,8 +320,8 @@ def test_pickled_object_array_is_refused_without_executing(tmp_path: Path) -> No
 @pytest.mark.parametrize(
     "content, expected",
     [
-        (b"", "not a valid .npz archive"),
-        (b"time,qpos\n0,1\n", "not a valid .npz archive"),
+        (b"", "not an .npz archive"),
+        (b"time,qpos\n0,1\n", "not an .npz archive"),
         (b"PK\x03\x04truncated", "not a valid .npz archive"),
     ],
     ids=["empty", "text", "truncated_zip"],
@@ -329,8 +329,19 @@ def test_pickled_object_array_is_refused_without_executing(tmp_path: Path) -> No
 def test_load_rejects_non_npz(tmp_path: Path, content: bytes, expected: str) -> None:
     path = tmp_path / "junk.npz"
     path.write_bytes(content)
-    with pytest.raises(TrajectoryError, match=expected):
+    with pytest.raises(TrajectoryError, match=expected) as caught:
         load_trajectory(path)
+    assert "allow_pickle" not in str(caught.value)  # numpy's own message would suggest loading it unsafely
+
+
+def test_raw_pickle_named_npz_is_refused_without_executing(tmp_path: Path) -> None:
+    import pickle
+
+    path = tmp_path / "evil.npz"
+    path.write_bytes(pickle.dumps(_Canary()))
+    with pytest.raises(TrajectoryError, match=r"evil\.npz: not an \.npz archive"):
+        load_trajectory(path)
+    assert _CANARY_FIRED == []
 
 
 def test_load_rejects_npy_file(tmp_path: Path) -> None:
