@@ -86,6 +86,8 @@ def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
 
     try:
         yield report
+        for task_id in tasks.values():  # done: the last stage shows complete too
+            progress.update(task_id, completed=progress.tasks[task_id].total)
     finally:
         if tasks:
             progress.stop()
