@@ -60,18 +60,29 @@ def check_source(source: Path) -> None:
     Raises:
         InputError: the source is missing, a folder without images, or a file no video decoder opens.
     """
+    if source.is_file():
+        _opened_video(source).release()
+    else:
+        _check_path(source)
+
+
+def _check_path(source: Path) -> None:
     if not source.exists():
         raise InputError(f"{source} does not exist; pass a video file or a folder of images")
-    if source.is_dir():
-        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
-            raise InputError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)}); pass a video or an image folder")
-        return
+    if not (source.is_dir() or source.is_file()):
+        raise InputError(f"{source} is neither a video file nor a folder of images; pass one of those")
+    if source.is_dir() and not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
+        raise InputError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)}); pass a video or an image folder")
+
+
+def _opened_video(source: Path) -> cv2.VideoCapture:
+    """The open capture of a video file (`_check_path` first); the caller releases it."""
+    _check_path(source)
     capture = open_video(source)
-    try:
-        if not capture.isOpened():
-            raise InputError(f"{source} is not a readable video; pass an .mp4/.mov/.avi file or a folder of images")
-    finally:
+    if not capture.isOpened():
         capture.release()
+        raise InputError(f"{source} is not a readable video; pass an .mp4/.mov/.avi file or a folder of images")
+    return capture
 
 
 def read_frames(source: Path) -> list[Frame]:
@@ -80,9 +91,9 @@ def read_frames(source: Path) -> list[Frame]:
     Raises:
         InputError: the source is missing, unreadable, has frames of different sizes or too few frames.
     """
-    check_source(source)
     frames: list[Frame] = []
-    if source.is_dir():
+    if not source.is_file():
+        _check_path(source)
         paths = sorted(
             (p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
             key=lambda p: [int(t) if t.isdigit() else t for t in _split_digits(p.name)],
@@ -93,7 +104,7 @@ def read_frames(source: Path) -> list[Frame]:
                 raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG")
             frames.append(Frame(index=i, name=path.name, image_bgr=image))
     else:
-        capture = open_video(source)
+        capture = _opened_video(source)
         try:
             while True:
                 ok, image = capture.read()
