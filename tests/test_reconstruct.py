@@ -120,3 +120,29 @@ def test_real_apple_video_with_known_extent(shared_data: Path, tmp_path: Path) -
     distance_m = np.median(np.linalg.norm(cams, axis=1))
     assert 0.15 < distance_m < 1.5, distance_m
     assert (tmp_path / "apple" / "preview.png").is_file()
+
+
+@pytest.mark.parametrize("kind", ["missing", "no_images", "fifo", "not_video"])
+def test_check_source_names_what_is_wrong_before_any_work(tmp_path: Path, kind: str) -> None:
+    import os
+
+    from reconstruction._frames import check_source, read_frames
+    from reconstruction.errors import InputError
+
+    source = tmp_path / "source"
+    expected = {
+        "missing": "does not exist",
+        "no_images": "holds no images",
+        "fifo": "neither a video file nor a folder",
+        "not_video": "is not a readable video",
+    }[kind]
+    if kind == "no_images":
+        source.mkdir()
+        (source / "notes.txt").write_text("no frames here")
+    elif kind == "fifo":
+        os.mkfifo(source)
+    elif kind == "not_video":
+        source.write_text("this is not a video")
+    for reader in (check_source, read_frames):
+        with pytest.raises(InputError, match=expected):
+            reader(source)
