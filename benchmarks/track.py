@@ -307,6 +307,9 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
     print_screens(calibration.get("parameters", {}))
     print_parameter_table(calibration.get("parameters", {}), clip_dir, {b: offsets[b][0] for b in offsets})
     print_window_match(calibration)
+    options = _options(args)
+    if options.own_runs:
+        print_start_errors(scene, clip_dir, out / "interaction/tracks/track.json", options)
     print("match with the whole segments (open loop from the first tracked state; hinges on that state):")
     for body, before in result.report["match_before"].items():
         after = result.report.get("match_after", {}).get(body, {})
@@ -336,6 +339,36 @@ def print_window_match(calibration: dict) -> None:
                 f"{a['median_position_error_mm']} mm, rotation {b['median_rotation_error_deg']} -> "
                 f"{a['median_rotation_error_deg']} deg"
             )
+
+
+def print_start_errors(scene: Path, clip_dir: Path, track_json: Path, options: Any) -> None:
+    """Per object, the windows its calibration is cut into (each object's own tracked runs, window starts as
+    `grounder._interaction.calibrate_per_body` chooses them) and how far each tracked start velocity is from the
+    truth: the slide after a landing is as long as the start speed squared over the friction, so these errors show
+    up in the calibrated values (README, #8)."""
+    import mujoco
+
+    from grounder._interaction import _single_body_trajectory, reliable_starts, windows
+    from grounder._track import load_object_trajectories
+
+    fps = float(json.loads(track_json.read_text())["fps"])
+    model = mujoco.MjModel.from_xml_path(str(scene / "scene.xml"))
+    truth = true_motion_in_grounded_frames(scene, clip_dir)
+    smoothing = options.track.smoothing
+    every = []
+    print("window starts, tracked start velocity against the truth:")
+    for body, runs in load_object_trajectories(track_json, smoothing).items():
+        true_body = _single_body_trajectory(model, truth, body)
+        starts = [reliable_starts(run, smoothing) for run in runs]
+        cut = windows(runs, options.window_s, options.window_stride_s, options.min_motion_m_s, starts=starts)
+        frames = [round(w.time_s[0] * fps) for w in cut]
+        errors = [
+            1e3 * float(np.linalg.norm(w.qvel[0, :3] - true_body.qvel[f, :3])) for w, f in zip(cut, frames, strict=True)
+        ]
+        every += errors
+        print(f"  {body}: {len(cut)} windows at frames {frames}, speed error {[round(e) for e in errors]} mm/s")
+    if every:
+        print(f"  all {len(every)}: median {np.median(every):.0f}, p90 {np.percentile(every, 90):.0f} mm/s")
 
 
 def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, dict[str, float]]:
@@ -433,6 +466,8 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
     print_screens(entry["parameters"])
     print_parameter_table(entry["parameters"], clip_dir, {b: offsets[b][0] for b in offsets})
     print_window_match(entry)
+    if options.own_runs:
+        print_start_errors(scene, clip_dir, tracks / "track.json", options)
 
 
 def true_motion_in_grounded_frames(scene: Path, clip_dir: Path) -> Any:
