@@ -60,7 +60,7 @@ def check_source(source: Path) -> None:
     Raises:
         InputError: the source is missing, a folder without images, or a file no video decoder opens.
     """
-    if source.is_file():
+    if is_video(source):
         _opened_video(source).release()
     else:
         _check_path(source)
@@ -76,8 +76,7 @@ def _check_path(source: Path) -> None:
 
 
 def _opened_video(source: Path) -> cv2.VideoCapture:
-    """The open capture of a video file (`_check_path` first); the caller releases it."""
-    _check_path(source)
+    """The open capture of a video file; the caller releases it."""
     capture = open_video(source)
     if not capture.isOpened():
         capture.release()
@@ -92,7 +91,7 @@ def read_frames(source: Path) -> list[Frame]:
         InputError: the source is missing, unreadable, has frames of different sizes or too few frames.
     """
     frames: list[Frame] = []
-    if not source.is_file():
+    if not is_video(source):
         _check_path(source)
         paths = sorted(
             (p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
