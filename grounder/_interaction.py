@@ -43,6 +43,7 @@ import importlib.util
 import json
 import logging
 import shutil
+import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -700,8 +701,6 @@ def write_values(scene_xml: Path, values: Mapping[str, float], out: Path) -> Pat
     apply_to_spec(spec, base, resolved, [values[p.name] for p in resolved])
     out.mkdir(parents=True)
     _copy_scene_files(scene_xml.parent, spec, out)
-    for stray in out.glob(".calibrate_*.xml"):
-        stray.unlink()
     (out / "scene.xml").write_text(spec.to_xml())
     reloaded = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
     if reloaded.nq != base.nq or reloaded.nv != base.nv:
@@ -780,7 +779,13 @@ def calibrate_per_body(
         for other in bodies:
             if other != body:
                 single.delete(single.body(other))
-        sub_xml = scene_xml.with_name(f".calibrate_{body}.xml")
+        # The object's own scene goes to a private folder, with its asset folders made absolute: written beside
+        # scene.xml under a fixed name, two calibrations of one scene at once (batch jobs, two terminals) deleted
+        # each other's file mid-run, and a read-only scene folder could not be calibrated at all.
+        for attr in ("meshdir", "texturedir"):
+            setattr(single, attr, str((scene_xml.parent / getattr(single, attr)).resolve()))
+        tmp = Path(tempfile.mkdtemp(prefix="image2sim_calibrate_"))
+        sub_xml = tmp / f"{body}.xml"
         try:
             sub_xml.write_text(single.to_xml())
             body_trajs = (
@@ -804,7 +809,7 @@ def calibrate_per_body(
                 )
                 match = _window_match(sub_xml, fit, body_params, sub["parameters"])
         finally:
-            sub_xml.unlink(missing_ok=True)
+            shutil.rmtree(tmp, ignore_errors=True)
         entry["per_object"][body] = {
             "status": sub["status"],
             "windows": [t.name for t in fit],

@@ -169,6 +169,45 @@ def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scen
     assert entry["per_object"]["still"]["window_match"] == {}
 
 
+def test_per_object_calibration_writes_nothing_into_the_scene_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Each object's own scene is written to a private folder, its meshes still found: the scene folder (a mesh under
+    `assets/`) is exactly as it was while the calibration runs. A fixed-name helper file beside scene.xml let two
+    calibrations of one scene at once delete each other's (seen: `ParseXML: Error opening file .calibrate_...xml`)."""
+    import trimesh
+
+    import grounder._interaction as interaction
+
+    folder = tmp_path / "prior"
+    (folder / "assets").mkdir(parents=True)
+    trimesh.creation.box(extents=(0.08, 0.06, 0.06)).export(folder / "assets" / "slider.obj")
+    meshed = SCENE.replace(
+        '<geom type="box" size="0.04 0.03 0.03" density="300" friction="{slider}" priority="1"/>',
+        '<geom type="mesh" mesh="slider" density="300" friction="{slider}" priority="1"/>',
+    )
+    meshed = meshed.replace(
+        "<mujoco>", '<mujoco>\n  <compiler meshdir="assets"/>\n  <asset><mesh name="slider" file="slider.obj"/></asset>'
+    )
+    xml = folder / "scene.xml"
+    xml.write_text(meshed.format(slider=0.8, still=0.8))
+    before = sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+    seen: list[list[str]] = []
+    real = interaction.calibrate_constrained
+
+    def spy(sub_xml: Path, *args: object, **kwargs: object) -> dict:
+        seen.append(sorted(str(p.relative_to(folder)) for p in folder.rglob("*")))
+        assert folder not in Path(sub_xml).parents
+        return real(sub_xml, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(interaction, "calibrate_constrained", spy)
+    entry, _ = interaction.calibrate_per_body(xml, [_recorded(tmp_path)], PARAMS, QUICK)
+    assert seen and all(listing == before for listing in seen)
+    assert sorted(str(p.relative_to(folder)) for p in folder.rglob("*")) == before
+    slider = entry["parameters"]["slider.friction.sliding"]
+    assert slider["constrained"] and slider["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+
+
 def test_per_object_values_are_written_without_any_segment(tmp_path: Path) -> None:
     """No frame has both boxes tracked (no segment): each box's own runs still calibrate it, and the values are
     written into the whole scene (`write_values`), said to be unevaluated on it."""
