@@ -112,6 +112,12 @@ def main() -> None:
         help="grounded scene (default out/track_bench/scene, with --markers out/track_bench_markers/scene)",
     )
     parser.add_argument("--frames", type=int, default=None)
+    parser.add_argument(
+        "--clip",
+        type=Path,
+        default=None,
+        help="a toss clip folder laid out like samples/toss (e.g. `samples/make_toss.py --fps 60 --out DIR`)",
+    )
     parser.add_argument("--occluded", action="store_true", help="track samples/toss_occluded instead")
     parser.add_argument(
         "--moving", action="store_true", help="track samples/toss_moving instead (the toss filmed by a moving camera)"
@@ -178,7 +184,7 @@ def main() -> None:
         help="with --calibrate: weight of the position error along the camera ray (default: InteractionOptions')",
     )
     args = parser.parse_args()
-    clip_dir = ROOT / (
+    clip_dir = args.clip or ROOT / (
         "samples/toss_occluded"
         if args.occluded
         else "samples/toss_moving"

@@ -44,7 +44,8 @@ from grounder import Trajectory, save_trajectory
 from scene_export import ExportOptions
 
 WIDTH_PX, HEIGHT_PX, FOVY_DEG, FPS = 640, 480, 50.0, 30.0
-NUM_FRAMES = 90  # 3 s
+CLIP_S = 3.0  # NUM_FRAMES = CLIP_S * FPS at the default rate
+NUM_FRAMES = round(CLIP_S * FPS)
 # The physics settings of every scene `ground` exports (timestep, integrator, friction cone, impratio), so that the
 # values the clip is rendered with mean the same in a grounded scene: calibration can recover them like for like.
 PHYSICS = ExportOptions()
@@ -117,10 +118,10 @@ def toss_starts() -> dict[str, TossStart]:
     }
 
 
-def frame_steps(num_frames: int) -> np.ndarray:
-    """Physics step shown in each video frame: the one nearest k / FPS (the timestep does not divide 1/30 s)."""
+def frame_steps(num_frames: int, fps: float = FPS) -> np.ndarray:
+    """Physics step shown in each video frame: the one nearest k / fps (the timestep does not divide 1/30 s)."""
     steps_per_s = round(1.0 / TIMESTEP_S)
-    return np.array([(k * steps_per_s * 2 + round(FPS)) // (2 * round(FPS)) for k in range(num_frames)])
+    return np.array([(k * steps_per_s * 2 + round(fps)) // (2 * round(fps)) for k in range(num_frames)])
 
 
 def toss_objects() -> list[sa.SampleObject]:
@@ -148,7 +149,9 @@ def build_true_spec(assets_dir: Path, objects: list[sa.SampleObject], starts: di
     return spec
 
 
-def simulate(model: mujoco.MjModel, starts: dict[str, TossStart], num_frames: int) -> tuple[np.ndarray, ...]:
+def simulate(
+    model: mujoco.MjModel, starts: dict[str, TossStart], num_frames: int, fps: float = FPS
+) -> tuple[np.ndarray, ...]:
     """Steps from the released state; returns time_s (T,), qpos (T, nq), qvel (T, nv) at the video frames.
 
     Raises RuntimeError if two objects ever touch: the clip is meant to show each object against the table only.
@@ -162,7 +165,7 @@ def simulate(model: mujoco.MjModel, starts: dict[str, TossStart], num_frames: in
         data.qvel[dof_adr : dof_adr + 6] = [*start.linvel_world_m_s, *start.angvel_body_rad_s]
     mujoco.mj_forward(model, data)
     object_bodies = {model.body(name).id for name in starts}
-    steps = frame_steps(num_frames)
+    steps = frame_steps(num_frames, fps)
     time_s, qpos, qvel = [], [], []
     step = 0
     for target in steps:
@@ -215,6 +218,7 @@ def check_clip(
     qvel: np.ndarray,
     world_from_cam: np.ndarray,
     intrinsics: dict[str, float],
+    fps: float = FPS,
 ) -> float:
     """Fails loudly if a retuned start breaks the clip; returns the time at rest before the end, seconds.
 
@@ -255,7 +259,7 @@ def check_clip(
         off = (np.linalg.norm(pos - pos[-1], axis=1) >= REST_TOLERANCE_M) | (angle_deg >= REST_TOLERANCE_DEG)
         moving_frames.extend(np.nonzero(off)[0].tolist())
     rest_frames = len(qpos) - 1 - max(moving_frames, default=-1)
-    rest_s = rest_frames / FPS
+    rest_s = rest_frames / fps
     if rest_s < MIN_REST_S:
         raise RuntimeError(f"objects rest only {rest_s:.2f} s before the end; lengthen the clip")
     return rest_s
@@ -264,7 +268,12 @@ def check_clip(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "toss")
+    parser.add_argument(
+        "--fps", type=float, default=FPS, help="frame rate of the clip (same motion, same 3 s; default 30)"
+    )
     args = parser.parse_args()
+    fps = float(args.fps)
+    num_frames = round(CLIP_S * fps)
 
     objects = toss_objects()
     starts = toss_starts()
@@ -279,19 +288,19 @@ def main() -> None:
             mass_kg = float(model.body(obj.name).mass[0])
             if not np.isclose(mass_kg, obj.mesh.volume * obj.density_kg_m3, rtol=1e-6):
                 raise RuntimeError(f"{obj.name}: model mass {mass_kg} kg != mesh volume * density")
-        time_s, qpos, qvel = simulate(model, starts, NUM_FRAMES)
-        print(f"simulated {time_s[-1]:.3f} s in {NUM_FRAMES} frames")
+        time_s, qpos, qvel = simulate(model, starts, num_frames, fps)
+        print(f"simulated {time_s[-1]:.3f} s in {num_frames} frames")
 
         data = mujoco.MjData(model)
         cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "video")
         mujoco.mj_forward(model, data)
         world_from_cam = sa.world_from_cam_opencv(data, cam_id)
         intrinsics = sa.intrinsics_from_fovy(FOVY_DEG, WIDTH_PX, HEIGHT_PX)
-        rest_s = check_clip(model, objects, qpos, qvel, world_from_cam, intrinsics)
+        rest_s = check_clip(model, objects, qpos, qvel, world_from_cam, intrinsics, fps)
         print(f"all objects in view and on the table; at rest for the last {rest_s:.2f} s")
 
         frames = sa.render_states(model, qpos, "video", HEIGHT_PX, WIDTH_PX)
-        sa.encode_video(frames, out / "video.mp4", FPS)
+        sa.encode_video(frames, out / "video.mp4", fps)
 
         save_trajectory(Trajectory(time_s=time_s, qpos=qpos, qvel=qvel, name="trajectory"), truth / "trajectory.npz")
         sa.write_json(
@@ -302,8 +311,8 @@ def main() -> None:
                 "the upper-left pixel is (0.5, 0.5); the camera is static",
                 "intrinsics": intrinsics,
                 "fovy_deg": FOVY_DEG,
-                "fps": FPS,
-                "num_frames": NUM_FRAMES,
+                "fps": fps,
+                "num_frames": num_frames,
                 "aruco": {
                     "dictionary": "DICT_4X4_50",
                     "id": sa.ARUCO_ID,
