@@ -939,6 +939,7 @@ def ground_with_interaction(
             "clip": str(clip),
             "tracking": {
                 "frames": len(tracked.time_s),
+                "fps": round(1.0 / float(np.median(np.diff(tracked.time_s))), 3) if len(tracked.time_s) > 1 else None,
                 "objects": {
                     n: {
                         "tracked_fraction": round(float(tracked.valid[:, i].mean()), 4),
@@ -1072,10 +1073,12 @@ def _markdown(payload: dict[str, Any]) -> str:
             )
         lines.append("")
         if any(p.get("start_sensitive") for p in params.values()):
+            fps = payload["tracking"].get("fps")
+            rate = "" if fps is None else f" This clip has {fps:g} frames per second."
             lines += [
                 "A value that rests on the start states' accuracy moves past the screen's step when the windows'",
-                "start speeds are off by a typical tracking error: treat it as a rough estimate (a clip filmed at a",
-                "higher frame rate, or markers on the object, measure the starts better).",
+                "start speeds are off by a typical tracking error: treat it as a rough estimate. A clip filmed at",
+                f"60 fps or more, or markers on the object, measure the starts better.{rate}",
                 "",
             ]
     for body, info in payload["calibration"].get("per_object", {}).items():

@@ -79,7 +79,13 @@ from grounder._track_smooth import (
     quat_from_matrix,
     rotation_angle_deg,
 )
-from grounder._track_support import SupportFit, apply_support_scale, collision_points_body, fit_support_scale
+from grounder._track_support import (
+    SupportFit,
+    apply_support_scale,
+    collision_points_body,
+    fit_support_scale,
+    snap_resting_depth,
+)
 from grounder._trajectory import Trajectory, save_trajectory
 from grounder.errors import GrounderError
 from reconstruction._frames import open_video
@@ -134,6 +140,8 @@ class TrackOptions:
         smoothing: the velocity fit.
         support_correction: scale each object's depth along the camera ray so that it rests on the table
             (`grounder._track_support`); support_max_gap_m: the largest gap it corrects.
+        rest_snap: with `support_correction`, also move each frame in which an object lies still on the table onto
+            it, one by one (`grounder._track_support.snap_resting_depth`): no depth jitter where it rests.
         object_markers: ArUco markers stuck on objects (`grounder._track_markers`; `--object-markers FILE`).
         scene_markers: also use the object markers `ground` measured in the scan (`scene.json`); a marker in
             `object_markers` overrides the scan's entry of the same id.
@@ -178,6 +186,7 @@ class TrackOptions:
     smoothing: SmoothingOptions = field(default_factory=SmoothingOptions)
     support_correction: bool = True
     support_max_gap_m: float = 0.015
+    rest_snap: bool = True
     object_markers: tuple[ObjectMarker, ...] = ()
     scene_markers: bool = True
     marker_use: str = "pose"
@@ -1268,14 +1277,10 @@ def track(
     support: list[SupportFit] = []
     if options.support_correction:
         for i, name in enumerate(names):
+            points = collision_points_body(model, name)
             fit = fit_support_scale(
-                poses[:, i],
-                valid[:, i],
-                world_from_cam,
-                collision_points_body(model, name),
-                max_gap_m=options.support_max_gap_m,
+                poses[:, i], valid[:, i], world_from_cam, points, max_gap_m=options.support_max_gap_m
             )
-            support.append(fit)
             if fit.applied:
                 poses[:, i] = apply_support_scale(poses[:, i], valid[:, i], world_from_cam, fit.scale)
                 log.info(
@@ -1285,6 +1290,17 @@ def track(
                     "above" if fit.gap_m > 0 else "inside",
                     fit.scale,
                 )
+            if options.rest_snap:
+                poses[:, i], snapped = snap_resting_depth(
+                    poses[:, i],
+                    valid[:, i],
+                    world_from_cam,
+                    points,
+                    1.0 / fps,
+                    max_gap_m=options.support_max_gap_m,
+                )
+                fit = replace(fit, snapped_frames=snapped)
+            support.append(fit)
     time_s = (options.start_frame + np.arange(len(frames))) / fps
     segments = tracked_segments(valid, options.min_segment_frames)
     joints = [

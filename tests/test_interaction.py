@@ -548,3 +548,24 @@ def test_start_error_ranges_follow_the_slide_length_a_start_speed_error_implies(
     assert start_error_ranges(base, [traj], params, at_truth, replace(QUICK, start_speed_error_m_s=0.0)) == {}
     with pytest.raises(GrounderError, match="start_speed_error_m_s"):
         InteractionOptions(start_speed_error_m_s=-0.1)
+
+
+def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -> None:
+    """A value flagged as resting on the start states' accuracy gets the advice to film faster, with the clip's own
+    frame rate; without such a value the advice is not given."""
+    from grounder._interaction import _markdown
+
+    record = {"nominal": 0.45, "value": 0.25, "interval": [0.23, 0.27], "start_error_range": [0.2, 0.3]}
+    payload = {
+        "scan": "scan.mp4",
+        "clip": "toss.mp4",
+        "tracking": {"frames": 90, "fps": 30.0, "objects": {}, "segments": []},
+        "start_speed_error_m_s": 0.03,
+        "calibration": {"status": "calibrated", "parameters": {"bowl.friction.sliding": record}},
+        "match_before": {},
+    }
+    assert "60 fps or more" not in _markdown(payload)
+    record["start_sensitive"] = True
+    text = _markdown(payload)
+    assert "**rests on the start states' accuracy**" in text
+    assert "60 fps or more" in text and "This clip has 30 frames per second." in text

@@ -372,6 +372,56 @@ def test_support_depth_scale_puts_a_resting_object_on_the_table() -> None:
     assert not fit_support_scale(raised, valid, cams, corners).applied
 
 
+def test_rest_snap_puts_each_still_frame_on_the_table_and_leaves_motion_alone() -> None:
+    """A 4 cm cube filmed at 60 fps: 0.4 s sliding to a stop at 0.25 m/s, then 1.2 s still, tracked with 0.4 mm of
+    depth noise along the camera ray and three single-frame 3 mm depth jumps where it rests (what a grounded can
+    gives on `samples/toss`). Before the snap the velocity fit reads 0.05+ m/s where the cube lies still; after it,
+    every still frame touches the table (image position kept: same ray) and the fit reads under 1 cm/s. The slide
+    (1 cm/s and faster) is left as tracked; so is a cube hopping 2 cm."""
+    from grounder._track_support import snap_resting_depth, still_on_table_frames
+
+    fps, dt_s = 60.0, 1 / 60.0
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * 0.02
+    cam = np.eye(4)
+    cam[:3, 3] = [0.0, -0.53, 0.5]
+    frames = 96
+    cams = np.tile(cam, (frames, 1, 1))
+    time_s = np.arange(frames) / fps
+    slide_s, speed_m_s = 0.4, 0.25
+    x = np.where(time_s < slide_s, speed_m_s * (time_s - time_s**2 / (2 * slide_s)), speed_m_s * slide_s / 2)
+    true_pos = np.stack([x, np.full(frames, 0.05), np.full(frames, 0.02)], axis=1)
+    rng = np.random.default_rng(7)
+    depth_m = rng.normal(0.0, 4e-4, frames)
+    depth_m[[40, 60, 75]] += [3e-3, -3e-3, 3e-3]
+    rays = (true_pos - cam[:3, 3]) / np.linalg.norm(true_pos - cam[:3, 3], axis=1, keepdims=True)
+    tracked = np.tile(np.eye(4), (frames, 1, 1))
+    tracked[:, :3, 3] = true_pos + depth_m[:, None] * rays
+    valid = np.ones(frames, bool)
+    quat = np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1))
+
+    still = still_on_table_frames(tracked, valid, cams, dt_s)
+    moving_until = int(np.searchsorted(time_s, slide_s - 0.1))  # within 0.1 s of the stop it moves < 2 mm
+    assert not still[:moving_until].any()
+    assert still[int(np.searchsorted(time_s, slide_s + 0.1)) : frames - 6].all()
+    snapped, moved = snap_resting_depth(tracked, valid, cams, corners, dt_s)
+    assert moved == still.sum()
+    np.testing.assert_allclose(snapped[still, 2, 3], 0.02, atol=1e-9)  # lowest corner on z = 0
+    offsets = snapped[still, :3, 3] - cam[:3, 3]
+    np.testing.assert_allclose(np.cross(offsets, rays[still]), 0.0, atol=1e-9)  # moved along its own ray only
+    np.testing.assert_array_equal(snapped[~still], tracked[~still])
+    rest = slice(int(np.searchsorted(time_s, slide_s + 0.15)), frames - 6)
+    _, _, noisy_vel, _ = free_body_velocities(time_s, tracked[:, :3, 3], quat)
+    _, _, fixed_vel, _ = free_body_velocities(time_s, snapped[:, :3, 3], quat)
+    assert np.linalg.norm(noisy_vel[rest], axis=1).max() > 0.05
+    assert np.linalg.norm(fixed_vel[rest], axis=1).max() < 0.01
+
+    hopping = tracked.copy()
+    hop = (time_s > 0.8) & (time_s < 0.93)
+    hopping[hop, 2, 3] += 0.02 * np.sin(np.pi * (time_s[hop] - 0.8) / 0.13)
+    hop_still = still_on_table_frames(hopping, valid, cams, dt_s)
+    assert not hop_still[hop].any()
+
+
 def test_resting_frames_tolerate_a_symmetric_objects_jitter_but_not_flight() -> None:
     """A can at rest, tracked with 1.2 deg of alternating jitter about its axis and 1.5 mm along the camera ray (what
     `samples/toss` gives a grounded can), rests in every frame; the same can falling (30 fps) in none; one that
