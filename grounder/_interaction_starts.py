@@ -8,7 +8,7 @@ numbers per free body) to the window's tracked poses by least squares, with the 
 interaction calibration can alternate the two (`grounder._interaction.calibrate_constrained`, `start_rounds`; off
 by default): calibrate the parameters on the windows, refit the starts with the calibrated values, calibrate
 again; the joint estimate of start states and parameters that multiple-shooting system identification makes, done
-in blocks. Where a parameter's loss is nearly flat the starts absorb what decides it (README, measured figures).
+in blocks. Where a parameter's loss is nearly flat the starts absorb what decides it (docs/interaction_history.md).
 
 The fit is a maximum a posteriori estimate: the calibration's loss terms over the window's samples (position in
 percent of the object's size, about the tracking error, with the along-ray part weighted as in
