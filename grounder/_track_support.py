@@ -81,6 +81,21 @@ def resting_frames(
     return out
 
 
+def _onto_table(
+    pose: np.ndarray, centre: np.ndarray, points_body_m: np.ndarray, max_gap_m: float
+) -> tuple[float, float] | None:
+    """(k, gap_m): the factor along the camera ray from `centre` that puts the pose's lowest collision point on
+    z = 0, and that point's height before; None when the gap exceeds `max_gap_m` (resting on something else), the
+    camera is not above the object, or its centre is unknown."""
+    if not np.all(np.isfinite(centre)):
+        return None
+    gap = float((points_body_m @ pose[:3, :3].T + pose[:3, 3])[:, 2].min())
+    height_over_cam = float(pose[2, 3] - centre[2])
+    if abs(gap) > max_gap_m or height_over_cam > -1e-3:
+        return None
+    return 1.0 - gap / height_over_cam, gap
+
+
 def fit_support_scale(
     poses: np.ndarray,
     valid: np.ndarray,
@@ -104,16 +119,10 @@ def fit_support_scale(
     rest = resting_frames(poses, valid, min_run=min_run)
     scales, gaps = [], []
     for f in np.nonzero(rest)[0]:
-        centre = world_from_cam[f, :3, 3]
-        if not np.all(np.isfinite(centre)):
-            continue
-        world_points = points_body_m @ poses[f, :3, :3].T + poses[f, :3, 3]
-        gap = float(world_points[:, 2].min())
-        height_over_cam = float(poses[f, 2, 3] - centre[2])
-        if abs(gap) > max_gap_m or height_over_cam > -1e-3:  # not on the table, or a camera below the object
-            continue
-        gaps.append(gap)
-        scales.append(1.0 - gap / height_over_cam)
+        onto = _onto_table(poses[f], world_from_cam[f, :3, 3], points_body_m, max_gap_m)
+        if onto is not None:
+            scales.append(onto[0])
+            gaps.append(onto[1])
     if len(scales) < min_run:
         return SupportFit(scale=1.0, rest_frames=len(scales), gap_m=float("nan"), applied=False)
     return SupportFit(
@@ -200,12 +209,10 @@ def snap_resting_depth(
     moved = 0
     for f in np.nonzero(still_on_table_frames(poses, valid, world_from_cam, dt_s))[0]:
         centre = world_from_cam[f, :3, 3]
-        lowest = float((points_body_m @ out[f, :3, :3].T)[:, 2].min())  # lowest point below the body origin
-        height_over_cam = float(out[f, 2, 3] - centre[2])
-        if abs(out[f, 2, 3] + lowest) > max_gap_m or height_over_cam > -1e-3:
-            continue
-        out[f, :3, 3] = centre + (-lowest - centre[2]) / height_over_cam * (out[f, :3, 3] - centre)
-        moved += 1
+        onto = _onto_table(out[f], centre, points_body_m, max_gap_m)
+        if onto is not None:
+            out[f, :3, 3] = centre + onto[0] * (out[f, :3, 3] - centre)
+            moved += 1
     return out, moved
 
 
