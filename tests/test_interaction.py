@@ -569,3 +569,11 @@ def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -
     text = _markdown(payload)
     assert "**rests on the start states' accuracy**" in text
     assert "60 fps or more" in text and "This clip has 30 frames per second." in text
+
+
+def test_a_slow_interaction_clip_gets_the_advice_to_film_faster() -> None:
+    from grounder._interaction import frame_rate_advice
+
+    advice = frame_rate_advice(30.0)
+    assert advice is not None and "30 frames per second" in advice and "60 fps" in advice
+    assert frame_rate_advice(59.94) is None and frame_rate_advice(None) is None
