@@ -7,8 +7,11 @@ orbit and needs nothing from the network.
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable
+import os
+import sys
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +51,27 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     )
 
 
+@contextlib.contextmanager
+def _stderr_to_devnull() -> Iterator[None]:
+    """The process's stderr (file descriptor 2) goes to /dev/null inside the block.
+
+    For `VisualIndex.build`: its k-means (faiss) prints "WARNING clustering 256 points to 32 centroids: please
+    provide at least 1248 training points" straight to the C stderr on every run, before anything else the user
+    sees. Resizing the index to avoid it would change the vocabulary, and with it the reconstruction every figure
+    was measured on.
+    """
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+
+
 def build_vocab_tree(database_path: Path, out_path: Path, num_threads: int) -> Path:
     """A small visual-word index from this database's own descriptors, written where COLMAP can load it."""
     with pycolmap.Database.open(database_path) as db:
@@ -63,7 +87,8 @@ def build_vocab_tree(database_path: Path, out_path: Path, num_threads: int) -> P
     build.num_iterations = 20
     build.num_rounds = 1
     build.num_threads = num_threads
-    index.build(build, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, stacked))
+    with _stderr_to_devnull():
+        index.build(build, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, stacked))
     index.write(out_path)
     return out_path
 
