@@ -395,3 +395,18 @@ def test_toss_video_and_marker_match_camera(
         assert error_px < MAX_MARKER_ERROR_PX, f"frame {i}: corners off by {error_px:.2f} px"
         checked += 1
     assert checked == len(frames), "in the toss clip no object should ever hide the marker"
+
+
+def test_toss_at_60_fps_shows_every_30_fps_frame(toss_model: mujoco.MjModel, toss_traj: Trajectory) -> None:
+    """`samples/make_toss.py --fps 60` renders the same toss: its even frames are the physics steps of
+    `samples/toss`'s frames, so the two clips show the same states (README, "Frame rate")."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "samples"))
+    import make_toss
+
+    at_30 = make_toss.frame_steps(len(toss_traj.time_s), 30.0)
+    at_60 = make_toss.frame_steps(2 * len(toss_traj.time_s), 60.0)
+    np.testing.assert_array_equal(at_60[::2], at_30)
+    np.testing.assert_allclose(at_30 * toss_model.opt.timestep, toss_traj.time_s, atol=1e-12)
+    assert np.all(np.diff(at_60) >= 8) and np.all(np.diff(at_60) <= 9)  # 1/60 s = 8.33 steps of 2 ms
