@@ -175,6 +175,9 @@ def main() -> None:
         "--popsize", type=int, default=None, help="with --calibrate: population per parameter (default: the tool's)"
     )
     parser.add_argument(
+        "--seed", type=int, default=None, help="with --calibrate: seed of the global search (default: the tool's, 0)"
+    )
+    parser.add_argument(
         "--start-rounds", type=int, default=None, help="with --calibrate: start refits (default: InteractionOptions')"
     )
     parser.add_argument(
@@ -533,10 +536,10 @@ def true_motion_benchmark(clip_dir: Path, scene: Path, args: argparse.Namespace)
 
 def _options(args: argparse.Namespace, **fields: Any) -> Any:
     """The benchmark's `InteractionOptions`: the tool's defaults (what `ground --interaction` runs), except the search
-    budget, `--start-rounds` and `--along-view-weight` where given."""
+    budget and seed, `--start-rounds` and `--along-view-weight` where given."""
     from grounder._interaction import InteractionOptions
 
-    budget = {"generations": args.generations, "popsize": args.popsize}
+    budget = {"generations": args.generations, "popsize": args.popsize, "seed": args.seed}
     given = {
         "start_rounds": args.start_rounds,
         "along_view_weight": args.along_view_weight,
