@@ -397,12 +397,12 @@ def test_toss_video_and_marker_match_camera(
     assert checked == len(frames), "in the toss clip no object should ever hide the marker"
 
 
-def test_toss_at_60_fps_shows_every_30_fps_frame(toss_model: mujoco.MjModel, toss_traj: Trajectory) -> None:
+def test_toss_at_60_fps_shows_every_30_fps_frame(
+    toss_model: mujoco.MjModel, toss_traj: Trajectory, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """`samples/make_toss.py --fps 60` renders the same toss: its even frames are the physics steps of
     `samples/toss`'s frames, so the two clips show the same states (README, "Frame rate")."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "samples"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "samples"))
     import make_toss
 
     at_30 = make_toss.frame_steps(len(toss_traj.time_s), 30.0)
