@@ -234,7 +234,7 @@ def main() -> None:
             aruco_size_m=0.12,
             max_frames=args.frames,
             scan_features=args.scan_features,
-            **marker_fields(args, clip_dir),
+            **track_option_fields(args, clip_dir),
         ),
         overwrite=True,
     )
@@ -297,21 +297,16 @@ def main() -> None:
             print(f"  {traj.name} {name}: linear velocity error median {np.median(err):.3f} m/s, max {err.max():.3f}")
 
 
-def marker_fields(args: argparse.Namespace, clip_dir: Path) -> dict[str, Any]:
-    """TrackOptions fields for the object markers (--markers): by default those `ground` measured in the scan, plus
-    the tracker settings given on the command line."""
-    tracker = {
-        name: getattr(args, name)
-        for name in ("lk_window_px", "max_iterations")
-        if getattr(args, name, None) is not None
+def track_option_fields(args: argparse.Namespace, clip_dir: Path) -> dict[str, Any]:
+    """TrackOptions fields from the command line: the tracker settings given, and the object markers (--markers; by
+    default those `ground` measured in the scan)."""
+    fields: dict[str, Any] = {
+        name: getattr(args, name) for name in ("lk_window_px", "max_iterations") if getattr(args, name) is not None
     }
     if not args.markers:
-        return tracker
-    fields: dict[str, Any] = dict(tracker)
+        return fields
     if args.ignore_markers:
         return {**fields, "scene_markers": False}
-    if args.ignore_markers:
-        return {"scene_markers": False}
     fields["marker_use"] = args.marker_use
     if args.place_from_clip:
         from grounder._track_markers import load_object_markers
@@ -332,7 +327,9 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
         out,
         _options(
             args,
-            track=TrackOptions(aruco_size_m=0.12, scan_features=args.scan_features, **marker_fields(args, clip_dir)),
+            track=TrackOptions(
+                aruco_size_m=0.12, scan_features=args.scan_features, **track_option_fields(args, clip_dir)
+            ),
         ),
         grounded_scene=scene,
         overwrite=True,
