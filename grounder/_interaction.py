@@ -62,6 +62,11 @@ log = logging.getLogger(__name__)
 
 ProgressFn = Callable[[str, int, int], None]
 
+# What tracking resolves (about its median error): a parameter whose +-20% step moves its object's rollouts by less,
+# root mean square over the frames, is left at the prior (`screen_parameters`, `InteractionOptions.identify_*`).
+SCREEN_MIN_POSITION_M = 0.001
+SCREEN_MIN_ROTATION_DEG = 0.75
+
 
 @dataclass(frozen=True, kw_only=True)
 class InteractionOptions:
@@ -129,8 +134,8 @@ class InteractionOptions:
     rotation_weight: float = 0.25
     identify: bool = True
     identify_relative_change: float = 0.2
-    identify_min_position_m: float = 0.001
-    identify_min_rotation_deg: float = 0.75
+    identify_min_position_m: float = SCREEN_MIN_POSITION_M
+    identify_min_rotation_deg: float = SCREEN_MIN_ROTATION_DEG
     along_view_weight: float = 0.25
     start_rounds: int = 0
     start_speed_error_m_s: float = 0.03
@@ -1228,8 +1233,8 @@ def screen_parameters(
     params: Sequence[str],
     *,
     relative_change: float = 0.2,
-    min_position_m: float = 0.001,
-    min_rotation_deg: float = 0.75,
+    min_position_m: float = SCREEN_MIN_POSITION_M,
+    min_rotation_deg: float = SCREEN_MIN_ROTATION_DEG,
     grid_points: int = 13,
     passes: int = 2,
     nthread: int | None = 1,
