@@ -1,6 +1,7 @@
 """Renders `samples/toss/`: a static camera watches the tabletop objects being tossed and dropped until they rest.
 
-Run: `MUJOCO_GL=osmesa .venv/bin/python samples/make_toss.py [--out samples/toss]`
+Run: `MUJOCO_GL=osmesa .venv/bin/python samples/make_toss.py [--out samples/toss] [--fps 60]`; `--heldout --out
+DIR` renders a second toss with other throws and other contact values (`heldout_starts`, `HELDOUT_CONTACT`).
 
 The objects are those of `samples/tabletop` (same meshes, textures, masses and friction; same solref time
 constant), so this clip is an interaction clip of the scanned scene. Only the contact damping ratio (solref[1],
@@ -60,6 +61,10 @@ OBJECT_PRIORITY = 1  # > the table's 0: object-table contacts take the object ge
 # Contact damping ratio (solref[1], MuJoCo's restitution knob) in the toss: lower than the scan's so that every
 # object visibly bounces; friction, timeconst and everything else are the scan's.
 TOSS_DAMPRATIO = {"box": 0.3, "can": 0.15, "bowl": 0.2}
+# `--heldout`: a second toss of the same objects with other throws and other contact values (sliding friction,
+# damping ratio), for checking `ground --interaction` on a clip none of its defaults was chosen on (they were
+# chosen on `samples/toss` and the clips rendered from its motion).
+HELDOUT_CONTACT = {"box": (0.70, 0.20), "can": (0.55, 0.25), "bowl": (0.30, 0.30)}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,14 +123,52 @@ def toss_starts() -> dict[str, TossStart]:
     }
 
 
+def heldout_starts() -> dict[str, TossStart]:
+    """`--heldout`'s throws: other lanes, directions, heights and spins than `toss_starts`; still apart, in view,
+    clear of the marker and at rest well before the end (`check_clip`)."""
+    return {
+        # Far lane, thrown along +x (the other way), spinning about the vertical.
+        "box": TossStart(
+            pos_m=(-0.27, 0.21, 0.03 + 0.11),
+            quat_wxyz=quat_axis_angle_wxyz((0, 0, 1), -8.0),
+            linvel_world_m_s=(1.3, 0.0, 0.0),
+            angvel_body_rad_s=(0.0, 0.0, 2.0),
+        ),
+        # Near right, upright, thrown away from the camera and to the right, spinning the other way.
+        "can": TossStart(
+            pos_m=(0.12, -0.25, 0.055 + 0.10),
+            quat_wxyz=quat_axis_angle_wxyz((0, 0, 1), 30.0),
+            linvel_world_m_s=(0.35, 0.9, 0.0),
+            angvel_body_rad_s=(0.0, 0.0, -4.0),
+        ),
+        # Left, flat, thrown towards the camera and to the right.
+        "bowl": TossStart(
+            pos_m=(-0.22, 0.0, 0.0275 + 0.10),
+            quat_wxyz=quat_axis_angle_wxyz((0, 0, 1), -20.0),
+            linvel_world_m_s=(0.5, -0.7, 0.0),
+            angvel_body_rad_s=(0.0, 0.0, 1.0),
+        ),
+    }
+
+
 def frame_steps(num_frames: int, fps: float = FPS) -> np.ndarray:
     """Physics step shown in each video frame: the one nearest k / fps (the timestep does not divide 1/30 s)."""
     steps_per_s = round(1.0 / TIMESTEP_S)
     return np.array([(k * steps_per_s * 2 + round(fps)) // (2 * round(fps)) for k in range(num_frames)])
 
 
-def toss_objects() -> list[sa.SampleObject]:
-    """The tabletop objects with the toss's contact damping ratios (`TOSS_DAMPRATIO`)."""
+def toss_objects(heldout: bool = False) -> list[sa.SampleObject]:
+    """The tabletop objects with the toss's contact damping ratios (`TOSS_DAMPRATIO`), or with `HELDOUT_CONTACT`'s
+    sliding friction and damping ratio."""
+    if heldout:
+        return [
+            dataclasses.replace(
+                obj,
+                friction=(HELDOUT_CONTACT[obj.name][0], *obj.friction[1:]),
+                solref=(obj.solref[0], HELDOUT_CONTACT[obj.name][1]),
+            )
+            for obj in sa.default_objects()
+        ]
     return [dataclasses.replace(obj, solref=(obj.solref[0], TOSS_DAMPRATIO[obj.name])) for obj in sa.default_objects()]
 
 
@@ -271,12 +314,19 @@ def main() -> None:
     parser.add_argument(
         "--fps", type=float, default=FPS, help="frame rate of the clip (same motion, same 3 s; default 30)"
     )
+    parser.add_argument(
+        "--heldout",
+        action="store_true",
+        help="render the held-out toss (other throws and contact values, `HELDOUT_CONTACT`) into --out",
+    )
     args = parser.parse_args()
+    if args.heldout and args.out == parser.get_default("out"):
+        parser.error("--heldout renders a benchmark clip, not samples/toss: give --out DIR")
     fps = float(args.fps)
     num_frames = round(CLIP_S * fps)
 
-    objects = toss_objects()
-    starts = toss_starts()
+    objects = toss_objects(args.heldout)
+    starts = heldout_starts() if args.heldout else toss_starts()
     with tempfile.TemporaryDirectory(dir=args.out.parent if args.out.parent.exists() else None) as tmp:
         out = Path(tmp) / "toss"
         truth = out / "truth"

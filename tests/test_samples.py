@@ -410,3 +410,34 @@ def test_toss_at_60_fps_shows_every_30_fps_frame(
     np.testing.assert_array_equal(at_60[::2], at_30)
     np.testing.assert_allclose(at_30 * toss_model.opt.timestep, toss_traj.time_s, atol=1e-12)
     assert np.all(np.diff(at_60) >= 8) and np.all(np.diff(at_60) <= 9)  # 1/60 s = 8.33 steps of 2 ms
+
+
+def test_heldout_toss_is_a_valid_clip_with_other_values(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`samples/make_toss.py --heldout` (README, "Held-out toss") simulates a clip that passes the toss's own checks
+    (every object in view, apart, on the table and at rest for the last 0.7 s), renders each object with
+    `HELDOUT_CONTACT`'s values, and those differ from `samples/toss`'s by more than the 20% the target allows, so
+    calibrating it checks other values than the ones the defaults were chosen on."""
+    monkeypatch.syspath_prepend(str(SAMPLES))
+    import _sample_assets as sa
+    import make_toss
+
+    objects = make_toss.toss_objects(heldout=True)
+    starts = make_toss.heldout_starts()
+    sa.write_assets(tmp_path / "assets", objects)
+    (tmp_path / "scene.xml").write_text(make_toss.build_true_spec(tmp_path / "assets", objects, starts).to_xml())
+    model = mujoco.MjModel.from_xml_path(str(tmp_path / "scene.xml"))
+    _, qpos, qvel = make_toss.simulate(model, starts, make_toss.NUM_FRAMES)
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    world_from_cam = sa.world_from_cam_opencv(data, model.camera("video").id)
+    intrinsics = sa.intrinsics_from_fovy(make_toss.FOVY_DEG, make_toss.WIDTH_PX, make_toss.HEIGHT_PX)
+    assert make_toss.check_clip(model, objects, qpos, qvel, world_from_cam, intrinsics) >= make_toss.MIN_REST_S
+    toss = {obj.name: obj for obj in make_toss.toss_objects()}
+    for obj in objects:
+        geom = model.geom(f"{obj.name}_geom")
+        friction, dampratio = make_toss.HELDOUT_CONTACT[obj.name]
+        assert geom.friction[0] == pytest.approx(friction) and geom.solref[1] == pytest.approx(dampratio)
+        assert abs(friction / toss[obj.name].friction[0] - 1.0) > 0.2, obj.name
+        assert abs(dampratio / toss[obj.name].solref[1] - 1.0) > 0.2, obj.name
+        moved_m = np.linalg.norm(qpos[-1, model.joint(f"{obj.name}_free").qposadr[0] :][:3] - starts[obj.name].pos_m)
+        assert moved_m > 0.1, f"{obj.name} moved only {moved_m:.3f} m: nothing to calibrate"
