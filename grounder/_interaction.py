@@ -120,6 +120,15 @@ class InteractionOptions:
             profiled again (`start_error_ranges`): the report gives each value's range under it and flags a value
             whose range goes past the screen's step as resting on the starts' accuracy (`start_sensitive`). The
             value itself is kept. 0: not computed.
+        start_state_draws: how many random whole-state start errors `start_error_ranges` also profiles under: in
+            each, every window's start moves by `start_position_error_m`, `start_rotation_error_deg`,
+            `start_speed_error_m_s` and `start_spin_error_rad_s` (standard deviations per axis, seeded). A landing's
+            outcome turns on the whole start, not only its speed: on a held-out toss (`samples/make_toss.py
+            --heldout`) the can's tracked starts, 1-2 mm, about 1 deg and 30 mm/s off, put its friction at -35% and
+            its damping ratio at +37%, each part of the start alone most of that, and the speed-only profile did not
+            flag either. 0: the speed-only profile.
+        start_position_error_m, start_rotation_error_deg, start_spin_error_rad_s: the whole-state draws' sizes, about
+            tracking's error at a window start on `samples/toss` and the held-out toss.
     """
 
     ground: GroundOptions = field(default_factory=GroundOptions)
@@ -139,6 +148,10 @@ class InteractionOptions:
     along_view_weight: float = 0.25
     start_rounds: int = 0
     start_speed_error_m_s: float = 0.03
+    start_state_draws: int = 6
+    start_position_error_m: float = 0.0015
+    start_rotation_error_deg: float = 1.0
+    start_spin_error_rad_s: float = 0.1
 
     def __post_init__(self) -> None:
         if self.window_s is not None and not self.window_s > 0:
@@ -153,6 +166,11 @@ class InteractionOptions:
             )
         if self.start_rounds < 0:
             raise GrounderError(f"start_rounds={self.start_rounds} but expected 0 or more")
+        if self.start_state_draws < 0:
+            raise GrounderError(f"start_state_draws={self.start_state_draws} but expected 0 or more")
+        for name in ("start_position_error_m", "start_rotation_error_deg", "start_spin_error_rad_s"):
+            if not getattr(self, name) >= 0.0:
+                raise GrounderError(f"{name}={getattr(self, name)} but expected a size >= 0")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -583,17 +601,19 @@ def start_error_ranges(
     options: InteractionOptions,
     view_point_m: Sequence[float] | None = None,
 ) -> dict[str, list[float]]:
-    """Per fitted parameter, the range of its best value when every window's start speed is off by
-    `options.start_speed_error_m_s`, faster or slower (the fitted value included): how far a start error of the
-    size tracking makes moves the answer. Empty when `start_speed_error_m_s` is 0.
+    """Per fitted parameter, the range of its best value when every window's start is off by a tracking-sized
+    error (the fitted value included): how far such a start error moves the answer. Empty when
+    `start_speed_error_m_s` is 0.
 
-    Each window is rolled out from its tracked start, and a slide's length trades friction against the start
-    speed. On `samples/toss` (scan D) the bowl's tracked start speeds were off by 0.002-0.07 m/s (median about
-    0.03), its friction came out -45%, and rollouts from the true starts of the same windows fit best at the
-    rendered value. So each parameter is profiled again with the starts moved along their velocity, both ways (the
-    other parameters held at the fit; the calibration's loss over the windows, through the same pseudo-Huber
-    function, its scale taken from the windows' errors at the fit rather than at the prior). A range
-    wider than the screen's step (`identify_relative_change`) says the value rests on the starts' accuracy.
+    Each window is rolled out from its tracked start. A slide's length trades friction against the start speed: on
+    `samples/toss` (scan D) the bowl's tracked start speeds were off by 0.002-0.07 m/s (median about 0.03), its
+    friction came out -45%, and rollouts from the true starts of the same windows fit best at the rendered value.
+    So each parameter is profiled again with the starts moved along their velocity by `start_speed_error_m_s`,
+    both ways, and then under `start_state_draws` random errors of the whole start (position, orientation, linear
+    and angular velocity; see `InteractionOptions`), which a landing turns on (the other parameters held at the
+    fit; the calibration's loss over the windows, through the same pseudo-Huber function, its scale taken from the
+    windows' errors at the fit rather than at the prior). A range wider than the screen's step
+    (`identify_relative_change`) says the value rests on the starts' accuracy.
     """
     import mujoco
 
@@ -603,7 +623,7 @@ def start_error_ranges(
     if options.start_speed_error_m_s <= 0.0 or not fit:
         return {}
     resolved = resolve_parameters(base, list(fit))
-    free = [int(base.jnt_dofadr[j]) for j in range(base.njnt) if base.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+    free = [j for j in range(base.njnt) if base.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
     settings = {"rotation_weight": options.rotation_weight, **_view_settings(options, view_point_m), "nthread": 1}
     at_fit = Evaluator(base, resolved, list(trajs), **settings).loss_of_values(values[None])[0]
     robust = {**CALIBRATE_SETTINGS, **options.calibrate_settings}.get("robust_scale")
@@ -615,21 +635,42 @@ def start_error_ranges(
 
     scan = np.geomspace(0.5, 2.0, 29)
     ranges = {p.name: [float(values[i]), float(values[i])] for i, p in enumerate(resolved)}
-    for sign in (-1.0, 1.0):
-        shifted = []
-        for traj in trajs:
-            qvel = np.array(traj.qvel, dtype=np.float64, copy=True)
-            for d in free:
-                speed = float(np.linalg.norm(qvel[0, d : d + 3]))
-                if speed > 1e-9:
-                    qvel[0, d : d + 3] *= max(0.0, 1.0 + sign * options.start_speed_error_m_s / speed)
-            shifted.append(replace(traj, qvel=qvel))
+
+    def profile(shifted: list[Trajectory]) -> None:
         ev = Evaluator(base, resolved, shifted, **settings)
         for i, p in enumerate(resolved):
             rows = np.repeat(values[None], len(scan), axis=0)
             rows[:, i] = np.clip(values[i] * scan, p.lower, p.upper)
             best = float(rows[int(np.argmin(objective(ev.loss_of_values(rows)))), i])
             ranges[p.name] = [min(ranges[p.name][0], best), max(ranges[p.name][1], best)]
+
+    for sign in (-1.0, 1.0):
+        shifted = []
+        for traj in trajs:
+            qvel = np.array(traj.qvel, dtype=np.float64, copy=True)
+            for j in free:
+                d = int(base.jnt_dofadr[j])
+                speed = float(np.linalg.norm(qvel[0, d : d + 3]))
+                if speed > 1e-9:
+                    qvel[0, d : d + 3] *= max(0.0, 1.0 + sign * options.start_speed_error_m_s / speed)
+            shifted.append(replace(traj, qvel=qvel))
+        profile(shifted)
+    rng = np.random.default_rng(0)
+    for _ in range(options.start_state_draws):
+        shifted = []
+        for traj in trajs:
+            qpos = np.array(traj.qpos, dtype=np.float64, copy=True)
+            qvel = np.array(traj.qvel, dtype=np.float64, copy=True)
+            for j in free:
+                a, d = int(base.jnt_qposadr[j]), int(base.jnt_dofadr[j])
+                qpos[0, a : a + 3] += rng.normal(0.0, options.start_position_error_m, 3)
+                # a small rotation in the body frame, its vector drawn per axis
+                tilt_rad = rng.normal(0.0, np.deg2rad(options.start_rotation_error_deg), 3)
+                mujoco.mju_quatIntegrate(qpos[0, a + 3 : a + 7], tilt_rad, 1.0)
+                qvel[0, d : d + 3] += rng.normal(0.0, options.start_speed_error_m_s, 3)
+                qvel[0, d + 3 : d + 6] += rng.normal(0.0, options.start_spin_error_rad_s, 3)
+            shifted.append(replace(traj, qpos=qpos, qvel=qvel))
+        profile(shifted)
     return ranges
 
 
@@ -984,6 +1025,13 @@ def ground_with_interaction(
             },
             "windows": [t.name for t in fit_trajs],  # per-object calibration replaces this with its own
             "start_speed_error_m_s": options.start_speed_error_m_s,
+            "start_state_errors": {
+                "draws": options.start_state_draws,
+                "position_m": options.start_position_error_m,
+                "rotation_deg": options.start_rotation_error_deg,
+                "speed_m_s": options.start_speed_error_m_s,
+                "spin_rad_s": options.start_spin_error_rad_s,
+            },
         }
         advice = frame_rate_advice(payload["tracking"]["fps"])
         if advice:
@@ -1078,9 +1126,12 @@ def _markdown(payload: dict[str, Any]) -> str:
     params = payload["calibration"].get("parameters", {})
     if params:
         speed = payload.get("start_speed_error_m_s")
+        draws = payload.get("start_state_errors", {}).get("draws", 0)
+        probe = "start speeds " + ("off" if speed is None else f"+-{speed:g} m/s")
+        if draws:
+            probe = f"starts off (speeds +-{speed:g} m/s; {draws} random whole-state errors)"
         lines += [
-            "| parameter | before | after | interval | constrained by the clip | best value with start speeds "
-            f"{'off' if speed is None else f'+-{speed:g} m/s'} |",
+            f"| parameter | before | after | interval | constrained by the clip | best value with {probe} |",
             "|---|---|---|---|---|---|",
         ]
         for name, p in params.items():
@@ -1102,7 +1153,7 @@ def _markdown(payload: dict[str, Any]) -> str:
             rate = "" if fps is None else f" This clip has {fps:g} frames per second."
             lines += [
                 "A value that rests on the start states' accuracy moves past the screen's step when the windows'",
-                "start speeds are off by a typical tracking error: treat it as a rough estimate. A clip filmed at",
+                "starts are off by a typical tracking error: treat it as a rough estimate. A clip filmed at",
                 f"60 fps or more, or markers on the object, measure the starts better.{rate}",
                 "",
             ]

@@ -538,16 +538,50 @@ def test_start_error_ranges_follow_the_slide_length_a_start_speed_error_implies(
     base = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
     params = ["slider.friction.sliding"]
     at_truth = np.array([TRUE_FRICTION])
-    options = replace(QUICK, start_speed_error_m_s=0.15)
+    options = replace(QUICK, start_speed_error_m_s=0.15, start_state_draws=0)  # the speed-only profile
     low, high = start_error_ranges(base, [traj], params, at_truth, options)["slider.friction.sliding"]
     assert low == pytest.approx(TRUE_FRICTION * 0.9**2, rel=0.08)
     assert high == pytest.approx(TRUE_FRICTION * 1.1**2, rel=0.08)
-    small = start_error_ranges(base, [traj], params, at_truth, replace(QUICK, start_speed_error_m_s=0.01))
+    small = start_error_ranges(base, [traj], params, at_truth, replace(options, start_speed_error_m_s=0.01))
     assert small["slider.friction.sliding"][0] >= TRUE_FRICTION * 0.95  # 0.7% of the speed: within a scan step
     assert small["slider.friction.sliding"][1] <= TRUE_FRICTION * 1.05
     assert start_error_ranges(base, [traj], params, at_truth, replace(QUICK, start_speed_error_m_s=0.0)) == {}
     with pytest.raises(GrounderError, match="start_speed_error_m_s"):
         InteractionOptions(start_speed_error_m_s=-0.1)
+
+
+def test_start_error_ranges_also_move_the_whole_start_where_a_landing_turns_on_it(tmp_path: Path) -> None:
+    """A ball dropped from rest bounces with damping ratio 0.2. Its start has no speed, so the speed-only profile
+    cannot move it; but a start 5 mm too low (what a tracked depth can be) puts the best damping ratio 35% low. The
+    default profile also draws whole-state start errors of tracking's size (`InteractionOptions.start_state_draws`):
+    its range must reach past the screen's -20% step, so the value is flagged as resting on the starts."""
+    from grounder._calibrate import Evaluator
+    from grounder._calibrate_params import resolve_parameters
+    from grounder._interaction import start_error_ranges
+    from grounder.errors import GrounderError
+
+    true_xml = tmp_path / "truth.xml"
+    true_xml.write_text(DROPPED_BALL.format(timeconst=0.02, dampratio=0.2))
+    model = mujoco.MjModel.from_xml_path(str(true_xml))
+    traj = _simulated(model, {}, 24, "drop_00")  # 0.8 s at 30 fps: the drop and two bounces
+    params = ["ball.solref.dampratio"]
+    at_truth = np.array([0.2])
+    low_start = traj.qpos.copy()
+    low_start[0, 2] -= 0.005
+    grid = 0.2 * np.geomspace(0.5, 2.0, 61)
+    evaluator = Evaluator(
+        model, resolve_parameters(model, params), [replace(traj, qpos=low_start)], rotation_weight=0.25
+    )
+    loss = evaluator.loss_of_values(grid[:, None])
+    assert grid[int(np.argmin(loss.sum(axis=1)))] < 0.2 * 0.8  # 0.132 measured
+    speed_only = start_error_ranges(model, [traj], params, at_truth, InteractionOptions(start_state_draws=0))
+    assert speed_only == {"ball.solref.dampratio": [0.2, 0.2]}
+    low, high = start_error_ranges(model, [traj], params, at_truth, InteractionOptions())["ball.solref.dampratio"]
+    assert low < 0.2 * (1.0 - InteractionOptions().identify_relative_change) and high >= 0.2  # 0.156..0.210
+    with pytest.raises(GrounderError, match="start_state_draws"):
+        InteractionOptions(start_state_draws=-1)
+    with pytest.raises(GrounderError, match="start_position_error_m"):
+        InteractionOptions(start_position_error_m=-0.001)
 
 
 def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -> None:
@@ -565,6 +599,9 @@ def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -
         "match_before": {},
     }
     assert "60 fps or more" not in _markdown(payload)
+    assert "best value with start speeds +-0.03 m/s" in _markdown(payload)  # a report written before the draws
+    payload["start_state_errors"] = {"draws": 6}
+    assert "best value with starts off (speeds +-0.03 m/s; 6 random whole-state errors)" in _markdown(payload)
     record["start_sensitive"] = True
     text = _markdown(payload)
     assert "**rests on the start states' accuracy**" in text
