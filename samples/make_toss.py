@@ -308,6 +308,51 @@ def check_clip(
     return rest_s
 
 
+@dataclass(frozen=True, kw_only=True)
+class SimulatedClip:
+    """What `simulate_clip` wrote and simulated: the model read back from `truth/scene.xml`, the states at the video
+    frames, the camera (`world_from_cam`, OpenCV axes) and its intrinsics, and the time at rest before the end."""
+
+    model: mujoco.MjModel
+    time_s: np.ndarray
+    qpos: np.ndarray
+    qvel: np.ndarray
+    world_from_cam: np.ndarray
+    intrinsics: dict[str, float]
+    rest_s: float
+
+
+def simulate_clip(
+    truth: Path, objects: list[sa.SampleObject], starts: dict[str, TossStart], num_frames: int, fps: float = FPS
+) -> SimulatedClip:
+    """Writes `truth/assets` and `truth/scene.xml`, simulates the toss and checks it (`check_clip`; raises if a
+    start breaks the clip)."""
+    sa.write_assets(truth / "assets", objects)
+    (truth / "scene.xml").write_text(build_true_spec(truth / "assets", objects, starts).to_xml())
+    # Simulate and render with the model read back from scene.xml, so the truth re-simulates bit for bit.
+    model = mujoco.MjModel.from_xml_path(str(truth / "scene.xml"))
+    for obj in objects:
+        mass_kg = float(model.body(obj.name).mass[0])
+        if not np.isclose(mass_kg, obj.mesh.volume * obj.density_kg_m3, rtol=1e-6):
+            raise RuntimeError(f"{obj.name}: model mass {mass_kg} kg != mesh volume * density")
+    time_s, qpos, qvel = simulate(model, starts, num_frames, fps)
+    data = mujoco.MjData(model)
+    cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "video")
+    mujoco.mj_forward(model, data)
+    world_from_cam = sa.world_from_cam_opencv(data, cam_id)
+    intrinsics = sa.intrinsics_from_fovy(FOVY_DEG, WIDTH_PX, HEIGHT_PX)
+    rest_s = check_clip(model, objects, qpos, qvel, world_from_cam, intrinsics, fps)
+    return SimulatedClip(
+        model=model,
+        time_s=time_s,
+        qpos=qpos,
+        qvel=qvel,
+        world_from_cam=world_from_cam,
+        intrinsics=intrinsics,
+        rest_s=rest_s,
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "toss")
@@ -330,24 +375,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory(dir=args.out.parent if args.out.parent.exists() else None) as tmp:
         out = Path(tmp) / "toss"
         truth = out / "truth"
-        sa.write_assets(truth / "assets", objects)
-        (truth / "scene.xml").write_text(build_true_spec(truth / "assets", objects, starts).to_xml())
-        # Simulate and render with the model read back from scene.xml, so the truth re-simulates bit for bit.
-        model = mujoco.MjModel.from_xml_path(str(truth / "scene.xml"))
-        for obj in objects:
-            mass_kg = float(model.body(obj.name).mass[0])
-            if not np.isclose(mass_kg, obj.mesh.volume * obj.density_kg_m3, rtol=1e-6):
-                raise RuntimeError(f"{obj.name}: model mass {mass_kg} kg != mesh volume * density")
-        time_s, qpos, qvel = simulate(model, starts, num_frames, fps)
+        clip = simulate_clip(truth, objects, starts, num_frames, fps)
+        model, time_s, qpos, qvel = clip.model, clip.time_s, clip.qpos, clip.qvel
+        world_from_cam, intrinsics = clip.world_from_cam, clip.intrinsics
         print(f"simulated {time_s[-1]:.3f} s in {num_frames} frames")
-
-        data = mujoco.MjData(model)
-        cam_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "video")
-        mujoco.mj_forward(model, data)
-        world_from_cam = sa.world_from_cam_opencv(data, cam_id)
-        intrinsics = sa.intrinsics_from_fovy(FOVY_DEG, WIDTH_PX, HEIGHT_PX)
-        rest_s = check_clip(model, objects, qpos, qvel, world_from_cam, intrinsics, fps)
-        print(f"all objects in view and on the table; at rest for the last {rest_s:.2f} s")
+        print(f"all objects in view and on the table; at rest for the last {clip.rest_s:.2f} s")
 
         frames = sa.render_states(model, qpos, "video", HEIGHT_PX, WIDTH_PX)
         sa.encode_video(frames, out / "video.mp4", fps)
