@@ -499,6 +499,17 @@ class _Step:
     ncc: float = float("nan")
     reason: str = ""
 
+    def score(self, in_frame: float, *, source: str = "lost", reason: str = "") -> FrameScore:
+        """This step's support as a frame's score: accepted (`source`) or rejected (`reason`)."""
+        return FrameScore(
+            inliers=self.inliers,
+            inlier_ratio=self.inliers / max(self.followed, 1),
+            ncc=self.ncc,
+            in_frame=in_frame,
+            source=source,
+            reason=reason,
+        )
+
 
 class _Tracker:
     """Holds the renderer, the feature models and the per-object geometry for one clip."""
@@ -846,21 +857,9 @@ def track_frames(
             if ok:
                 accepted[i] = step.pose
                 typical[i].add(step)
-                row[i] = FrameScore(
-                    inliers=step.inliers,
-                    inlier_ratio=step.inliers / max(step.followed, 1),
-                    ncc=step.ncc,
-                    in_frame=fraction,
-                    source="track",
-                )
+                row[i] = step.score(fraction, source="track")
             else:
-                row[i] = FrameScore(
-                    inliers=step.inliers,
-                    inlier_ratio=step.inliers / max(step.followed, 1),
-                    ncc=step.ncc,
-                    in_frame=fraction,
-                    reason=reason,
-                )
+                row[i] = step.score(fraction, reason=reason)
         missing = [i for i in range(num) if accepted[i] is None]
         if missing:
             features = tracker.frame_features(gray)
@@ -885,13 +884,7 @@ def track_frames(
                 step, fraction = best
                 accepted[i] = step.pose
                 typical[i].add(step)
-                row[i] = FrameScore(
-                    inliers=step.inliers,
-                    inlier_ratio=step.inliers / max(step.followed, 1),
-                    ncc=step.ncc,
-                    in_frame=fraction,
-                    source="detect",
-                )
+                row[i] = step.score(fraction, source="detect")
         for i in range(num):
             pose = accepted[i]
             history[i].append(pose)
@@ -987,13 +980,7 @@ def _track_backwards(
             if ok and step.pose is not None:
                 poses[f, i] = step.pose
                 valid[f, i] = True
-                scores[f][i] = FrameScore(
-                    inliers=step.inliers,
-                    inlier_ratio=step.inliers / max(step.followed, 1),
-                    ncc=step.ncc,
-                    in_frame=fraction,
-                    source="track_backwards",
-                )
+                scores[f][i] = step.score(fraction, source="track_backwards")
 
 
 def apply_object_markers(

@@ -28,6 +28,19 @@ app = typer.Typer(
 
 EXIT_BAD_INPUT = 2
 
+# Options that `reconstruct` and `ground` share (the scan side of both commands).
+ArucoSizeOption = Annotated[
+    float | None,
+    typer.Option(help="Side of the ArUco marker's black square in metres (DICT_4X4_50, id 0, on the table)."),
+]
+KnownExtentOption = Annotated[
+    float | None,
+    typer.Option(help="Longest extent in metres of the largest object on the table (no marker)."),
+]
+MaxFramesOption = Annotated[int, typer.Option(help="Use at most this many frames.")]
+SfmSeedOption = Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")]
+VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")]
+
 
 @app.callback()
 def _group() -> None:
@@ -107,20 +120,14 @@ def _setup_logging(verbose: bool) -> None:
 def reconstruct(
     source: Annotated[Path, typer.Argument(help="A video file or a folder of images.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (created; must be new or empty).")],
-    aruco_size: Annotated[
-        float | None,
-        typer.Option(help="Side of the ArUco marker's black square in metres (DICT_4X4_50, id 0, on the table)."),
-    ] = None,
-    known_extent: Annotated[
-        float | None,
-        typer.Option(help="Longest extent in metres of the largest object on the table (no marker)."),
-    ] = None,
-    max_frames: Annotated[int, typer.Option(help="Use at most this many frames.")] = 150,
+    aruco_size: ArucoSizeOption = None,
+    known_extent: KnownExtentOption = None,
+    max_frames: MaxFramesOption = 150,
     overwrite: Annotated[
         bool, typer.Option(help="Replace a non-empty output folder once the result is ready.")
     ] = False,
-    seed: Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")] = 0,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    seed: SfmSeedOption = 0,
+    verbose: VerboseOption = False,
 ) -> None:
     """Cameras in a metric, gravity-aligned world frame: COLMAP model, transforms.json, reconstruct.json."""
     _setup_logging(verbose)
@@ -148,15 +155,9 @@ def reconstruct(
 def ground(
     source: Annotated[Path, typer.Argument(help="A video file or a folder of images of the tabletop.")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output scene folder (created; must be new or empty).")],
-    aruco_size: Annotated[
-        float | None,
-        typer.Option(help="Side of the ArUco marker's black square in metres (DICT_4X4_50, id 0, on the table)."),
-    ] = None,
-    known_extent: Annotated[
-        float | None,
-        typer.Option(help="Longest extent in metres of the largest object on the table (no marker)."),
-    ] = None,
-    max_frames: Annotated[int, typer.Option(help="Use at most this many frames.")] = 150,
+    aruco_size: ArucoSizeOption = None,
+    known_extent: KnownExtentOption = None,
+    max_frames: MaxFramesOption = 150,
     face_budget: Annotated[int, typer.Option(help="Faces per object mesh after decimation.")] = 4000,
     max_hulls: Annotated[int, typer.Option(help="Convex hulls per object (CoACD).")] = 16,
     density: Annotated[
@@ -167,7 +168,7 @@ def ground(
         typer.Option(help="Predict density, friction and contact per object with the learned property model."),
     ] = True,
     overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once the scene is ready.")] = False,
-    seed: Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")] = 0,
+    seed: SfmSeedOption = 0,
     interaction: Annotated[
         Path | None,
         typer.Option(
@@ -178,7 +179,7 @@ def ground(
         Path | None,
         typer.Option(help="With --interaction: JSON layout of ArUco markers stuck on the objects (see `track`)."),
     ] = None,
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    verbose: VerboseOption = False,
 ) -> None:
     """Film a tabletop, get a MuJoCo scene: scene.xml, assets/, scene.json, preview.png.
 
