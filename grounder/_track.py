@@ -609,31 +609,18 @@ class _Tracker:
         window = (opts.lk_window_px, opts.lk_window_px)
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 40, 0.01)
         guess = (start + shift.astype(np.float32)).astype(np.float32)
-        moved, status, _ = cv2.calcOpticalFlowPyrLK(
-            rend_norm,
-            real_norm,
-            start,
-            guess,
-            None,
-            None,
-            window,
-            opts.lk_levels,
-            criteria,
-            cv2.OPTFLOW_USE_INITIAL_FLOW,
-        )
-        back, status_back, _ = cv2.calcOpticalFlowPyrLK(
-            real_norm,
-            rend_norm,
-            moved,
-            start.copy(),
-            None,
-            None,
-            window,
-            opts.lk_levels,
-            criteria,
-            cv2.OPTFLOW_USE_INITIAL_FLOW,
-        )
-        moved, back = np.asarray(moved), np.asarray(back)
+
+        def flow(
+            src: np.ndarray, dst: np.ndarray, points: np.ndarray, initial: np.ndarray
+        ) -> tuple[np.ndarray, np.ndarray]:
+            found, ok, _ = cv2.calcOpticalFlowPyrLK(
+                src, dst, points, initial, None, None, window, opts.lk_levels, criteria, cv2.OPTFLOW_USE_INITIAL_FLOW
+            )
+            return np.asarray(found), np.asarray(ok)
+
+        # Forward from the rendering to the frame, then back: a feature must return to within a pixel of its start.
+        moved, status = flow(rend_norm, real_norm, start, guess)
+        back, status_back = flow(real_norm, rend_norm, moved, start.copy())
         good = (status.ravel() == 1) & (status_back.ravel() == 1) & (np.linalg.norm(back - start, axis=1) < 1.0)
         followed = int(good.sum())
         if followed < opts.min_inliers:
