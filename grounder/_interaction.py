@@ -45,7 +45,8 @@ import logging
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -794,6 +795,46 @@ def _single_body_trajectory(model: Any, traj: Trajectory, body: str) -> Trajecto
     )
 
 
+@contextmanager
+def single_body_scene(scene_xml: Path, body: str) -> Iterator[Path]:
+    """The scene with only `body` of its free bodies (and the table), as an MJCF file in a private temporary folder
+    that is removed afterwards.
+
+    A private folder with the asset folders made absolute: written beside scene.xml under a fixed name, two
+    calibrations of one scene at once (batch jobs, two terminals) deleted each other's file mid-run, and a read-only
+    scene folder could not be calibrated at all.
+    """
+    import mujoco
+
+    from grounder._simulate import free_joints
+
+    single = mujoco.MjSpec.from_file(str(scene_xml))
+    for other in [fj.body for fj in free_joints(mujoco.MjModel.from_xml_path(str(scene_xml)))]:
+        if other != body:
+            single.delete(single.body(other))
+    for attr in ("meshdir", "texturedir"):
+        setattr(single, attr, str((scene_xml.parent / getattr(single, attr)).resolve()))
+    tmp = Path(tempfile.mkdtemp(prefix="image2sim_calibrate_"))
+    try:
+        sub_xml = tmp / f"{body}.xml"
+        sub_xml.write_text(single.to_xml())
+        yield sub_xml
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def object_windows(body_trajs: Sequence[Trajectory], options: InteractionOptions) -> list[Trajectory]:
+    """One object's calibration windows: cut from its single-body trajectories, starting only where its state is
+    well measured (`reliable_starts`)."""
+    return windows(
+        body_trajs,
+        options.window_s,
+        options.window_stride_s,
+        options.min_motion_m_s,
+        starts=[reliable_starts(t, options.track.smoothing) for t in body_trajs],
+    )
+
+
 def calibrate_per_body(
     scene_xml: Path,
     segments: Sequence[Trajectory],
@@ -838,31 +879,13 @@ def calibrate_per_body(
     used: list[str] = []
     values: dict[str, float] = {}
     for body, body_params in by_body.items():
-        single = mujoco.MjSpec.from_file(str(scene_xml))
-        for other in bodies:
-            if other != body:
-                single.delete(single.body(other))
-        # The object's own scene goes to a private folder, with its asset folders made absolute: written beside
-        # scene.xml under a fixed name, two calibrations of one scene at once (batch jobs, two terminals) deleted
-        # each other's file mid-run, and a read-only scene folder could not be calibrated at all.
-        for attr in ("meshdir", "texturedir"):
-            setattr(single, attr, str((scene_xml.parent / getattr(single, attr)).resolve()))
-        tmp = Path(tempfile.mkdtemp(prefix="image2sim_calibrate_"))
-        sub_xml = tmp / f"{body}.xml"
-        try:
-            sub_xml.write_text(single.to_xml())
+        with single_body_scene(scene_xml, body) as sub_xml:
             body_trajs = (
                 list(object_tracks[body])
                 if object_tracks is not None
                 else [_single_body_trajectory(model, t, body) for t in segments]
             )
-            fit = windows(
-                body_trajs,
-                options.window_s,
-                options.window_stride_s,
-                options.min_motion_m_s,
-                starts=[reliable_starts(t, options.track.smoothing) for t in body_trajs],
-            )
+            fit = object_windows(body_trajs, options)
             used += [f"{body}:{t.name}" for t in fit]
             sub: dict[str, Any] = {"status": "skipped: no well-measured window shows motion", "parameters": {}}
             match: dict[str, Any] = {}
@@ -871,8 +894,6 @@ def calibrate_per_body(
                     sub_xml, fit, body_params, options, view_point_m=view_point_m, progress=progress
                 )
                 match = _window_match(sub_xml, fit, body_params, sub["parameters"])
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
         entry["per_object"][body] = {
             "status": sub["status"],
             "windows": [t.name for t in fit],
