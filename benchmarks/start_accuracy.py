@@ -56,18 +56,32 @@ def with_start(model: mujoco.MjModel, window: Trajectory, true_qpos: np.ndarray,
     return Trajectory(time_s=window.time_s, qpos=qpos, qvel=qvel, ctrl=window.ctrl, name=window.name)
 
 
+def _scales(text: str) -> list[float]:
+    try:
+        scales = [float(s) for s in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated numbers >= 0, e.g. 0,0.25,1") from None
+    if any(not s >= 0 for s in scales):
+        raise argparse.ArgumentTypeError(f"{text!r}: error sizes must be >= 0")
+    return scales
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=Path, required=True, help="a benchmarks/track.py --calibrate --out folder")
     parser.add_argument("--clip", type=Path, required=True, help="the clip it tracked (with truth/)")
-    parser.add_argument("--scales", default="0,0.25,0.5,1", help="error sizes, times the whole-start probe's")
+    parser.add_argument(
+        "--scales", type=_scales, default="0,0.25,0.5,1", help="error sizes, times the whole-start probe's"
+    )
     parser.add_argument("--draws", type=int, default=2, help="seeded draws per size above 0")
     args = parser.parse_args()
+    if args.draws < 1:
+        parser.error(f"--draws {args.draws}: expected 1 or more")
     scene, tracks = args.run / "grounded", args.run / "interaction" / "tracks"
     for needed in (scene / "scene.xml", tracks / "track.json", args.clip / "truth" / "scene.xml"):
         if not needed.is_file():
-            sys.exit(f"error: {needed} not found; --run takes a `benchmarks/track.py --calibrate --out` folder and "
-                     "--clip the clip it tracked")  # fmt: skip
+            parser.error(f"{needed} not found; --run takes a `benchmarks/track.py --calibrate --out` folder and "
+                         "--clip the clip it tracked")  # fmt: skip
     options = InteractionOptions()
     track_json = json.loads((tracks / "track.json").read_text())
     fps = float(track_json["fps"])
@@ -83,7 +97,7 @@ def main() -> None:
         + [options.start_speed_error_m_s] * 3
         + [options.start_spin_error_rad_s] * 3
     )
-    scales = [float(s) for s in args.scales.split(",")]
+    scales: list[float] = args.scales
     counts = {s: [0, 0, 0] for s in scales}  # within 20%, wrong, unresolved
     for body in json.loads((scene / "scene.json").read_text())["objects"]:
         true_body = _single_body_trajectory(model, truth, body)
