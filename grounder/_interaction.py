@@ -806,12 +806,10 @@ def single_body_scene(scene_xml: Path, body: str) -> Iterator[Path]:
     """
     import mujoco
 
-    from grounder._simulate import free_joints
-
     single = mujoco.MjSpec.from_file(str(scene_xml))
-    for other in [fj.body for fj in free_joints(mujoco.MjModel.from_xml_path(str(scene_xml)))]:
-        if other != body:
-            single.delete(single.body(other))
+    for other in list(single.worldbody.bodies):  # a free joint can only sit on a child of the world
+        if other.name != body and any(j.type == mujoco.mjtJoint.mjJNT_FREE for j in other.joints):
+            single.delete(other)
     for attr in ("meshdir", "texturedir"):
         setattr(single, attr, str((scene_xml.parent / getattr(single, attr)).resolve()))
     tmp = Path(tempfile.mkdtemp(prefix="image2sim_calibrate_"))
