@@ -103,6 +103,7 @@ def main() -> None:
         true_body = _single_body_trajectory(model, truth, body)
         fit = object_windows(list(object_tracks[body]), options)
         true_values = rendered[offsets[body][0]]
+        params = [f"{body}.{name}" for name in (*FIELDS, "solref.timeconst")]
         with single_body_scene(scene / "scene.xml", body) as sub_xml:
             sub_model = mujoco.MjModel.from_xml_path(str(sub_xml))
             for scale in scales:
@@ -110,11 +111,10 @@ def main() -> None:
                     rng = np.random.default_rng([draw, 7])
                     starts = []
                     for w in fit:
-                        f = round(float(w.time_s[0]) * fps)
+                        frame = round(float(w.time_s[0]) * fps)
                         error = rng.normal(size=12) * sigma * scale
-                        starts.append(with_start(sub_model, w, true_body.qpos[f], true_body.qvel[f], error))
+                        starts.append(with_start(sub_model, w, true_body.qpos[frame], true_body.qvel[frame], error))
                     tick = time.perf_counter()
-                    params = [f"{body}.{f}" for f in (*FIELDS, "solref.timeconst")]
                     entry = calibrate_constrained(sub_xml, starts, params, options, view_point_m=view)
                     out = []
                     for field in FIELDS:
