@@ -1,0 +1,121 @@
+"""Contact values by multiple shooting over each object's whole tracked run (`grounder._interaction_shooting`),
+against the rendered values and the windowed calibration of the same run.
+
+    .venv/bin/python benchmarks/shooting.py --run OUT --clip CLIP [--bodies object_0,object_2]
+
+OUT: a `benchmarks/track.py --calibrate --out OUT` run (its `grounded/` scene, `interaction/tracks/` and
+`interaction.json`); CLIP: the clip it tracked (with its `truth/`), e.g. `samples/toss` or `out/tossB` from
+`samples/make_toss.py --heldout`. Prints each object's cost table over sliding friction x damping ratio, the best
+point and the range within `ShootingOptions.resolution_cost`, and counts the values within 20% of the rendered
+ones. A value whose range spans the whole grid, or reaches past 20% on both sides of the best point, counts as
+unresolved. 1-10 min per object on 2 cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from track import contact_values, truth_offsets  # noqa: E402
+
+from grounder._calibrate_params import Parameter, resolve_parameters  # noqa: E402
+from grounder._interaction import InteractionOptions, single_body_scene, view_point_of  # noqa: E402
+from grounder._interaction_shooting import ShootingOptions, contact_profile, moving_runs  # noqa: E402
+from grounder._track import load_object_trajectories  # noqa: E402
+
+FIELDS = ("friction.sliding", "solref.dampratio")
+
+
+def contact_setter(friction: Parameter, damping: Parameter) -> Callable[[mujoco.MjModel, float, float], None]:
+    """`contact_profile`'s setter of (sliding friction, damping ratio) through the calibration's parameters."""
+
+    def set_contact(model: mujoco.MjModel, mu: float, zeta: float) -> None:
+        friction.set_model(model, mu)
+        damping.set_model(model, zeta)
+
+    return set_contact
+
+
+def resolved(best: float, span: tuple[float, float], grid: tuple[float, ...]) -> bool:
+    """A value is resolved unless its range covers the grid or reaches 20% past the best point on both sides."""
+    if span == (grid[0], grid[-1]):
+        return False
+    return not (span[0] < best / 1.2 and span[1] > best * 1.2)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", type=Path, required=True, help="a benchmarks/track.py --calibrate --out folder")
+    parser.add_argument("--clip", type=Path, required=True, help="the clip it tracked (with truth/)")
+    parser.add_argument("--bodies", default="", help="comma-separated object names (default: all)")
+    args = parser.parse_args()
+    scene, tracks = args.run / "grounded", args.run / "interaction" / "tracks"
+    for needed in (scene / "scene.xml", tracks / "track.json", args.clip / "truth" / "scene.xml"):
+        if not needed.is_file():
+            parser.error(f"{needed} not found; --run takes a `benchmarks/track.py --calibrate --out` folder and "
+                         "--clip the clip it tracked")  # fmt: skip
+    objects = list(json.loads((scene / "scene.json").read_text())["objects"])
+    bodies = args.bodies.split(",") if args.bodies else objects
+    if unknown := sorted(set(bodies) - set(objects)):
+        parser.error(f"--bodies {unknown}: not objects of {scene} ({objects})")
+    track_json = json.loads((tracks / "track.json").read_text())
+    fps = float(track_json["fps"])
+    view = view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64))
+    object_tracks = load_object_trajectories(tracks / "track.json", InteractionOptions().track.smoothing)
+    rendered = contact_values(args.clip / "truth" / "scene.xml", args.clip)
+    offsets = truth_offsets(scene)
+    report = args.run / "interaction.json"
+    windowed = json.loads(report.read_text())["calibration"]["parameters"] if report.is_file() else {}
+    options = ShootingOptions()
+    counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}  # within 20%, wrong, unresolved
+    for body in bodies:
+        true_values = rendered[offsets[body][0]]
+        runs = moving_runs(object_tracks[body], fps, options)
+        if not runs:
+            print(f"{body}: no moving run")
+            continue
+        with single_body_scene(scene / "scene.xml", body) as sub_xml:
+            model = mujoco.MjModel.from_xml_path(str(sub_xml))
+            setter = contact_setter(*resolve_parameters(model, [f"{body}.{f}" for f in FIELDS]))
+            tick = time.perf_counter()
+            profile = contact_profile(model, setter, runs, options, view_point_m=view)
+        print(f"\n{body} ({offsets[body][0]}), {profile.nodes} nodes, {time.perf_counter() - tick:.0f} s; cost, rows "
+              f"damping ratio {profile.damping_grid}, columns friction {profile.friction_grid}:")  # fmt: skip
+        for row in profile.cost:
+            print("   " + " ".join(f"{v:8.1f}" for v in row))
+        fits = (
+            ("friction.sliding", profile.friction, profile.friction_range, profile.friction_grid),
+            ("solref.dampratio", profile.damping_ratio, profile.damping_range, profile.damping_grid),
+        )
+        for field, best, span, grid in fits:
+            true = true_values[field]
+            error_pct = 100.0 * (best / true - 1.0)
+            ok = resolved(best, span, grid)
+            counts["shooting"][2 if not ok else 0 if abs(error_pct) <= 20 else 1] += 1
+            record = windowed.get(f"{body}.{field}", {})
+            window_text = "not in the run's report"
+            if record:
+                window_pct = 100.0 * (record["value"] / true - 1.0)
+                window_ok = bool(record.get("constrained"))
+                counts["windows"][2 if not window_ok else 0 if abs(window_pct) <= 20 else 1] += 1
+                window_text = f"{window_pct:+.0f}%" if window_ok else "unresolved"
+            print(f"  {field}: rendered {true:.3f}; shooting {best:.3f} ({error_pct:+.0f}%, range {span[0]:g}.."
+                  f"{span[1]:g}{'' if ok else ', unresolved'}); windows {window_text}")  # fmt: skip
+    print(f"\n{args.run} on {args.clip}: friction and damping ratio within 20% of the rendered values")
+    for method, (right, wrong, unresolved) in counts.items():
+        print(f"  {method}: {right} of {right + wrong} resolved values, {unresolved} unresolved")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,306 @@
+"""Contact values from an object's whole tracked run by multiple shooting, with every start state fitted.
+
+The windowed calibration (`grounder._interaction`) rolls each 0.3 s window out from its tracked first state, and a
+landing turns on that state: on `samples/toss` and a held-out toss, start errors the size tracking makes at 30 fps
+(1.5 mm, 1 deg, 0.03 m/s, 0.1 rad/s) send friction and damping ratio tens of percent off, where the true starts
+give them within 20% (`benchmarks/start_accuracy.py`). Here the start states are unknowns instead. An object's
+tracked run (its moving part, at most `max_run_s`) is cut into short intervals of `node_frames` frames; the state
+at each interval's first frame (a node: position, orientation, linear and angular velocity, 12 numbers) is free.
+Each interval is rolled out from its node (one batched `mujoco.rollout` call for all of them) and scored against
+the tracked poses in it (position errors over `position_sigma_m`, their along-ray part scaled so that its square
+counts `along_view_weight`, as in the windowed loss; rotation over `rotation_sigma_deg`); where an interval ends,
+its rolled-out state must meet the next node (continuity defects over `defect_sigmas`), and each node has a weak
+prior around the tracked pose. With the defects tight the nodes form one trajectory: the state before a landing is
+fixed by the flight frames before it and by the slide after it at once, which no single window sees.
+
+The contact values are searched on a grid (sliding friction x damping ratio, the time constant held at the
+prior). At each grid point the node states are fitted by least squares (`scipy.optimize.least_squares`, a
+finite-difference Jacobian from one batched rollout of 24 perturbed node sets: nodes two apart share no
+residual), first with the defects loosened (x `continuation`) and then tightened, from the tracked states and from
+the neighbouring grid point's states; the lower cost counts. The result is the grid's cost table, the best point
+and the values whose cost lies within `resolution_cost` of it.
+
+An experiment, not yet the tool's calibration: figures in README ("A calibrated scene from video alone").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import mujoco
+import mujoco.rollout
+import numpy as np
+from scipy.optimize import least_squares
+
+from grounder._residual import quat_to_rotvec, rotvec_to_quat
+from grounder._simulate import along_view_weighted
+from grounder._track_smooth import quat_conj, quat_mul
+from grounder._trajectory import Trajectory
+from grounder.errors import GrounderError
+
+# Units of the node variables (a change of 1 in a variable): position, rotation, linear and angular velocity.
+_NODE_UNIT = np.array([1e-3] * 3 + [np.radians(1.0)] * 3 + [0.03] * 3 + [0.3] * 3)
+# The finite-difference step, in those units.
+_STEP = 0.05
+
+
+@dataclass(frozen=True, kw_only=True)
+class ShootingOptions:
+    """Settings of `contact_profile`.
+
+    Attributes:
+        node_frames: frames per shooting interval (3 at 30 fps: 0.1 s).
+        max_run_s: at most this much of each run's moving part is used (rollout cost grows with it).
+        min_motion_m_s: a run's moving part ends 3 frames after the last frame faster than this.
+        position_sigma_m, rotation_sigma_deg: the tracked poses' expected error.
+        along_view_weight: the along-ray position error's squared residual counts this much.
+        defect_sigmas: continuity between intervals: position (m), rotation (deg), velocity (m/s), spin (rad/s).
+        prior_sigmas: of a node's pose and velocity around the tracked state (the velocity's is wide: a tracked
+            velocity at an impact can be a metre per second off).
+        continuation: the defect sigmas' multipliers, fitted in turn (loose to tight).
+        max_evaluations: least-squares evaluations per continuation stage.
+        friction_grid, damping_grid: the sliding friction and damping ratio values searched.
+        resolution_cost: values whose cost is within this of the best are "indistinguishable" (chi-square units).
+    """
+
+    node_frames: int = 3
+    max_run_s: float = 1.5
+    min_motion_m_s: float = 0.05
+    position_sigma_m: float = 1e-3
+    rotation_sigma_deg: float = 1.0
+    along_view_weight: float = 0.25
+    defect_sigmas: tuple[float, float, float, float] = (3e-4, 0.3, 0.02, 0.2)
+    prior_sigmas: tuple[float, float, float, float] = (4.5e-3, 3.0, 0.9, 3.0)
+    continuation: tuple[float, ...] = (30.0, 10.0, 3.0, 1.0)
+    max_evaluations: int = 50
+    friction_grid: tuple[float, ...] = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.7, 0.8)
+    damping_grid: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25, 0.3, 0.4)
+    resolution_cost: float = 6.0
+
+    def __post_init__(self) -> None:
+        if self.node_frames < 1:
+            raise GrounderError(f"node_frames={self.node_frames} but expected 1 or more")
+        if not self.max_run_s > 0:
+            raise GrounderError(f"max_run_s={self.max_run_s} but expected a duration > 0 s")
+        if not 0.0 < self.along_view_weight <= 1.0:
+            raise GrounderError(f"along_view_weight={self.along_view_weight} but expected a weight in (0, 1]")
+        for name in ("friction_grid", "damping_grid"):
+            grid = getattr(self, name)
+            if len(grid) < 2 or any(not v > 0 for v in grid) or list(grid) != sorted(grid):
+                raise GrounderError(f"{name}={grid} but expected two or more increasing values > 0")
+
+
+def moving_runs(body_trajs: Sequence[Trajectory], fps: float, options: ShootingOptions) -> list[Trajectory]:
+    """Each run's moving part: from its first frame to 3 frames past its last frame faster than
+    `options.min_motion_m_s`, at most `options.max_run_s` long; runs shorter than one interval are dropped."""
+    out = []
+    for traj in body_trajs:
+        speed = np.linalg.norm(traj.qvel[:, :3], axis=1)
+        moving = np.flatnonzero(speed > options.min_motion_m_s)
+        if len(moving) == 0:
+            continue
+        last = min(len(speed) - 1, int(moving[-1]) + 3, round(options.max_run_s * fps))
+        if last < options.node_frames:
+            continue
+        end = last + 1
+        out.append(Trajectory(time_s=traj.time_s[:end], qpos=traj.qpos[:end], qvel=traj.qvel[:end], name=traj.name))
+    return out
+
+
+class ShootingProblem:
+    """The node states of one object's runs in a single-body scene, and their least-squares fit for given contact
+    values (set on `model` by the caller)."""
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        runs: Sequence[Trajectory],
+        options: ShootingOptions,
+        view_point_m: Sequence[float] | None = None,
+    ) -> None:
+        if model.nq != 7 or model.nv != 6:
+            raise GrounderError(f"multiple shooting needs a scene with one free body (nq 7, nv 6), got nq {model.nq}")
+        if not runs:
+            raise GrounderError("multiple shooting needs at least one run of tracked motion")
+        self.model = model
+        self.options = options
+        self._datas = [mujoco.MjData(model) for _ in range(2)]
+        k = options.node_frames
+        dt = float(np.median(np.diff(runs[0].time_s)))
+        self._steps = np.array([max(1, round(i * dt / model.opt.timestep)) for i in range(1, k + 1)])
+        # A node: (run, first frame, frames to the next node or the run's end, whether a next node follows).
+        nodes = []
+        for r, traj in enumerate(runs):
+            firsts = list(range(0, len(traj.time_s) - 1, k))
+            nodes += [(r, i, min(k, len(traj.time_s) - 1 - i), i != firsts[-1]) for i in firsts]
+        self.nodes = nodes
+        n = len(nodes)
+        self._base_qpos = np.array([runs[r].qpos[i] for r, i, _, _ in nodes], np.float64)
+        self._base_qvel = np.array([runs[r].qvel[i] for r, i, _, _ in nodes], np.float64)
+        self._target_pos = np.zeros((n, k + 1, 3))
+        self._target_quat = np.tile([1.0, 0.0, 0.0, 0.0], (n, k + 1, 1))
+        self._mask = np.zeros((n, k + 1, 1))
+        for j, (r, i, length, joined) in enumerate(nodes):
+            last = length - 1 if joined else length  # the next node's first frame is scored there
+            self._target_pos[j, : last + 1] = runs[r].qpos[i : i + last + 1, :3]
+            self._target_quat[j, : last + 1] = runs[r].qpos[i : i + last + 1, 3:7]
+            self._mask[j, : last + 1] = 1.0
+        self._joined = np.array([[joined] for *_, joined in nodes], np.float64)
+        self._view = None if view_point_m is None else np.asarray(view_point_m, np.float64)
+        self._ray_scale = float(np.sqrt(options.along_view_weight))
+        self._defect_sigma = np.repeat(
+            [options.defect_sigmas[0], np.radians(options.defect_sigmas[1]), *options.defect_sigmas[2:]], 3
+        )
+        self._prior_sigma = np.repeat(
+            [options.prior_sigmas[0], np.radians(options.prior_sigmas[1]), *options.prior_sigmas[2:]], 3
+        )
+        self._looseness = 1.0
+        self._frame_rows = 6 * (k + 1)
+
+    @property
+    def size(self) -> int:
+        """Number of node variables (12 per node)."""
+        return 12 * len(self.nodes)
+
+    def node_states(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(..., nodes, 12) node variables -> each node's qpos (..., nodes, 7) and qvel (..., nodes, 6)."""
+        x = np.asarray(x, np.float64)
+        change = x * _NODE_UNIT
+        qpos = np.empty((*x.shape[:-1], 7))
+        qpos[..., :3] = self._base_qpos[:, :3] + change[..., :3]
+        qpos[..., 3:] = quat_mul(self._base_qpos[:, 3:], rotvec_to_quat(change[..., 3:6]))  # body-frame turn
+        return qpos, self._base_qvel + change[..., 6:]
+
+    def _rollout(self, qpos: np.ndarray, qvel: np.ndarray) -> np.ndarray:
+        batch, n = qpos.shape[:2]
+        initial = np.zeros((batch * n, 14))  # mjSTATE_FULLPHYSICS of a single free body: time, qpos, qvel
+        initial[:, 1:8] = qpos.reshape(-1, 7)
+        initial[:, 8:] = qvel.reshape(-1, 6)
+        state = mujoco.rollout.rollout(self.model, self._datas, initial, nstep=int(self._steps[-1]))[0]
+        return state[:, self._steps - 1, 1:].reshape(batch, n, len(self._steps), 13)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """(B, nodes, 12) node variables -> (B, nodes, rows) residuals: frames, defect to the next node, prior."""
+        qpos, qvel = self.node_states(x)
+        rolled = self._rollout(qpos, qvel)
+        batch, n = x.shape[:2]
+        pos = np.concatenate([qpos[:, :, None, :3], rolled[..., :3]], axis=2)
+        quat = np.concatenate([qpos[:, :, None, 3:], rolled[..., 3:7]], axis=2)
+        pos_error = along_view_weighted(pos - self._target_pos, self._target_pos, self._view, self._ray_scale)
+        rot_error = quat_to_rotvec(quat_mul(quat_conj(self._target_quat), quat))
+        frames = np.concatenate([pos_error / self.options.position_sigma_m,
+                                 rot_error / np.radians(self.options.rotation_sigma_deg)], axis=-1)  # fmt: skip
+        end = rolled[:, :, -1]
+        next_qpos, next_qvel = np.roll(qpos, -1, axis=1), np.roll(qvel, -1, axis=1)
+        defect = np.concatenate(
+            [
+                end[..., :3] - next_qpos[..., :3],
+                quat_to_rotvec(quat_mul(quat_conj(next_qpos[..., 3:]), end[..., 3:7])),
+                end[..., 7:] - next_qvel,
+            ],
+            axis=-1,
+        ) / (self._defect_sigma * self._looseness)
+        prior = x * _NODE_UNIT / self._prior_sigma
+        return np.concatenate([(frames * self._mask).reshape(batch, n, -1), defect * self._joined, prior], axis=-1)
+
+    def _fun(self, flat: np.ndarray) -> np.ndarray:
+        return self.residuals(flat.reshape(1, -1, 12)).reshape(-1)
+
+    def _jacobian(self, flat: np.ndarray) -> np.ndarray:
+        n = len(self.nodes)
+        x = flat.reshape(n, 12)
+        base = self.residuals(x[None])[0]
+        moved = np.repeat(x[None], 24, axis=0)
+        for parity in range(2):
+            for col in range(12):
+                moved[12 * parity + col, parity::2, col] += _STEP
+        change = (self.residuals(moved) - base) / _STEP
+        rows = base.shape[-1]
+        jac = np.zeros((n, rows, n, 12))
+        defect = slice(self._frame_rows, self._frame_rows + 12)
+        for parity in range(2):
+            for col in range(12):
+                for j in range(parity, n, 2):  # node j moved alone within its own rows and the previous defect
+                    jac[j, :, j, col] = change[12 * parity + col, j]
+                    if j:
+                        jac[j - 1, defect, j, col] = change[12 * parity + col, j - 1, defect]
+        return jac.reshape(n * rows, n * 12)
+
+    def fit(self, start: np.ndarray, continuation: Sequence[float] | None = None) -> tuple[float, np.ndarray]:
+        """Least-squares node variables from `start` through the continuation stages: (cost, variables); the cost
+        is the sum of squared residuals at the tight (x1) defects."""
+        x = np.asarray(start, np.float64)
+        for looseness in continuation or self.options.continuation:
+            self._looseness = looseness
+            x = least_squares(self._fun, x, jac=self._jacobian, method="trf",
+                              max_nfev=self.options.max_evaluations).x  # fmt: skip
+        self._looseness = 1.0
+        return float(np.sum(self._fun(x) ** 2)), x
+
+
+@dataclass(frozen=True, kw_only=True)
+class ContactProfile:
+    """`contact_profile`'s result for one object.
+
+    Attributes:
+        friction_grid, damping_grid: the values searched.
+        cost: (damping, friction) fitted cost at each grid point.
+        friction, damping_ratio: the best grid point.
+        friction_range, damping_range: the grid values whose cost is within `resolution_cost` of the best.
+        nodes: shooting nodes used.
+    """
+
+    friction_grid: tuple[float, ...]
+    damping_grid: tuple[float, ...]
+    cost: np.ndarray = field(repr=False)
+    friction: float
+    damping_ratio: float
+    friction_range: tuple[float, float]
+    damping_range: tuple[float, float]
+    nodes: int
+
+
+def contact_profile(
+    model: mujoco.MjModel,
+    set_contact: Callable[[mujoco.MjModel, float, float], None],
+    runs: Sequence[Trajectory],
+    options: ShootingOptions,
+    *,
+    view_point_m: Sequence[float] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> ContactProfile:
+    """Fits the node states at every grid point of (sliding friction, damping ratio) and returns the cost table.
+
+    Args:
+        model: a single-free-body scene (the object and the table); changed in place by `set_contact`.
+        set_contact: sets (friction, damping ratio) on the model (e.g. `Parameter.set_model` of each).
+        runs: the object's tracked runs (`moving_runs`): qpos 7 and qvel 6 per frame.
+    """
+    problem = ShootingProblem(model, runs, options, view_point_m)
+    frictions, dampings = options.friction_grid, options.damping_grid
+    cost = np.zeros((len(dampings), len(frictions)))
+    total, done = cost.size, 0
+    for row, damping in enumerate(dampings):
+        previous = None
+        for col, friction in enumerate(frictions):
+            set_contact(model, friction, damping)
+            fits = [problem.fit(np.zeros(problem.size))]
+            if previous is not None:
+                fits.append(problem.fit(previous, continuation=options.continuation[-2:]))
+            cost[row, col], previous = min(fits, key=lambda f: f[0])
+            done += 1
+            if progress is not None:
+                progress("multiple shooting", done, total)
+    best_row, best_col = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    near_rows, near_cols = np.nonzero(cost - cost[best_row, best_col] <= options.resolution_cost)
+    return ContactProfile(
+        friction_grid=tuple(frictions),
+        damping_grid=tuple(dampings),
+        cost=cost,
+        friction=float(frictions[best_col]),
+        damping_ratio=float(dampings[best_row]),
+        friction_range=(float(frictions[near_cols.min()]), float(frictions[near_cols.max()])),
+        damping_range=(float(dampings[near_rows.min()]), float(dampings[near_rows.max()])),
+        nodes=len(problem.nodes),
+    )
