@@ -4,36 +4,23 @@ as far off as a tracked one at a landing do not move the contact values."""
 from __future__ import annotations
 
 from dataclasses import replace
-from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
+from test_interaction import DROPPED_BALL
 
 from grounder._interaction_shooting import ShootingOptions, ShootingProblem, contact_profile, moving_runs
 from grounder._trajectory import Trajectory
 from grounder.errors import GrounderError
 
-BALL = """
-<mujoco>
-  <option integrator="implicitfast" cone="elliptic"/>
-  <worldbody>
-    <geom name="table" type="plane" size="2 2 0.1"/>
-    <body name="ball" pos="0 0 0.1">
-      <freejoint/>
-      <geom name="ball" type="sphere" size="0.035" density="500" friction="{friction} 0.005 0.0001"
-            solref="0.02 {dampratio}" priority="1"/>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-TRUE = (0.4, 0.2)  # friction, damping ratio
+TRUE = (0.4, 0.2)  # friction, damping ratio: DROPPED_BALL's friction and the damping ratio written below
 
 
-def _thrown(tmp_path: Path) -> tuple[mujoco.MjModel, Trajectory]:
+def _thrown() -> tuple[mujoco.MjModel, Trajectory]:
     """A ball thrown down onto the table with backspin, 0.6 s at 30 fps: it bounces twice (damping ratio) and
     skids until its spin matches its speed (friction). Returns a scene with other contact values and the truth."""
-    truth = mujoco.MjModel.from_xml_path(_write(tmp_path / "truth.xml", *TRUE))
+    truth = mujoco.MjModel.from_xml_string(DROPPED_BALL.format(timeconst=0.02, dampratio=TRUE[1]))
     data = mujoco.MjData(truth)
     data.qvel[:] = [1.0, 0.0, -0.5, 0.0, -40.0, 0.0]
     qpos, qvel = [], []
@@ -41,13 +28,9 @@ def _thrown(tmp_path: Path) -> tuple[mujoco.MjModel, Trajectory]:
         mujoco.mj_step(truth, data, round(frame / 30 / truth.opt.timestep) - round(data.time / truth.opt.timestep))
         qpos.append(data.qpos.copy())
         qvel.append(data.qvel.copy())
-    model = mujoco.MjModel.from_xml_path(_write(tmp_path / "scene.xml", 0.8, 0.4))
+    model = mujoco.MjModel.from_xml_string(DROPPED_BALL.format(timeconst=0.02, dampratio=0.4))
+    _set_contact(model, 0.8, 0.4)
     return model, Trajectory(time_s=np.arange(19) / 30.0, qpos=np.array(qpos), qvel=np.array(qvel), name="throw")
-
-
-def _write(path: Path, friction: float, dampratio: float) -> str:
-    path.write_text(BALL.format(friction=friction, dampratio=dampratio))
-    return str(path)
 
 
 def _set_contact(model: mujoco.MjModel, friction: float, dampratio: float) -> None:
@@ -60,11 +43,11 @@ QUICK = ShootingOptions(
 )
 
 
-def test_shooting_finds_the_contact_values_from_tracked_velocities_far_off(tmp_path: Path) -> None:
-    """Poses with 0.3 mm / 0.3 deg of noise and every velocity 0.1 m/s and 1 rad/s off per axis (seeded): a window
+def test_shooting_finds_the_contact_values_from_tracked_velocities_far_off() -> None:
+    """Positions with 0.3 mm of noise and every velocity 0.1 m/s and 1 rad/s off per axis (seeded): a window
     rolled out from such a start would land elsewhere; with the node states fitted the grid's best point is the
-    truth, and every value within 20% of it costs more."""
-    model, truth = _thrown(tmp_path)
+    truth, and its four neighbours (half and double each value) cost more than the resolution threshold above it."""
+    model, truth = _thrown()
     rng = np.random.default_rng(3)
     qpos = truth.qpos.copy()
     qpos[:, :3] += rng.normal(scale=3e-4, size=(len(qpos), 3))
@@ -80,12 +63,12 @@ def test_shooting_finds_the_contact_values_from_tracked_velocities_far_off(tmp_p
     assert profile.cost[0, 1] > best + QUICK.resolution_cost and profile.cost[2, 1] > best + QUICK.resolution_cost
 
 
-def test_the_jacobian_from_two_batched_rollouts_is_the_dense_one(tmp_path: Path) -> None:
+def test_the_jacobian_from_two_batched_rollouts_is_the_dense_one() -> None:
     """Nodes two apart share no residual row, so moving every second node at once (24 perturbed node sets in one
     batched rollout) gives the same finite-difference Jacobian as moving one variable at a time."""
     from grounder._interaction_shooting import _STEP
 
-    model, truth = _thrown(tmp_path)
+    model, truth = _thrown()
     problem = ShootingProblem(model, [truth], QUICK)
     x = np.random.default_rng(0).normal(scale=0.5, size=problem.size)
     batched = problem._jacobian(x)
@@ -97,12 +80,12 @@ def test_the_jacobian_from_two_batched_rollouts_is_the_dense_one(tmp_path: Path)
     assert np.abs(dense).max() > 1.0  # not trivially zero
 
 
-def test_the_fit_recovers_the_throw_and_is_exact_at_the_truth(tmp_path: Path) -> None:
+def test_the_fit_recovers_the_throw_and_is_exact_at_the_truth() -> None:
     """At the true values the true states cost nothing. From velocities 0.1 m/s off (per axis), the fit brings
     the throw's velocity (the first node, before the first bounce) back to within 1 cm/s and the cost down by 90%.
     Not to zero: around the bounces the nodes' vertical velocities stay 3-13 cm/s off (a local minimum, cost 31
     against 0; README, "Multiple shooting")."""
-    model, truth = _thrown(tmp_path)
+    model, truth = _thrown()
     _set_contact(model, *TRUE)
     exact = ShootingProblem(model, [truth], ShootingOptions())
     assert np.sum(exact.residuals(np.zeros((1, len(exact.nodes), 12))) ** 2) < 1e-12
@@ -115,8 +98,8 @@ def test_the_fit_recovers_the_throw_and_is_exact_at_the_truth(tmp_path: Path) ->
     assert np.abs(qvel[0, :3] - truth.qvel[0, :3]).max() < 0.01
 
 
-def test_bad_settings_and_scenes_are_refused(tmp_path: Path) -> None:
-    model, truth = _thrown(tmp_path)
+def test_bad_settings_and_scenes_are_refused() -> None:
+    model, truth = _thrown()
     with pytest.raises(GrounderError, match="friction_grid"):
         ShootingOptions(friction_grid=(0.5, 0.2))
     with pytest.raises(GrounderError, match="node_frames"):
