@@ -219,12 +219,12 @@ class ShootingProblem:
         rows = base.shape[-1]
         jac = np.zeros((n, rows, n, 12))
         defect = slice(self._frame_rows, self._frame_rows + 12)
-        for parity in range(2):
-            for col in range(12):
-                for j in range(parity, n, 2):  # node j moved alone within its own rows and the previous defect
-                    jac[j, :, j, col] = change[12 * parity + col, j]
-                    if j:
-                        jac[j - 1, defect, j, col] = change[12 * parity + col, j - 1, defect]
+        for parity in range(2):  # every second node moved alone within its own rows and the previous defect
+            moved_nodes = np.arange(parity, n, 2)
+            by_column = change[12 * parity : 12 * parity + 12].transpose(1, 2, 0)  # (node, row, column)
+            jac[moved_nodes, :, moved_nodes, :] = by_column[moved_nodes]
+            later = moved_nodes[moved_nodes > 0]
+            jac[later - 1, defect, later, :] = by_column[later - 1, defect]
         return jac.reshape(n * rows, n * 12)
 
     def fit(self, start: np.ndarray, continuation: Sequence[float] | None = None) -> tuple[float, np.ndarray]:
