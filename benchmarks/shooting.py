@@ -54,6 +54,11 @@ def resolved(best: float, span: tuple[float, float], grid: tuple[float, ...]) ->
     return not (span[0] < best / 1.2 and span[1] > best * 1.2)
 
 
+def tally(counts: list[int], resolved_value: bool, error_pct: float) -> None:
+    """Counts one value as within 20% (index 0), wrong (1) or unresolved (2)."""
+    counts[2 if not resolved_value else 0 if abs(error_pct) <= 20 else 1] += 1
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--run", type=Path, required=True, help="a benchmarks/track.py --calibrate --out folder")
@@ -102,13 +107,13 @@ def main() -> None:
             true = true_values[field]
             error_pct = 100.0 * (best / true - 1.0)
             ok = resolved(best, span, grid)
-            counts["shooting"][2 if not ok else 0 if abs(error_pct) <= 20 else 1] += 1
+            tally(counts["shooting"], ok, error_pct)
             record = windowed.get(f"{body}.{field}", {})
             window_text = "not in the run's report"
             if record:
                 window_pct = 100.0 * (record["value"] / true - 1.0)
                 window_ok = bool(record.get("constrained"))
-                counts["windows"][2 if not window_ok else 0 if abs(window_pct) <= 20 else 1] += 1
+                tally(counts["windows"], window_ok, window_pct)
                 window_text = f"{window_pct:+.0f}%" if window_ok else "unresolved"
             print(f"  {field}: rendered {true:.3f}; shooting {best:.3f} ({error_pct:+.0f}%, range {span[0]:g}.."
                   f"{span[1]:g}{'' if ok else ', unresolved'}); windows {window_text}")  # fmt: skip
