@@ -1,14 +1,16 @@
 """Contact values by multiple shooting over each object's whole tracked run (`grounder._interaction_shooting`),
 against the rendered values and the windowed calibration of the same run.
 
-    .venv/bin/python benchmarks/shooting.py --run OUT --clip CLIP [--bodies object_0,object_2]
+    .venv/bin/python benchmarks/shooting.py --run OUT --clip CLIP [--bodies object_0,object_2] [--grid]
 
 OUT: a `benchmarks/track.py --calibrate --out OUT` run (its `grounded/` scene, `interaction/tracks/` and
 `interaction.json`); CLIP: the clip it tracked (with its `truth/`), e.g. `samples/toss` or `out/tossB` from
-`samples/make_toss.py --heldout`. Prints each object's cost table over sliding friction x damping ratio, the best
-point and the range within `ShootingOptions.resolution_cost`, and counts the values within 20% of the rendered
-ones. A value whose range spans the whole grid, or reaches past 20% on both sides of the best point, counts as
-unresolved. 1-10 min per object on 2 cores.
+`samples/make_toss.py --heldout`. By default searches sliding friction, damping ratio and time constant, the node
+states fitted at each point (`fit_contact`), and prints each value, its range and whether it is resolved; `--grid`
+instead prints each object's cost table over sliding friction x damping ratio with the time constant at the prior
+(`contact_profile`), the best point and the range within `ShootingOptions.resolution_cost`. Counts friction and
+damping ratio within 20% of the rendered ones; an unresolved value is not counted as either. 1-10 min per object on
+2 cores.
 """
 
 from __future__ import annotations
@@ -31,10 +33,11 @@ from track import contact_values, truth_offsets  # noqa: E402
 
 from grounder._calibrate_params import Parameter, resolve_parameters  # noqa: E402
 from grounder._interaction import InteractionOptions, single_body_scene, view_point_of  # noqa: E402
-from grounder._interaction_shooting import ShootingOptions, contact_profile, moving_runs  # noqa: E402
+from grounder._interaction_shooting import ShootingOptions, contact_profile, fit_contact, moving_runs  # noqa: E402
 from grounder._track import load_object_trajectories  # noqa: E402
 
 FIELDS = ("friction.sliding", "solref.dampratio")
+JOINT_FIELDS = (*FIELDS, "solref.timeconst")
 
 
 def contact_setter(friction: Parameter, damping: Parameter) -> Callable[[mujoco.MjModel, float, float], None]:
@@ -64,6 +67,7 @@ def main() -> None:
     parser.add_argument("--run", type=Path, required=True, help="a benchmarks/track.py --calibrate --out folder")
     parser.add_argument("--clip", type=Path, required=True, help="the clip it tracked (with truth/)")
     parser.add_argument("--bodies", default="", help="comma-separated object names (default: all)")
+    parser.add_argument("--grid", action="store_true", help="the cost table over a grid (time constant at the prior)")
     args = parser.parse_args()
     scene, tracks = args.run / "grounded", args.run / "interaction" / "tracks"
     for needed in (scene / "scene.xml", tracks / "track.json", args.clip / "truth" / "scene.xml"):
@@ -92,31 +96,51 @@ def main() -> None:
             continue
         with single_body_scene(scene / "scene.xml", body) as sub_xml:
             model = mujoco.MjModel.from_xml_path(str(sub_xml))
-            setter = contact_setter(*resolve_parameters(model, [f"{body}.{f}" for f in FIELDS]))
             tick = time.perf_counter()
-            profile = contact_profile(model, setter, runs, options, view_point_m=view)
-        print(f"\n{body} ({offsets[body][0]}), {profile.nodes} nodes, {time.perf_counter() - tick:.0f} s; cost, rows "
-              f"damping ratio {profile.damping_grid}, columns friction {profile.friction_grid}:")  # fmt: skip
-        for row in profile.cost:
-            print("   " + " ".join(f"{v:8.1f}" for v in row))
-        fits = (
-            ("friction.sliding", profile.friction, profile.friction_range, profile.friction_grid),
-            ("solref.dampratio", profile.damping_ratio, profile.damping_range, profile.damping_grid),
-        )
-        for field, best, span, grid in fits:
+            if args.grid:
+                setter = contact_setter(*resolve_parameters(model, [f"{body}.{f}" for f in FIELDS]))
+                profile = contact_profile(model, setter, runs, options, view_point_m=view)
+            else:
+                contact = resolve_parameters(model, [f"{body}.{f}" for f in JOINT_FIELDS])
+                joint = fit_contact(model, contact, runs, options, view_point_m=view)
+        seconds = time.perf_counter() - tick
+        if args.grid:
+            print(f"\n{body} ({offsets[body][0]}), {profile.nodes} nodes, {seconds:.0f} s; cost, rows damping ratio "
+                  f"{profile.damping_grid}, columns friction {profile.friction_grid}:")  # fmt: skip
+            for row in profile.cost:
+                print("   " + " ".join(f"{v:8.1f}" for v in row))
+            fits = [
+                ("friction.sliding", profile.friction, profile.friction_range,
+                 resolved(profile.friction, profile.friction_range, profile.friction_grid)),
+                ("solref.dampratio", profile.damping_ratio, profile.damping_range,
+                 resolved(profile.damping_ratio, profile.damping_range, profile.damping_grid)),
+            ]  # fmt: skip
+        else:
+            print(f"\n{body} ({offsets[body][0]}), {joint.nodes} nodes, {seconds:.0f} s, best cost "
+                  f"{joint.cost:.1f} of {len(joint.evaluations)} points; those within "
+                  f"{options.resolution_cost:g} of it:")  # fmt: skip
+            for point, cost in joint.evaluations:
+                if cost - joint.cost <= options.resolution_cost:
+                    print(f"   {' '.join(f'{v:.4g}' for v in point)}: {cost:.1f}")
+            fits = [
+                (name.split(".", 1)[1], value, span, ok)
+                for name, value, span, ok in zip(joint.names, joint.values, joint.ranges, joint.resolved, strict=True)
+            ]
+        for field, best, span, ok in fits:
             true = true_values[field]
             error_pct = 100.0 * (best / true - 1.0)
-            ok = resolved(best, span, grid)
-            tally(counts["shooting"], ok, error_pct)
+            if field in FIELDS:
+                tally(counts["shooting"], ok, error_pct)
             record = windowed.get(f"{body}.{field}", {})
             window_text = "not in the run's report"
             if record:
                 window_pct = 100.0 * (record["value"] / true - 1.0)
                 window_ok = bool(record.get("constrained"))
-                tally(counts["windows"], window_ok, window_pct)
+                if field in FIELDS:
+                    tally(counts["windows"], window_ok, window_pct)
                 window_text = f"{window_pct:+.0f}%" if window_ok else "unresolved"
-            print(f"  {field}: rendered {true:.3f}; shooting {best:.3f} ({error_pct:+.0f}%, range {span[0]:g}.."
-                  f"{span[1]:g}{'' if ok else ', unresolved'}); windows {window_text}")  # fmt: skip
+            print(f"  {field}: rendered {true:.4g}; shooting {best:.4g} ({error_pct:+.0f}%, range {span[0]:.4g}.."
+                  f"{span[1]:.4g}{'' if ok else ', unresolved'}); windows {window_text}")  # fmt: skip
     print(f"\n{args.run} on {args.clip}: friction and damping ratio within 20% of the rendered values")
     for method, (right, wrong, unresolved) in counts.items():
         print(f"  {method}: {right} of {right + wrong} resolved values, {unresolved} unresolved")

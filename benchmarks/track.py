@@ -189,6 +189,12 @@ def main() -> None:
         "--start-rounds", type=int, default=None, help="with --calibrate: start refits (default: InteractionOptions')"
     )
     parser.add_argument(
+        "--calibration",
+        choices=("windows", "shooting"),
+        default=None,
+        help="with --calibrate: InteractionOptions.calibration (default: the tool's, windows)",
+    )
+    parser.add_argument(
         "--along-view-weight",
         type=float,
         default=None,
@@ -448,6 +454,7 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
         "error | as restitution e: rendered / calibrated / error | best value with start speeds off (flag) |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
+    counts = [0, 0, 0]  # friction and damping ratio: within 20%, wrong, unresolved (prior kept)
     for name, p in params.items():
         body, field = name.split(".", 1)
         true_name = true_names.get(body, body)
@@ -471,6 +478,12 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
             f"| {name} | {true_name} | {rendered:.3f} | {value:.3f} | {_seen(p)} | {span} | {error} | {as_e} | "
             f"{starts} |"
         )
+        if field in ("friction.sliding", "solref.dampratio"):
+            counts[2 if not constrained else 0 if abs(value / rendered - 1.0) <= 0.2 else 1] += 1
+    print(
+        f"friction and damping ratio: {counts[0]} of {counts[0] + counts[1]} resolved values within 20% of the "
+        f"rendered ones, {counts[2]} unresolved (prior kept)"
+    )
 
 
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:
@@ -571,6 +584,7 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
         "own_runs": False if args.segments else None,
         "window_stride_s": args.window_stride,
         "window_s": args.window,
+        "calibration": args.calibration,
     }
     chosen = {k: v for k, v in given.items() if v is not None}
     settings = {k: v for k, v in budget.items() if v is not None}

@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from grounder._ground import GroundOptions, ground
+from grounder._interaction_shooting import ShootingOptions
 from grounder._track import TrackOptions, TrackResult, object_trajectories, track
 from grounder._track_smooth import SmoothingOptions, quat_from_matrix
 from grounder._trajectory import Trajectory, save_trajectories
@@ -66,6 +67,8 @@ ProgressFn = Callable[[str, int, int], None]
 # What tracking resolves (about its median error): a parameter whose +-20% step moves its object's rollouts by less,
 # root mean square over the frames, is left at the prior (`screen_parameters`, `InteractionOptions.identify_*`).
 SCREEN_MIN_POSITION_M = 0.001
+# `InteractionOptions.calibration`: windows from tracked starts, or multiple shooting over each object's whole run.
+CALIBRATION_METHODS = ("windows", "shooting")
 SCREEN_MIN_ROTATION_DEG = 0.75
 
 
@@ -130,6 +133,12 @@ class InteractionOptions:
             flag either. 0: the speed-only profile.
         start_position_error_m, start_rotation_error_deg, start_spin_error_rad_s: the whole-state draws' sizes, about
             tracking's error at a window start on `samples/toss` and the held-out toss.
+        calibration: "windows" (the above) or "shooting": with `per_object`, each object's contact values fitted
+            with every state of its whole tracked run by multiple shooting (`grounder._interaction_shooting.
+            fit_contact`, settings `shooting`), which does not rest on the tracked start states; the screen, the
+            windows and the start-error profiles are not used. A value is calibrated where its profile resolves
+            it (`ContactFit.resolved`); the others keep the prior.
+        shooting: settings of the "shooting" calibration.
     """
 
     ground: GroundOptions = field(default_factory=GroundOptions)
@@ -153,8 +162,12 @@ class InteractionOptions:
     start_position_error_m: float = 0.0015
     start_rotation_error_deg: float = 1.0
     start_spin_error_rad_s: float = 0.1
+    calibration: str = "windows"
+    shooting: ShootingOptions = field(default_factory=ShootingOptions)
 
     def __post_init__(self) -> None:
+        if self.calibration not in CALIBRATION_METHODS:
+            raise GrounderError(f"calibration={self.calibration!r} but expected one of {CALIBRATION_METHODS}")
         if self.window_s is not None and not self.window_s > 0:
             raise GrounderError(f"window_s={self.window_s} but expected a positive length in seconds, or None")
         if not self.window_stride_s > 0:
@@ -883,21 +896,28 @@ def calibrate_per_body(
                 if object_tracks is not None
                 else [_single_body_trajectory(model, t, body) for t in segments]
             )
-            fit = object_windows(body_trajs, options)
-            used += [f"{body}:{t.name}" for t in fit]
-            sub: dict[str, Any] = {"status": "skipped: no well-measured window shows motion", "parameters": {}}
             match: dict[str, Any] = {}
-            if fit:
-                sub = calibrate_constrained(
-                    sub_xml, fit, body_params, options, view_point_m=view_point_m, progress=progress
+            if options.calibration == "shooting":
+                sub, fit = shoot_body(
+                    sub_xml, body_trajs, body_params, options.shooting, view_point_m=view_point_m, progress=progress
                 )
-                match = _window_match(sub_xml, fit, body_params, sub["parameters"])
+            else:
+                fit = object_windows(body_trajs, options)
+                sub = {"status": "skipped: no well-measured window shows motion", "parameters": {}}
+                if fit:
+                    sub = calibrate_constrained(
+                        sub_xml, fit, body_params, options, view_point_m=view_point_m, progress=progress
+                    )
+                    match = _window_match(sub_xml, fit, body_params, sub["parameters"])
+            used += [f"{body}:{t.name}" for t in fit]
         entry["per_object"][body] = {
             "status": sub["status"],
             "windows": [t.name for t in fit],
             "start_refinement": sub.get("start_refinement", []),
             "window_match": match,
         }
+        if "shooting" in sub:
+            entry["per_object"][body]["shooting"] = sub["shooting"]
         for name in body_params:
             record = sub["parameters"].get(name, {})
             entry["parameters"][name] = record
@@ -945,6 +965,61 @@ def calibrate_per_body(
         after={k: v.as_dict() for k, v in result.after.items()},
     )
     return entry, used
+
+
+def shoot_body(
+    scene_xml: Path,
+    body_trajs: Sequence[Trajectory],
+    params: Sequence[str],
+    options: ShootingOptions,
+    *,
+    view_point_m: Sequence[float] | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[dict[str, Any], list[Trajectory]]:
+    """Calibrates one object's contact values in its own scene by multiple shooting over its tracked runs
+    (`InteractionOptions.calibration` "shooting").
+
+    Returns the object's calibration entry (as `calibrate_constrained`'s: `status`, per parameter `nominal`,
+    `value`, `interval`, `bounds`, `unit`, `constrained`, and `indistinguishable`: the values within
+    `options.resolution_cost` of the best cost; an unresolved value keeps the prior and its best point is
+    `unresolved_fit`; `shooting`: nodes, runs, cost and the points searched) and the runs used.
+    """
+    import mujoco
+
+    from grounder._calibrate_params import resolve_parameters
+    from grounder._interaction_shooting import fit_contact, moving_runs
+
+    runs = []
+    if body_trajs:
+        fps = 1.0 / float(np.median(np.concatenate([np.diff(t.time_s) for t in body_trajs])))
+        runs = moving_runs(body_trajs, fps, options)
+    if not runs:
+        return {"status": "skipped: no tracked run shows motion", "parameters": {}}, []
+    model = mujoco.MjModel.from_xml_path(str(scene_xml))
+    contact = resolve_parameters(model, list(params))
+    result = fit_contact(model, contact, runs, options, view_point_m=view_point_m, progress=progress)
+    records: dict[str, Any] = {}
+    for parameter, value, span, ok in zip(contact, result.values, result.ranges, result.resolved, strict=True):
+        record = _prior_record(parameter)
+        record["indistinguishable"] = list(span)
+        if ok:
+            record.update(value=value, interval=list(span), constrained=True)
+        else:
+            record["unresolved_fit"] = value
+        records[parameter.name] = record
+    kept = [n for n, r in records.items() if not r["constrained"]]
+    status = (
+        f"calibrated by multiple shooting ({result.nodes} nodes over {len(runs)} run(s), cost {result.cost:.1f}, "
+        f"{len(result.evaluations)} points searched)"
+        + (f"; not resolved by the clip, prior kept: {kept}" if kept else "")
+    )
+    shooting = {
+        "nodes": result.nodes,
+        "runs": [t.name for t in runs],
+        "cost": round(result.cost, 3),
+        "evaluations": [{"values": list(v), "cost": round(c, 3)} for v, c in result.evaluations],
+    }
+    return {"status": status, "parameters": records, "shooting": shooting}, runs
 
 
 def ground_with_interaction(
@@ -1055,6 +1130,7 @@ def ground_with_interaction(
         advice = frame_rate_advice(payload["tracking"]["fps"])
         if advice:
             log.warning("%s", advice)
+        payload["calibration_method"] = options.calibration
         payload["match_before"] = _clip_match(grounded / "scene.xml", segments)
         calibrated = False
         view_point_m = view_point_of(tracked.world_from_cam)
@@ -1085,6 +1161,11 @@ def ground_with_interaction(
                 progress=report,
             )
             seconds["calibrate"] = time.perf_counter() - tick
+        elif options.calibration == "shooting":
+            payload["calibration"] = {
+                "status": "skipped: multiple shooting calibrates one object at a time, and these objects touch where "
+                "tracked together (or per-object calibration is off); use calibration 'windows'"
+            }
         elif not segments:
             payload["calibration"] = {
                 "status": "skipped: no frame has every object tracked, and the objects cannot be calibrated one at a "
@@ -1177,6 +1258,12 @@ def _markdown(payload: dict[str, Any]) -> str:
                 "",
             ]
     for body, info in payload["calibration"].get("per_object", {}).items():
+        if "shooting" in info:
+            shot = info["shooting"]
+            lines.append(
+                f"- {body}: multiple shooting over {shot['nodes']} nodes ({len(shot['runs'])} run(s)), best cost "
+                f"{shot['cost']:.1f} of {len(shot['evaluations'])} points searched"
+            )
         for refit in info.get("start_refinement", []):
             fits = refit["windows"]
             if fits:

@@ -33,6 +33,7 @@ import mujoco.rollout
 import numpy as np
 from scipy.optimize import least_squares
 
+from grounder._calibrate_params import Parameter
 from grounder._residual import quat_to_rotvec, rotvec_to_quat
 from grounder._simulate import along_view_weighted
 from grounder._track_smooth import quat_conj, quat_mul
@@ -62,6 +63,18 @@ class ShootingOptions:
         max_evaluations: least-squares evaluations per continuation stage.
         friction_grid, damping_grid: the sliding friction and damping ratio values searched.
         resolution_cost: values whose cost is within this of the best are "indistinguishable" (chi-square units).
+        search_steps: `fit_contact`'s compass search: its step sizes, coarse to fine, in lattice units of
+            `resolution_fraction` / 8 on a log scale (20%: 16 is x1.44, 8 is x1.2, 2 is x1.047).
+        max_moves: at most this many moves of the search's centre per step size.
+        cold_fit_step: at search steps this large or larger (and at the final 20% checks) each point's node states
+            are also fitted from the tracked ones, not only from the nearest point's (a warm start is enough for
+            the fine steps, and 2-4 times cheaper).
+        max_restarts: where a final 20% check costs less than the search's best point, the search goes on from
+            there (fine steps), at most this often.
+        contact_prior_log_sigma: `fit_contact`'s weak prior on each contact value: the standard deviation of its
+            logarithm around the grounded (property model's) value; 1.0 is a factor of e.
+        resolution_fraction: `fit_contact` calls a value resolved when every point within `resolution_cost` of
+            the best lies within this fraction of it.
     """
 
     node_frames: int = 3
@@ -77,6 +90,12 @@ class ShootingOptions:
     friction_grid: tuple[float, ...] = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.7, 0.8)
     damping_grid: tuple[float, ...] = (0.1, 0.15, 0.2, 0.25, 0.3, 0.4)
     resolution_cost: float = 6.0
+    search_steps: tuple[int, ...] = (16, 8, 4, 2)
+    max_moves: int = 12
+    cold_fit_step: int = 8
+    max_restarts: int = 2
+    contact_prior_log_sigma: float = 1.0
+    resolution_fraction: float = 0.2
 
     def __post_init__(self) -> None:
         if self.node_frames < 1:
@@ -89,6 +108,14 @@ class ShootingOptions:
             grid = getattr(self, name)
             if len(grid) < 2 or any(not v > 0 for v in grid) or list(grid) != sorted(grid):
                 raise GrounderError(f"{name}={grid} but expected two or more increasing values > 0")
+        if not self.search_steps or any(not s >= 1 for s in self.search_steps):
+            raise GrounderError(f"search_steps={self.search_steps} but expected one or more lattice steps >= 1")
+        if self.max_moves < 1:
+            raise GrounderError(f"max_moves={self.max_moves} but expected 1 or more")
+        if not self.contact_prior_log_sigma > 0:
+            raise GrounderError(f"contact_prior_log_sigma={self.contact_prior_log_sigma} but expected > 0")
+        if not 0 < self.resolution_fraction < 1:
+            raise GrounderError(f"resolution_fraction={self.resolution_fraction} but expected a fraction in (0, 1)")
 
 
 def moving_runs(body_trajs: Sequence[Trajectory], fps: float, options: ShootingOptions) -> list[Trajectory]:
@@ -125,6 +152,7 @@ class ShootingProblem:
             raise GrounderError("multiple shooting needs at least one run of tracked motion")
         self.model = model
         self.options = options
+        self.runs = tuple(runs)
         self._datas = [mujoco.MjData(model) for _ in range(2)]
         k = options.node_frames
         dt = float(np.median(np.diff(runs[0].time_s)))
@@ -302,5 +330,147 @@ def contact_profile(
         damping_ratio=float(dampings[best_row]),
         friction_range=(float(frictions[near_cols.min()]), float(frictions[near_cols.max()])),
         damping_range=(float(dampings[near_rows.min()]), float(dampings[near_rows.max()])),
+        nodes=len(problem.nodes),
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class ContactFit:
+    """`fit_contact`'s result for one object.
+
+    Attributes:
+        names: the contact parameters searched (calibration's names).
+        values: the best point's values.
+        ranges: per value, the lowest and highest value among the points evaluated within `resolution_cost` of the
+            best cost.
+        resolved: per value, whether that range lies within `resolution_fraction` of the best value, and points
+            that far off on both sides (or at a bound) were evaluated and cost more.
+        cost: the best point's cost (node states fitted; chi-square units, the contact values' prior included).
+        evaluations: the points evaluated: (values, cost) each, in search order.
+        nodes: shooting nodes.
+    """
+
+    names: tuple[str, ...]
+    values: tuple[float, ...]
+    ranges: tuple[tuple[float, float], ...]
+    resolved: tuple[bool, ...]
+    cost: float
+    evaluations: tuple[tuple[tuple[float, ...], float], ...]
+    nodes: int
+
+
+def fit_contact(
+    model: mujoco.MjModel,
+    contact: Sequence[Parameter],
+    runs: Sequence[Trajectory],
+    options: ShootingOptions,
+    *,
+    view_point_m: Sequence[float] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> ContactFit:
+    """A compass search over the contact values (log scale, from the scene's), with the node states fitted at
+    every point as in `contact_profile`.
+
+    The cost is rough in the contact values (stick-slip, contact points switching: finite differences of it change
+    with the step by a factor of ten), so they are searched without derivatives: from the scene's values, each value
+    is moved up and down by the step in turn and the centre moves to the lowest point, until no move lowers the
+    cost; then the step is halved (`search_steps`). Each point's node states are fitted from those of the nearest
+    point evaluated and, at the coarse steps (`cold_fit_step`), also from the tracked ones; the lower cost counts.
+    At the end each value is also evaluated `resolution_fraction` below and above the best point (the others held
+    there: an approximation of the profile, optimistic where two values trade off); where one of those costs less,
+    the search goes on from it (`max_restarts`).
+
+    Args:
+        model: a single-free-body scene (the object and the table); changed in place, left at the best values.
+        contact: the object's contact parameters (`resolve_parameters`; positive continuous ones), e.g. sliding
+            friction, solref damping ratio and time constant; their scene values centre the search and the prior.
+        runs: the object's tracked runs (`moving_runs`): qpos 7 and qvel 6 per frame.
+    """
+    if not contact:
+        raise GrounderError("fit_contact needs at least one contact parameter to search")
+    for parameter in contact:
+        if not parameter.log_scale or parameter.discrete or not parameter.nominal > 0:
+            raise GrounderError(
+                f"{parameter.name}: multiple shooting searches positive continuous contact values (friction, solref, "
+                "solimp width), not discrete or linear ones"
+            )
+    problem = ShootingProblem(model, runs, options, view_point_m)
+    m = len(contact)
+    unit = np.log(1.0 + options.resolution_fraction) / 8.0
+    nominal = np.array([p.nominal for p in contact])
+    lowest = np.ceil(np.log(np.array([p.lower for p in contact]) / nominal) / unit)
+    highest = np.floor(np.log(np.array([p.upper for p in contact]) / nominal) / unit)
+    evaluated: dict[tuple[int, ...], tuple[float, np.ndarray]] = {}
+    stage = f"multiple shooting: {contact[0].name.split('.', 1)[0]}, points searched"
+
+    def values_at(key: tuple[int, ...]) -> np.ndarray:
+        return nominal * np.exp(np.array(key) * unit)
+
+    def evaluate(key: tuple[int, ...], cold: bool = True) -> float:
+        if key in evaluated:
+            return evaluated[key][0]
+        if np.any(np.array(key) < lowest) or np.any(np.array(key) > highest):
+            return float("inf")
+        values = values_at(key)
+        for parameter, value in zip(contact, values, strict=True):
+            parameter.set_model(model, float(value))
+        fits = [problem.fit(np.zeros(problem.size))] if cold or not evaluated else []
+        if evaluated:
+            near = min(evaluated, key=lambda k: float(np.sum((np.array(k) - key) ** 2)))
+            fits.append(problem.fit(evaluated[near][1], continuation=options.continuation[-2:]))
+        cost, x = min(fits, key=lambda f: f[0])
+        cost += float(np.sum((np.log(values / nominal) / options.contact_prior_log_sigma) ** 2))
+        evaluated[key] = (cost, x)
+        if progress is not None:
+            progress(stage, len(evaluated), len(evaluated) + 2 * m)  # the search's length is not known ahead
+        return cost
+
+    def moved(key: tuple[int, ...], j: int, step: int) -> tuple[int, ...]:
+        return tuple(k + step if i == j else k for i, k in enumerate(key))
+
+    centre = tuple([0] * m)
+    best_cost = evaluate(centre)
+    steps = options.search_steps
+    for _ in range(1 + options.max_restarts):
+        for step in steps:
+            for _ in range(options.max_moves):
+                around = [moved(centre, j, sign * step) for j in range(m) for sign in (-1, 1)]
+                costs = [evaluate(key, cold=step >= options.cold_fit_step) for key in around]
+                if min(costs) >= best_cost:
+                    break
+                best_cost = min(costs)
+                centre = around[int(np.argmin(costs))]
+        # Each value 20% off both ways (8 lattice units), the others at the best point, fitted from the tracked
+        # states too: where one of them costs less (the warm-started fits had stopped in a local minimum), the
+        # search goes on from there with the steps below 20%.
+        checks = [moved(centre, j, sign * 8) for j in range(m) for sign in (-1, 1)]
+        costs = [evaluate(key) for key in checks]
+        if min(costs) >= best_cost:
+            break
+        best_cost = min(costs)
+        centre = checks[int(np.argmin(costs))]
+        steps = tuple(s for s in options.search_steps if s < 8) or options.search_steps[-1:]
+    best = values_at(centre)
+    for parameter, value in zip(contact, best, strict=True):
+        parameter.set_model(model, float(value))
+    keys = list(evaluated)
+    near = np.array([values_at(k) for k in keys if evaluated[k][0] - best_cost <= options.resolution_cost])
+    low, high = near.min(axis=0), near.max(axis=0)
+    share = 1.0 + options.resolution_fraction
+    resolved = []
+    for j in range(m):
+        below, above = moved(centre, j, -8), moved(centre, j, 8)
+        tested = all(
+            key[j] < lowest[j] or key[j] > highest[j] or evaluated[key][0] - best_cost > options.resolution_cost
+            for key in (below, above)
+        )
+        resolved.append(bool(tested and low[j] > best[j] / share * 0.999 and high[j] < best[j] * share * 1.001))
+    return ContactFit(
+        names=tuple(p.name for p in contact),
+        values=tuple(float(v) for v in best),
+        ranges=tuple((float(a), float(b)) for a, b in zip(low, high, strict=True)),
+        resolved=tuple(resolved),
+        cost=best_cost,
+        evaluations=tuple((tuple(float(v) for v in values_at(k)), evaluated[k][0]) for k in keys),
         nodes=len(problem.nodes),
     )

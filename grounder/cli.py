@@ -179,6 +179,13 @@ def ground(
         Path | None,
         typer.Option(help="With --interaction: JSON layout of ArUco markers stuck on the objects (see `track`)."),
     ] = None,
+    calibration: Annotated[
+        str,
+        typer.Option(
+            help="With --interaction: 'windows' (short windows rolled out from tracked states) or 'shooting' "
+            "(multiple shooting over each object's whole tracked run: slower, does not rest on the tracked states)."
+        ),
+    ] = "windows",
     verbose: VerboseOption = False,
 ) -> None:
     """Film a tabletop, get a MuJoCo scene: scene.xml, assets/, scene.json, preview.png.
@@ -210,15 +217,21 @@ def ground(
         )
         if object_markers is not None and interaction is None:
             fail("--object-markers needs --interaction CLIP: the markers are tracked in the interaction clip")
+        if calibration != "windows" and interaction is None:
+            fail("--calibration needs --interaction CLIP: it is how the scene is calibrated to the clip")
         if interaction is not None:
-            from grounder._interaction import InteractionOptions, ground_with_interaction
+            from grounder._interaction import CALIBRATION_METHODS, InteractionOptions, ground_with_interaction
             from grounder._track import TrackOptions
             from grounder._track_markers import load_object_markers
 
             if not interaction.exists():
                 fail(f"interaction clip {interaction} does not exist; give the path of a video of the objects moving")
+            if calibration not in CALIBRATION_METHODS:
+                fail(f"--calibration {calibration!r} is not a method; use one of {', '.join(CALIBRATION_METHODS)}")
             markers = () if object_markers is None else load_object_markers(object_markers)
-            interaction_options = InteractionOptions(ground=options, track=TrackOptions(object_markers=markers))
+            interaction_options = InteractionOptions(
+                ground=options, track=TrackOptions(object_markers=markers), calibration=calibration
+            )
             with stage_progress() as progress:
                 calibrated = ground_with_interaction(
                     source, interaction, out, interaction_options, overwrite=overwrite, progress=progress

@@ -4,6 +4,7 @@ as far off as a tracked one at a landing do not move the contact values."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -114,3 +115,54 @@ def test_bad_settings_and_scenes_are_refused() -> None:
         ShootingProblem(two, [truth], QUICK)
     still = replace(truth, qvel=np.zeros_like(truth.qvel))
     assert moving_runs([still], 30.0, QUICK) == []
+
+
+def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_prior(tmp_path: Path) -> None:
+    """`InteractionOptions(calibration="shooting")` through the per-object calibration: the slider's friction
+    (prior 0.8, recorded at 0.4) comes out within 3% and resolved (every point searched within the resolution cost
+    lies within 20%); the still box shows no motion and keeps its prior; the values are written into the scene."""
+    from test_interaction import PARAMS, TRUE_FRICTION, _recorded, _scene
+
+    from grounder._interaction import InteractionOptions, calibrate_per_body
+
+    traj = _recorded(tmp_path)
+    xml = _scene(tmp_path / "prior", 0.8, 0.8)
+    options = InteractionOptions(calibration="shooting")
+    entry, used = calibrate_per_body(xml, [traj], PARAMS, options, out=tmp_path / "calibrated")
+    slider, still = entry["parameters"]["slider.friction.sliding"], entry["parameters"]["still.friction.sliding"]
+    assert slider["constrained"] and slider["value"] == pytest.approx(TRUE_FRICTION, rel=0.03)
+    assert slider["interval"][0] > TRUE_FRICTION / 1.2 and slider["interval"][1] < TRUE_FRICTION * 1.2
+    assert entry["per_object"]["slider"]["status"].startswith("calibrated by multiple shooting")
+    assert entry["per_object"]["slider"]["shooting"]["nodes"] >= 3
+    assert not still["constrained"] and still["value"] == 0.8
+    assert entry["per_object"]["still"]["status"].startswith("skipped")
+    assert used and all(name.startswith("slider:") for name in used)
+    calibrated = mujoco.MjModel.from_xml_path(str(tmp_path / "calibrated" / "scene.xml"))
+    assert calibrated.geom_friction[calibrated.body("slider").geomadr[0], 0] == pytest.approx(slider["value"], rel=1e-5)
+
+
+def test_an_unknown_calibration_method_is_refused() -> None:
+    from grounder._interaction import InteractionOptions
+
+    with pytest.raises(GrounderError, match="calibration='grid'"):
+        InteractionOptions(calibration="grid")
+    with pytest.raises(GrounderError, match="search_steps"):
+        ShootingOptions(search_steps=())
+
+
+def test_cli_calibration_option_rejects_bad_input(tmp_path: Path) -> None:
+    """`ground --calibration` takes a known method and needs --interaction: one line, exit 2, nothing written."""
+    from typer.testing import CliRunner
+
+    from grounder.cli import app
+
+    scan = Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"
+    clip = Path(__file__).resolve().parents[1] / "samples" / "toss" / "video.mp4"
+    runner = CliRunner()
+    out = tmp_path / "o"
+    result = runner.invoke(app, ["ground", str(scan), "-o", str(out), "--calibration", "shooting"])
+    assert result.exit_code == 2 and "needs --interaction" in result.output and not out.exists()
+    result = runner.invoke(
+        app, ["ground", str(scan), "-o", str(out), "--interaction", str(clip), "--calibration", "grid"]
+    )
+    assert result.exit_code == 2 and "'grid' is not a method" in result.output and not out.exists()
