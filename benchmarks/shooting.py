@@ -68,6 +68,7 @@ def main() -> None:
     parser.add_argument("--clip", type=Path, required=True, help="the clip it tracked (with truth/)")
     parser.add_argument("--bodies", default="", help="comma-separated object names (default: all)")
     parser.add_argument("--grid", action="store_true", help="the cost table over a grid (time constant at the prior)")
+    parser.add_argument("--node-frames", type=int, default=None, help="ShootingOptions.node_frames (default: its)")
     args = parser.parse_args()
     scene, tracks = args.run / "grounded", args.run / "interaction" / "tracks"
     for needed in (scene / "scene.xml", tracks / "track.json", args.clip / "truth" / "scene.xml"):
@@ -86,7 +87,7 @@ def main() -> None:
     offsets = truth_offsets(scene)
     report = args.run / "interaction.json"
     windowed = json.loads(report.read_text())["calibration"]["parameters"] if report.is_file() else {}
-    options = ShootingOptions()
+    options = ShootingOptions() if args.node_frames is None else ShootingOptions(node_frames=args.node_frames)
     counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}  # within 20%, wrong, unresolved
     for body in bodies:
         true_values = rendered[offsets[body][0]]

@@ -13,14 +13,16 @@ its rolled-out state must meet the next node (continuity defects over `defect_si
 prior around the tracked pose. With the defects tight the nodes form one trajectory: the state before a landing is
 fixed by the flight frames before it and by the slide after it at once, which no single window sees.
 
-The contact values are searched on a grid (sliding friction x damping ratio, the time constant held at the
-prior). At each grid point the node states are fitted by least squares (`scipy.optimize.least_squares`, a
-finite-difference Jacobian from one batched rollout of 24 perturbed node sets: nodes two apart share no
-residual), first with the defects loosened (x `continuation`) and then tightened, from the tracked states and from
-the neighbouring grid point's states; the lower cost counts. The result is the grid's cost table, the best point
-and the values whose cost lies within `resolution_cost` of it.
+`fit_contact` (the calibration `ground --interaction --calibration shooting` runs) searches the contact values
+(sliding friction, damping ratio, time constant) by a compass search on a log scale, without derivatives: the cost
+is rough in them. At each point the node states are fitted by least squares (`scipy.optimize.least_squares`, a
+finite-difference Jacobian from one batched rollout of 24 perturbed node sets: nodes two apart share no residual),
+first with the defects loosened (x `continuation`) and then tightened, from the tracked states and from the
+nearest point's states; the lower cost counts. `contact_profile` instead fills a grid of sliding friction x
+damping ratio with the time constant held (`benchmarks/shooting.py --grid`).
 
-An experiment, not yet the tool's calibration: figures in README ("A calibrated scene from video alone").
+Opt-in, not the default calibration: the node fit stops in local minima that depend on where it starts, so the
+costs it compares are rough. Figures in README ("Multiple shooting over the whole run").
 """
 
 from __future__ import annotations

@@ -123,7 +123,7 @@ def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_pr
     lies within 20%); the still box shows no motion and keeps its prior; the values are written into the scene."""
     from test_interaction import PARAMS, TRUE_FRICTION, _recorded, _scene
 
-    from grounder._interaction import InteractionOptions, calibrate_per_body
+    from grounder._interaction import InteractionOptions, _markdown, calibrate_per_body
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -139,6 +139,15 @@ def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_pr
     assert used and all(name.startswith("slider:") for name in used)
     calibrated = mujoco.MjModel.from_xml_path(str(tmp_path / "calibrated" / "scene.xml"))
     assert calibrated.geom_friction[calibrated.body("slider").geomadr[0], 0] == pytest.approx(slider["value"], rel=1e-5)
+    shooting = entry["per_object"]["slider"]["shooting"]
+    payload = {
+        "scan": "scan.mp4",
+        "clip": "toss.mp4",
+        "tracking": {"frames": 24, "fps": 30.0, "objects": {}, "segments": []},
+        "calibration": entry,
+        "match_before": {},
+    }
+    assert f"- slider: multiple shooting over {shooting['nodes']} nodes (1 run(s))" in _markdown(payload)
 
 
 def test_an_unknown_calibration_method_is_refused() -> None:
