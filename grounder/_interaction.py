@@ -67,9 +67,9 @@ ProgressFn = Callable[[str, int, int], None]
 # What tracking resolves (about its median error): a parameter whose +-20% step moves its object's rollouts by less,
 # root mean square over the frames, is left at the prior (`screen_parameters`, `InteractionOptions.identify_*`).
 SCREEN_MIN_POSITION_M = 0.001
+SCREEN_MIN_ROTATION_DEG = 0.75
 # `InteractionOptions.calibration`: windows from tracked starts, or multiple shooting over each object's whole run.
 CALIBRATION_METHODS = ("windows", "shooting")
-SCREEN_MIN_ROTATION_DEG = 0.75
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -136,8 +136,8 @@ class InteractionOptions:
         calibration: "windows" (the above) or "shooting": with `per_object`, each object's contact values fitted
             with every state of its whole tracked run by multiple shooting (`grounder._interaction_shooting.
             fit_contact`, settings `shooting`), which does not rest on the tracked start states; the screen, the
-            windows and the start-error profiles are not used. A value is calibrated where its profile resolves
-            it (`ContactFit.resolved`); the others keep the prior.
+            windows and the start-error profiles are not used. A value is calibrated where the points searched
+            resolve it (`ContactFit.resolved`); the others keep the prior. Opt-in: README, "Multiple shooting".
         shooting: settings of the "shooting" calibration.
     """
 
