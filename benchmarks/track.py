@@ -593,7 +593,9 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
 
 def print_screens(params: dict) -> None:
     for name, p in params.items():
-        screen = p.get("screen", {})
+        if "screen" not in p:  # not screened (`--calibration shooting`)
+            continue
+        screen = p["screen"]
         print(
             f"  {name}: grid best {screen.get('grid_best')}, rollout change at -20% {screen.get('change_down_mm_deg')}"
             f" / +20% {screen.get('change_up_mm_deg')} (mm, deg)"
