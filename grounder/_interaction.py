@@ -1008,11 +1008,14 @@ def shoot_body(
             record["unresolved_fit"] = value
         records[parameter.name] = record
     kept = [n for n, r in records.items() if not r["constrained"]]
-    status = (
-        f"calibrated by multiple shooting ({result.nodes} nodes over {len(runs)} run(s), cost {result.cost:.1f}, "
+    searched = (
+        f"multiple shooting ({result.nodes} nodes over {len(runs)} run(s), cost {result.cost:.1f}, "
         f"{len(result.evaluations)} points searched)"
-        + (f"; not resolved by the clip, prior kept: {kept}" if kept else "")
     )
+    if len(kept) == len(records):
+        status = f"not calibrated: {searched} resolved none of its values; prior kept"
+    else:
+        status = f"calibrated by {searched}" + (f"; not resolved by the clip, prior kept: {kept}" if kept else "")
     shooting = {
         "nodes": result.nodes,
         "runs": [t.name for t in runs],
