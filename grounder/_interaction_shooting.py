@@ -154,7 +154,6 @@ class ShootingProblem:
             raise GrounderError("multiple shooting needs at least one run of tracked motion")
         self.model = model
         self.options = options
-        self.runs = tuple(runs)
         self._datas = [mujoco.MjData(model) for _ in range(2)]
         k = options.node_frames
         dt = float(np.median(np.diff(runs[0].time_s)))
