@@ -46,6 +46,8 @@ from grounder.errors import GrounderError
 _NODE_UNIT = np.array([1e-3] * 3 + [np.radians(1.0)] * 3 + [0.03] * 3 + [0.3] * 3)
 # The finite-difference step, in those units.
 _STEP = 0.05
+# `fit_contact`'s lattice: `resolution_fraction` (on a log scale) is this many steps; the final checks are that far.
+_CHECK = 8
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -397,7 +399,7 @@ def fit_contact(
             )
     problem = ShootingProblem(model, runs, options, view_point_m)
     m = len(contact)
-    unit = np.log(1.0 + options.resolution_fraction) / 8.0
+    unit = np.log(1.0 + options.resolution_fraction) / _CHECK
     nominal = np.array([p.nominal for p in contact])
     lowest = np.ceil(np.log(np.array([p.lower for p in contact]) / nominal) / unit)
     highest = np.floor(np.log(np.array([p.upper for p in contact]) / nominal) / unit)
@@ -441,16 +443,18 @@ def fit_contact(
                     break
                 best_cost = min(costs)
                 centre = around[int(np.argmin(costs))]
-        # Each value 20% off both ways (8 lattice units), the others at the best point, fitted from the tracked
-        # states too: where one of them costs less (the warm-started fits had stopped in a local minimum), the
-        # search goes on from there with the steps below 20%.
-        checks = [moved(centre, j, sign * 8) for j in range(m) for sign in (-1, 1)]
+        # Each value 20% off both ways, the others at the best point, fitted from the tracked states too: where one
+        # of them costs less (the warm-started fits had stopped in a local minimum), the search goes on from there
+        # with the steps below 20%.
+        checks = [moved(centre, j, sign * _CHECK) for j in range(m) for sign in (-1, 1)]
         costs = [evaluate(key) for key in checks]
         if min(costs) >= best_cost:
             break
         best_cost = min(costs)
         centre = checks[int(np.argmin(costs))]
-        steps = tuple(s for s in options.search_steps if s < 8) or options.search_steps[-1:]
+        steps = tuple(s for s in options.search_steps if s < _CHECK) or options.search_steps[-1:]
+    # The final centre's checks (already evaluated unless the last restart moved it; out of bounds: inf).
+    rises = [[evaluate(moved(centre, j, sign * _CHECK)) - best_cost for sign in (-1, 1)] for j in range(m)]
     best = values_at(centre)
     for parameter, value in zip(contact, best, strict=True):
         parameter.set_model(model, float(value))
@@ -458,14 +462,14 @@ def fit_contact(
     near = np.array([values_at(k) for k in keys if evaluated[k][0] - best_cost <= options.resolution_cost])
     low, high = near.min(axis=0), near.max(axis=0)
     share = 1.0 + options.resolution_fraction
-    resolved = []
-    for j in range(m):
-        below, above = moved(centre, j, -8), moved(centre, j, 8)
-        tested = all(
-            key[j] < lowest[j] or key[j] > highest[j] or evaluated[key][0] - best_cost > options.resolution_cost
-            for key in (below, above)
+    resolved = [
+        bool(
+            min(rise) > options.resolution_cost
+            and low[j] > best[j] / share * 0.999
+            and high[j] < best[j] * share * 1.001
         )
-        resolved.append(bool(tested and low[j] > best[j] / share * 0.999 and high[j] < best[j] * share * 1.001))
+        for j, rise in enumerate(rises)
+    ]
     return ContactFit(
         names=tuple(p.name for p in contact),
         values=tuple(float(v) for v in best),

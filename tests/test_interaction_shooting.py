@@ -175,3 +175,25 @@ def test_cli_calibration_option_rejects_bad_input(tmp_path: Path) -> None:
         app, ["ground", str(scan), "-o", str(out), "--interaction", str(clip), "--calibration", "grid"]
     )
     assert result.exit_code == 2 and "'grid' is not a method" in result.output and not out.exists()
+
+
+def test_the_search_judges_its_last_centre_even_when_a_check_moved_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A cost whose minimum lies far above the start: with one move per step and no restart, a 20% check is lower
+    and becomes the centre as the search ends; that centre's own checks are then evaluated (a KeyError before) and
+    the value, still falling, is reported unresolved."""
+    from grounder._calibrate_params import resolve_parameters
+    from grounder._interaction_shooting import fit_contact
+
+    model, truth = _thrown()
+    (friction,) = resolve_parameters(model, ["ball.friction.sliding"])
+    target = friction.nominal * 1.2**2.5  # 2.5 checks above the start
+
+    def fit(self: ShootingProblem, start: np.ndarray, continuation: object = None) -> tuple[float, np.ndarray]:
+        return 100.0 * float(np.log(model.geom_friction[1, 0] / target) ** 2), np.zeros(self.size)
+
+    monkeypatch.setattr(ShootingProblem, "fit", fit)
+    options = ShootingOptions(search_steps=(2,), max_moves=1, max_restarts=0, contact_prior_log_sigma=100.0)
+    result = fit_contact(model, [friction], [truth], options)
+    assert result.values[0] == pytest.approx(friction.nominal * 1.2 ** (10 / 8))  # moved 2, then checked +8
+    assert result.resolved == (False,)
+    assert any(v[0] == pytest.approx(friction.nominal * 1.2 ** (18 / 8)) for v, _ in result.evaluations)
