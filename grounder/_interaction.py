@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from grounder._ground import GroundOptions, ground
-from grounder._interaction_shooting import ShootingOptions
+from grounder._interaction_shooting import ShootingOptions, fit_contact, moving_runs
 from grounder._track import TrackOptions, TrackResult, object_trajectories, track
 from grounder._track_smooth import SmoothingOptions, quat_from_matrix
 from grounder._trajectory import Trajectory, save_trajectories
@@ -987,7 +987,6 @@ def shoot_body(
     import mujoco
 
     from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction_shooting import fit_contact, moving_runs
 
     runs = []
     if body_trajs:
