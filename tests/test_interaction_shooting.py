@@ -3,6 +3,7 @@ as far off as a tracked one at a landing do not move the contact values."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 from pathlib import Path
 
@@ -99,12 +100,41 @@ def test_the_fit_recovers_the_throw_and_is_exact_at_the_truth() -> None:
     assert np.abs(qvel[0, :3] - truth.qvel[0, :3]).max() < 0.01
 
 
+def test_sampling_sweeps_get_below_where_least_squares_stops() -> None:
+    """From velocities 0.1 m/s off, least squares from the tracked states stops at cost 31 (the bounces' vertical
+    velocities stay centimetres per second off). Each sampling sweep replaces a node's state only by a candidate
+    that lowers every residual depending on it, so the cost never rises; from the sweeps (four seeds, each finished
+    both ways `fit_contact` finishes it) the fit gets below least squares alone, on the median and by 90% at best."""
+    model, truth = _thrown()
+    _set_contact(model, *TRUE)
+    off = replace(truth, qvel=truth.qvel + np.array([0.1, -0.1, 0.1, 0.0, 0.0, 0.0]))
+    problem = ShootingProblem(model, [off], ShootingOptions())
+    plain, _ = problem.fit(np.zeros(problem.size))
+    assert plain > 25.0
+    x = np.zeros((len(problem.nodes), 12))
+    history = [float(np.sum(problem.residuals(x[None]) ** 2))]
+    rng = np.random.default_rng(0)
+    for scale in (8.0, 2.0, 0.5):
+        problem._sweep(x, np.array([0.5] * 3 + [0.3] * 3 + [scale] * 6), 64, rng)
+        history.append(float(np.sum(problem.residuals(x[None]) ** 2)))
+    assert all(b <= a for a, b in itertools.pairwise(history)) and history[-1] < 0.5 * history[0]
+    costs = []
+    for seed in range(4):
+        sampled = problem.sampled_start(np.random.default_rng(seed))
+        costs.append(min(problem.fit(sampled, continuation=(1.0,))[0], problem.fit(sampled)[0]))
+    assert np.median(costs) < plain and min(costs) < 0.1 * plain
+
+
 def test_bad_settings_and_scenes_are_refused() -> None:
     model, truth = _thrown()
     with pytest.raises(GrounderError, match="friction_grid"):
         ShootingOptions(friction_grid=(0.5, 0.2))
     with pytest.raises(GrounderError, match="node_frames"):
         ShootingOptions(node_frames=0)
+    with pytest.raises(GrounderError, match="sampling_draws=1"):
+        ShootingOptions(sampling_draws=1)
+    with pytest.raises(GrounderError, match="sampling_scales"):
+        ShootingOptions(sampling_scales=(4.0, 0.0))
     with pytest.raises(GrounderError, match="at least one run"):
         ShootingProblem(model, [], QUICK)
     two = mujoco.MjModel.from_xml_string(
@@ -192,7 +222,9 @@ def test_the_search_judges_its_last_centre_even_when_a_check_moved_it(monkeypatc
         return 100.0 * float(np.log(model.geom_friction[1, 0] / target) ** 2), np.zeros(self.size)
 
     monkeypatch.setattr(ShootingProblem, "fit", fit)
-    options = ShootingOptions(search_steps=(2,), max_moves=1, max_restarts=0, contact_prior_log_sigma=100.0)
+    options = ShootingOptions(
+        search_steps=(2,), max_moves=1, max_restarts=0, contact_prior_log_sigma=100.0, sampling_draws=0
+    )
     result = fit_contact(model, [friction], [truth], options)
     assert result.values[0] == pytest.approx(friction.nominal * 1.2 ** (10 / 8))  # moved 2, then checked +8
     assert result.resolved == (False,)
