@@ -86,7 +86,7 @@ class ShootingOptions:
             the best lies within this fraction of it.
         sampling_draws: `fit_contact`'s fits from the tracked states start with sampling sweeps
             (`ShootingProblem.sampled_start`): this many candidate states per node and sweep (0: least squares
-            straight from the tracked states, as before 2026-11-25).
+            straight from the tracked states only, the behaviour before the sweeps).
         sampling_scales: the sweeps' velocity and spin perturbations, coarse to fine, in units of 0.03 m/s and
             0.3 rad/s (8: 0.24 m/s, 2.4 rad/s: a tracked velocity at a landing can be that far off).
         sampling_sweeps: sweeps per scale.
