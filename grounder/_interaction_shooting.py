@@ -283,7 +283,7 @@ class ShootingProblem:
 
     def _interval_ends(self, x: np.ndarray) -> np.ndarray:
         """(nodes, 12) variables -> where each interval's rollout ends, as the next node's variables (row j: the end
-        of interval j - 1; row 0 and rows after a run's last interval: zeros)."""
+        of interval j - 1; row 0: zeros; a row after a run's last interval is meaningless and `_sweep` skips it)."""
         qpos, qvel = self.node_states(x[None])
         end = self._rollout(qpos, qvel)[0, :, -1]  # (nodes, 13): qpos, qvel
         base_qpos, base_qvel = self._base_qpos[1:], self._base_qvel[1:]
@@ -292,7 +292,6 @@ class ShootingProblem:
         ends[1:, 3:6] = quat_to_rotvec(quat_mul(quat_conj(base_qpos[:, 3:]), end[:-1, 3:7]))
         ends[1:, 6:] = end[:-1, 7:] - base_qvel
         ends[1:] /= _NODE_UNIT
-        ends[1:] *= self._joined[:-1]
         return ends
 
     def _sweep(self, x: np.ndarray, scale: np.ndarray, draws: int, rng: np.random.Generator) -> None:
