@@ -431,6 +431,7 @@ class ContactFit:
         cost: the best point's cost (node states fitted; chi-square units, the contact values' prior included).
         evaluations: the points evaluated: (values, cost) each, in search order.
         nodes: shooting nodes.
+        restitution: the bounce of the points' contacts (`RestitutionFit`), where solref values are searched.
     """
 
     names: tuple[str, ...]
@@ -440,6 +441,58 @@ class ContactFit:
     cost: float
     evaluations: tuple[tuple[tuple[float, ...], float], ...]
     nodes: int
+    restitution: RestitutionFit | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class RestitutionFit:
+    """The coefficient of restitution of `fit_contact`'s points (`grounder._restitution.body_restitution`, a 1 m/s
+    impact): the clip shows bounces, and where the time constant and the damping ratio trade (a few time steps), it
+    pins their bounce better than either value.
+
+    Attributes:
+        value: the best point's restitution.
+        range: the lowest and highest restitution among the points within `resolution_cost` of the best cost.
+        resolved: that range lies within `resolution_fraction` of the best point's, and points whose restitution
+            lies further off on both sides were evaluated (so they cost more).
+    """
+
+    value: float
+    range: tuple[float, float]
+    resolved: bool
+
+
+def _restitution_fit(
+    model: mujoco.MjModel,
+    contact: Sequence[Parameter],
+    points: Sequence[tuple[np.ndarray, float]],
+    best: np.ndarray,
+    best_cost: float,
+    options: ShootingOptions,
+) -> RestitutionFit | None:
+    """`RestitutionFit` of the evaluated (values, cost) points; None unless a solref value is searched. Leaves the
+    model at `best`."""
+    from grounder._restitution import body_restitution
+
+    if not any(p.name.split(".", 1)[1].startswith("solref.") for p in contact):
+        return None
+    body = contact[0].name.split(".", 1)[0]
+
+    def restitution(values: np.ndarray) -> float:
+        for parameter, value in zip(contact, values, strict=True):
+            parameter.set_model(model, float(value))
+        return body_restitution(model, body)
+
+    bounces = np.array([restitution(values) for values, _ in points])
+    costs = np.array([cost for _, cost in points])
+    value = restitution(best)
+    near = bounces[costs - best_cost <= options.resolution_cost]
+    share = 1.0 + options.resolution_fraction
+    resolved = bool(
+        near.min() > value / share and near.max() < value * share
+        and np.any(bounces <= value / share) and np.any(bounces >= value * share)
+    )  # fmt: skip
+    return RestitutionFit(value=value, range=(float(near.min()), float(near.max())), resolved=resolved)
 
 
 def fit_contact(
@@ -543,9 +596,10 @@ def fit_contact(
     # The final centre's checks (already evaluated unless the last restart moved it; out of bounds: inf).
     rises = [[evaluate(moved(centre, j, sign * _CHECK)) - best_cost for sign in (-1, 1)] for j in range(m)]
     best = values_at(centre)
+    keys = list(evaluated)
+    bounce = _restitution_fit(model, contact, [(values_at(k), evaluated[k][0]) for k in keys], best, best_cost, options)
     for parameter, value in zip(contact, best, strict=True):
         parameter.set_model(model, float(value))
-    keys = list(evaluated)
     near = np.array([values_at(k) for k in keys if evaluated[k][0] - best_cost <= options.resolution_cost])
     low, high = near.min(axis=0), near.max(axis=0)
     share = 1.0 + options.resolution_fraction
@@ -565,4 +619,5 @@ def fit_contact(
         cost=best_cost,
         evaluations=tuple((tuple(float(v) for v in values_at(k)), evaluated[k][0]) for k in keys),
         nodes=len(problem.nodes),
+        restitution=bounce,
     )
