@@ -55,6 +55,7 @@ import numpy as np
 
 from grounder._ground import GroundOptions, ground
 from grounder._interaction_shooting import ShootingOptions, fit_contact, moving_runs
+from grounder._restitution import REFERENCE_IMPACT_SPEED_M_S, body_restitution
 from grounder._track import TrackOptions, TrackResult, object_trajectories, track
 from grounder._track_smooth import SmoothingOptions, quat_from_matrix
 from grounder._trajectory import Trajectory, save_trajectories
@@ -918,6 +919,8 @@ def calibrate_per_body(
         }
         if "shooting" in sub:
             entry["per_object"][body]["shooting"] = sub["shooting"]
+        if "restitution" in sub:
+            entry["per_object"][body]["restitution"] = sub["restitution"]
         for name in body_params:
             record = sub["parameters"].get(name, {})
             entry["parameters"][name] = record
@@ -1006,6 +1009,24 @@ def shoot_body(
         else:
             record["unresolved_fit"] = value
         records[parameter.name] = record
+    bounce = result.restitution
+    restitution: dict[str, Any] = {}
+    if bounce is not None:
+        restitution = {
+            "value": bounce.value,
+            "range": list(bounce.range),
+            "resolved": bounce.resolved,
+            "impact_speed_m_s": REFERENCE_IMPACT_SPEED_M_S,
+        }
+        if bounce.resolved:
+            # The bounce pins the pair (time constant, damping ratio), not each value: where one of them is not
+            # resolved by itself, keeping its prior beside the other's fit would bounce differently from the fit.
+            for parameter, value in zip(contact, result.values, strict=True):
+                record = records[parameter.name]
+                if ".solref." in parameter.name and not record["constrained"]:
+                    record.pop("unresolved_fit", None)
+                    record.update(value=value, interval=record["indistinguishable"], constrained=True)
+                    record["set_with_restitution"] = True
     kept = [n for n, r in records.items() if not r["constrained"]]
     searched = (
         f"multiple shooting ({result.nodes} nodes over {len(runs)} run(s), cost {result.cost:.1f}, "
@@ -1021,7 +1042,10 @@ def shoot_body(
         "cost": round(result.cost, 3),
         "evaluations": [{"values": list(v), "cost": round(c, 3)} for v, c in result.evaluations],
     }
-    return {"status": status, "parameters": records, "shooting": shooting}, runs
+    entry = {"status": status, "parameters": records, "shooting": shooting}
+    if restitution:
+        entry["restitution"] = restitution
+    return entry, runs
 
 
 def ground_with_interaction(
@@ -1195,6 +1219,9 @@ def ground_with_interaction(
                 shutil.move(str(child), stage / child.name)
             (stage / "calibrated").rmdir()
             payload["match_after"] = _clip_match(stage / "scene.xml", segments)
+        payload["restitution"] = scene_restitution(
+            grounded / "scene.xml", stage / "scene.xml" if calibrated else None, names
+        )
         if not calibrated:
             for child in grounded.iterdir():
                 if child.name != "reconstruction":
@@ -1213,6 +1240,22 @@ def ground_with_interaction(
         track=tracked,
         report=payload,
     )
+
+
+def scene_restitution(before_xml: Path, after_xml: Path | None, objects: Sequence[str]) -> dict[str, Any]:
+    """Per object, the coefficient of restitution of its contacts (`grounder._restitution.body_restitution`, a
+    normal impact at `REFERENCE_IMPACT_SPEED_M_S`) in the grounded scene (`before`: the property model's prior)
+    and in the calibrated one (`after`; the prior's where not calibrated)."""
+    import mujoco
+
+    models = {"before": mujoco.MjModel.from_xml_path(str(before_xml))}
+    if after_xml is not None:
+        models["after"] = mujoco.MjModel.from_xml_path(str(after_xml))
+    out: dict[str, Any] = {"impact_speed_m_s": REFERENCE_IMPACT_SPEED_M_S, "objects": {}}
+    for name in objects:
+        values = {key: round(body_restitution(model, name), 4) for key, model in models.items()}
+        out["objects"][name] = {"before": values["before"], "after": values.get("after", values["before"])}
+    return out
 
 
 def _markdown(payload: dict[str, Any]) -> str:
@@ -1238,6 +1281,8 @@ def _markdown(payload: dict[str, Any]) -> str:
         ]
         for name, p in params.items():
             seen = "yes" if p.get("constrained", True) else "no: prior kept"
+            if p.get("set_with_restitution"):
+                seen = "with the bounce: the restitution is resolved, this value alone is not"
             if "unresolved_fit" in p:
                 seen += f" (the fit, {p['unresolved_fit']:.4g}, is not resolved where it landed)"
             starts = "-"
@@ -1277,6 +1322,25 @@ def _markdown(payload: dict[str, Any]) -> str:
                     f"{np.median(position):.1f} mm (max {max(position):.1f})"
                 )
     if payload["calibration"].get("per_object"):
+        lines.append("")
+    bounce = payload.get("restitution", {})
+    if bounce.get("objects"):
+        speed = bounce["impact_speed_m_s"]
+        lines += [
+            f"## Bounce: coefficient of restitution of each object's contacts ({speed:g} m/s normal impact)",
+            "",
+            "MuJoCo's contact has no restitution parameter; this is the bounce its time constant and damping ratio",
+            "produce in this scene (a drop test, `grounder._restitution`).",
+            "",
+            "| object | before | after | multiple shooting: range within the resolution cost |",
+            "|---|---|---|---|",
+        ]
+        for name, e in bounce["objects"].items():
+            shot = payload["calibration"].get("per_object", {}).get(name, {}).get("restitution")
+            span = "-"
+            if shot:
+                span = "{:.3f} .. {:.3f}".format(*shot["range"]) + ("" if shot["resolved"] else " (not resolved)")
+            lines.append(f"| {name} | {e['before']:.3f} | {e['after']:.3f} | {span} |")
         lines.append("")
     lines += ["## Match with the clip", ""]
     per_object = {b: i["window_match"] for b, i in payload["calibration"].get("per_object", {}).items()}

@@ -229,3 +229,38 @@ def test_the_search_judges_its_last_centre_even_when_a_check_moved_it(monkeypatc
     assert result.values[0] == pytest.approx(friction.nominal * 1.2 ** (10 / 8))  # moved 2, then checked +8
     assert result.resolved == (False,)
     assert any(v[0] == pytest.approx(friction.nominal * 1.2 ** (18 / 8)) for v, _ in result.evaluations)
+
+
+def test_a_resolved_bounce_sets_both_solref_values_where_one_alone_is_not(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A clip that shows only bounces (the node fit's cost stood in for by the error of the contact's restitution):
+    the search over time constant and damping ratio (from 0.02 s, 0.4) finds the bounce of the truth (0.02 s, 0.2)
+    within 20% and calls it resolved, and both solref values are reported calibrated, one of them with the bounce
+    where it is not resolved by itself, so the scene bounces as the fit did."""
+    from grounder._interaction import shoot_body
+    from grounder._restitution import body_restitution
+
+    _, truth = _thrown()
+    e_true = body_restitution(
+        mujoco.MjModel.from_xml_string(DROPPED_BALL.format(timeconst=0.02, dampratio=0.2)), "ball"
+    )
+
+    def fit(self: ShootingProblem, start: np.ndarray, continuation: object = None) -> tuple[float, np.ndarray]:
+        return 300.0 * float(np.log(body_restitution(self.model, "ball") / e_true) ** 2), np.zeros(self.size)
+
+    monkeypatch.setattr(ShootingProblem, "fit", fit)
+    xml = tmp_path / "ball.xml"
+    xml.write_text(DROPPED_BALL.format(timeconst=0.02, dampratio=0.4))
+    options = ShootingOptions(contact_prior_log_sigma=100.0, sampling_draws=0)
+    params = ["ball.solref.timeconst", "ball.solref.dampratio"]
+    entry, runs = shoot_body(xml, [truth], params, options)
+    bounce = entry["restitution"]
+    assert runs and bounce["resolved"] and bounce["value"] == pytest.approx(e_true, rel=0.2)
+    assert e_true / 1.2 < bounce["range"][0] <= bounce["range"][1] < e_true * 1.2
+    records = entry["parameters"]
+    assert all(records[name]["constrained"] for name in params)
+    assert entry["status"].startswith("calibrated by multiple shooting") and "prior kept" not in entry["status"]
+    best = mujoco.MjModel.from_xml_string(DROPPED_BALL.format(timeconst=0.02, dampratio=0.4))
+    best.geom_solref[1] = [records["ball.solref.timeconst"]["value"], records["ball.solref.dampratio"]["value"]]
+    assert body_restitution(best, "ball") == pytest.approx(bounce["value"])

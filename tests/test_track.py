@@ -293,7 +293,17 @@ def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(tmp_pa
     assert set(report["calibration"]["parameters"]) == {"can.friction.sliding", "can.solref.dampratio"}
     assert report["tracking"]["segments"] == [{"name": "video_00", "first_frame": 0, "last_frame": 5}]
     assert "can" in report["match_after"]
-    mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
+    calibrated = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
+    # The bounce each contact produces, before (the truth scene stands in for the grounded one) and after.
+    from grounder._restitution import body_restitution
+
+    truth = mujoco.MjModel.from_xml_path(str(TOSS / "truth" / "scene.xml"))
+    bounce = report["restitution"]["objects"]
+    for name in ("bowl", "box", "can"):
+        assert bounce[name]["before"] == pytest.approx(body_restitution(truth, name), abs=1e-4)
+        assert bounce[name]["after"] == pytest.approx(body_restitution(calibrated, name), abs=1e-4)
+    assert bounce["box"]["after"] == bounce["box"]["before"]  # not calibrated
+    assert "## Bounce" in (out / "interaction.md").read_text()
 
 
 def test_marker_camera_pose_static_and_per_frame(toss_truth: dict[str, np.ndarray]) -> None:
