@@ -31,9 +31,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from track import contact_values, truth_offsets  # noqa: E402
 
-from grounder._calibrate_params import Parameter, resolve_parameters  # noqa: E402
+from grounder._calibrate_params import Parameter, collision_geoms, resolve_parameters  # noqa: E402
 from grounder._interaction import InteractionOptions, single_body_scene, view_point_of  # noqa: E402
 from grounder._interaction_shooting import ShootingOptions, contact_profile, fit_contact, moving_runs  # noqa: E402
+from grounder._restitution import body_restitution, simulated_restitution  # noqa: E402
 from grounder._track import load_object_trajectories  # noqa: E402
 
 FIELDS = ("friction.sliding", "solref.dampratio")
@@ -69,6 +70,7 @@ def main() -> None:
     parser.add_argument("--bodies", default="", help="comma-separated object names (default: all)")
     parser.add_argument("--grid", action="store_true", help="the cost table over a grid (time constant at the prior)")
     parser.add_argument("--node-frames", type=int, default=None, help="ShootingOptions.node_frames (default: its)")
+    parser.add_argument("--save", type=Path, default=None, help="write each object's points and costs here (JSON)")
     args = parser.parse_args()
     scene, tracks = args.run / "grounded", args.run / "interaction" / "tracks"
     for needed in (scene / "scene.xml", tracks / "track.json", args.clip / "truth" / "scene.xml"):
@@ -89,6 +91,9 @@ def main() -> None:
     windowed = json.loads(report.read_text())["calibration"]["parameters"] if report.is_file() else {}
     options = ShootingOptions() if args.node_frames is None else ShootingOptions(node_frames=args.node_frames)
     counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}  # within 20%, wrong, unresolved
+    # Friction and restitution (the bounce the contact produces, `grounder._restitution`), the issue's two values.
+    bounce_counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}
+    saved: dict[str, object] = {}
     for body in bodies:
         true_values = rendered[offsets[body][0]]
         runs = moving_runs(object_tracks[body], fps, options)
@@ -97,6 +102,11 @@ def main() -> None:
             continue
         with single_body_scene(scene / "scene.xml", body) as sub_xml:
             model = mujoco.MjModel.from_xml_path(str(sub_xml))
+            e_true = simulated_restitution(
+                (true_values["solref.timeconst"], true_values["solref.dampratio"]),
+                model.geom_solimp[collision_geoms(model, model.body(body).id)[0]],
+                model.opt,
+            )
             tick = time.perf_counter()
             if args.grid:
                 setter = contact_setter(*resolve_parameters(model, [f"{body}.{f}" for f in FIELDS]))
@@ -142,9 +152,43 @@ def main() -> None:
                 window_text = f"{window_pct:+.0f}%" if window_ok else "unresolved"
             print(f"  {field}: rendered {true:.4g}; shooting {best:.4g} ({error_pct:+.0f}%, range {span[0]:.4g}.."
                   f"{span[1]:.4g}{'' if ok else ', unresolved'}); windows {window_text}")  # fmt: skip
+            if field == "friction.sliding":
+                tally(bounce_counts["shooting"], ok, error_pct)
+                if record:
+                    tally(bounce_counts["windows"], window_ok, window_pct)
+        if not args.grid and joint.restitution is not None:
+            bounce = joint.restitution
+            e_pct = 100.0 * (bounce.value / e_true - 1.0)
+            tally(bounce_counts["shooting"], bounce.resolved, e_pct)
+            window_text = "not in the run's report"
+            damping = windowed.get(f"{body}.solref.dampratio")
+            if damping:
+                # The windows' written contact: calibrated values, or the prior where one is kept.
+                windows_model = mujoco.MjModel.from_xml_path(str(args.run / "scene.xml"))
+                e_win = body_restitution(windows_model, body)
+                window_pct = 100.0 * (e_win / e_true - 1.0)
+                tally(bounce_counts["windows"], bool(damping.get("constrained")), window_pct)
+                window_text = f"{e_win:.3f} ({window_pct:+.0f}%)" + (
+                    "" if damping.get("constrained") else ", unresolved"
+                )
+            print(f"  restitution at 1 m/s: rendered {e_true:.3f}; shooting {bounce.value:.3f} ({e_pct:+.0f}%, range "
+                  f"{bounce.range[0]:.3f}..{bounce.range[1]:.3f}{'' if bounce.resolved else ', unresolved'}); "
+                  f"windows {window_text}")  # fmt: skip
+        if not args.grid:
+            saved[body] = {
+                "names": list(joint.names),
+                "cost": joint.cost,
+                "points": [{"values": list(v), "cost": c} for v, c in joint.evaluations],
+            }
+            if args.save:
+                args.save.write_text(json.dumps(saved, indent=1) + "\n")
     print(f"\n{args.run} on {args.clip}: friction and damping ratio within 20% of the rendered values")
     for method, (right, wrong, unresolved) in counts.items():
         print(f"  {method}: {right} of {right + wrong} resolved values, {unresolved} unresolved")
+    if not args.grid:
+        print(f"{args.run} on {args.clip}: friction and restitution (1 m/s) within 20% of the rendered values")
+        for method, (right, wrong, unresolved) in bounce_counts.items():
+            print(f"  {method}: {right} of {right + wrong} resolved values, {unresolved} unresolved")
 
 
 if __name__ == "__main__":

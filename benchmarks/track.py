@@ -29,8 +29,10 @@ carried into scene S's grounded body frames: what the grounded shapes allow when
 each object-table contact uses exactly the object's friction and solref (`objects.json`, `table_contact`), and the
 clip is rendered with the physics settings of every exported scene (timestep, integrator, cone); calibration also
 gives the calibrated geoms priority. Restitution is printed both as MuJoCo's damping ratio (what the clip was
-rendered with) and as the coefficient of restitution e of a linear spring-damper contact with that ratio,
-e = exp(-pi d / sqrt(1 - d^2)) (the property model's mapping, `restitution_to_dampratio`).
+rendered with) and as the coefficient of restitution e the contact produces, time constant and damping ratio
+together, for a 1 m/s normal impact (`grounder._restitution`); the counts are given both for friction and damping
+ratio and for friction and restitution (the issue's two values; restitution counted as resolved where the damping
+ratio is).
 """
 
 from __future__ import annotations
@@ -435,26 +437,27 @@ def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, dict[str, float
     return out
 
 
-def restitution(dampratio: float) -> float:
-    """Coefficient of restitution of a linear spring-damper contact with this damping ratio (inverse of
-    `grounder._properties_materials.restitution_to_dampratio`)."""
-    return float(np.exp(-np.pi * dampratio / np.sqrt(1.0 - dampratio**2))) if dampratio < 1.0 else 0.0
-
-
 def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, str]) -> None:
     """Per parameter: rendered value, calibrated value, whether the clip constrains it, its resolution range, the
     relative error (restitution also as e), and its best values with the windows' start speeds off by a typical
     tracking error (`grounder._interaction.start_error_ranges`)."""
+    import mujoco
+
+    from grounder._calibrate_params import collision_geoms
+    from grounder._restitution import body_restitution, simulated_restitution
+
     truth_xml = clip_dir / "truth/scene.xml"
     if not truth_xml.exists():  # samples/toss_occluded: the same simulated toss, re-rendered with a card in front
         truth_xml = ROOT / "samples/toss/truth/scene.xml"
     contact = contact_values(truth_xml, clip_dir)
+    truth = mujoco.MjModel.from_xml_path(str(truth_xml))
     print(
         "| parameter | object | rendered | calibrated | constrained by the clip | indistinguishable range | "
-        "error | as restitution e: rendered / calibrated / error | best value with start speeds off (flag) |"
+        "error | as restitution e at 1 m/s: rendered / calibrated / error | best value with start speeds off (flag) |"
     )
     print("|---|---|---|---|---|---|---|---|---|")
     counts = [0, 0, 0]  # friction and damping ratio: within 20%, wrong, unresolved (prior kept)
+    bounce_counts = [0, 0, 0]  # friction and restitution (the damping ratio's status), likewise
     for name, p in params.items():
         body, field = name.split(".", 1)
         true_name = true_names.get(body, body)
@@ -464,11 +467,17 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
         value = p["value"]
         error = f"{100 * (value - rendered) / rendered:+.0f}%" if constrained else "n/a (prior kept)"
         as_e = "-"
-        if field == "solref.dampratio":
-            e_true, e_cal = restitution(rendered), restitution(value)
+        timeconst = params.get(f"{body}.solref.timeconst")
+        if field == "solref.dampratio" and timeconst is not None:
+            # The bounce the contact produces (`grounder._restitution`): the calibrated time constant and damping
+            # ratio together, in the truth scene's physics settings (those of every exported scene).
+            solimp = truth.geom_solimp[collision_geoms(truth, truth.body(true_name).id)[0]]
+            e_true = body_restitution(truth, true_name)
+            e_cal = simulated_restitution((timeconst["value"], value), solimp, truth.opt)
             as_e = f"{e_true:.3f} / {e_cal:.3f} / " + (
                 f"{100 * (e_cal - e_true) / e_true:+.0f}%" if constrained else "n/a"
             )
+            bounce_counts[2 if not constrained else 0 if abs(e_cal / e_true - 1.0) <= 0.2 else 1] += 1
         starts = "-"
         if "start_error_range" in p:
             starts = "{:.3f}..{:.3f}".format(*p["start_error_range"]) + (
@@ -480,9 +489,15 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
         )
         if field in ("friction.sliding", "solref.dampratio"):
             counts[2 if not constrained else 0 if abs(value / rendered - 1.0) <= 0.2 else 1] += 1
+        if field == "friction.sliding":
+            bounce_counts[2 if not constrained else 0 if abs(value / rendered - 1.0) <= 0.2 else 1] += 1
     print(
         f"friction and damping ratio: {counts[0]} of {counts[0] + counts[1]} resolved values within 20% of the "
         f"rendered ones, {counts[2]} unresolved (prior kept)"
+    )
+    print(
+        f"friction and restitution (1 m/s): {bounce_counts[0]} of {bounce_counts[0] + bounce_counts[1]} resolved "
+        f"values within 20% of the rendered ones, {bounce_counts[2]} unresolved (prior kept)"
     )
 
 
