@@ -94,6 +94,8 @@ def main() -> None:
     # Friction and restitution (the bounce the contact produces, `grounder._restitution`), the issue's two values.
     bounce_counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}
     saved: dict[str, object] = {}
+    # The windows' written contacts: calibrated values, or the prior where one is kept.
+    windows_model = mujoco.MjModel.from_xml_path(str(args.run / "scene.xml"))
     for body in bodies:
         true_values = rendered[offsets[body][0]]
         runs = moving_runs(object_tracks[body], fps, options)
@@ -163,8 +165,6 @@ def main() -> None:
             window_text = "not in the run's report"
             damping = windowed.get(f"{body}.solref.dampratio")
             if damping:
-                # The windows' written contact: calibrated values, or the prior where one is kept.
-                windows_model = mujoco.MjModel.from_xml_path(str(args.run / "scene.xml"))
                 e_win = body_restitution(windows_model, body)
                 window_pct = 100.0 * (e_win / e_true - 1.0)
                 tally(bounce_counts["windows"], bool(damping.get("constrained")), window_pct)

@@ -483,7 +483,6 @@ def _restitution_fit(
 ) -> RestitutionFit | None:
     """`RestitutionFit` of the evaluated (values, cost) points; None unless a solref value is searched. Leaves the
     model at `best`."""
-
     if not any(p.name.split(".", 1)[1].startswith("solref.") for p in contact):
         return None
     body = contact[0].name.split(".", 1)[0]

@@ -27,6 +27,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from grounder._calibrate_params import collision_geoms
 from grounder.errors import GrounderError
 
 REFERENCE_IMPACT_SPEED_M_S = 1.0  # about the landing speed of an object dropped from 5 cm
@@ -170,11 +171,7 @@ def body_restitution_over_phases(
     body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     if body_id < 0:
         raise GrounderError(f"no body named {body!r} in the model; pass one of the scene's object names")
-    geoms = [
-        g
-        for g in range(model.ngeom)
-        if model.geom_bodyid[g] == body_id and (model.geom_contype[g] or model.geom_conaffinity[g])
-    ]
+    geoms = collision_geoms(model, body_id)
     if not geoms:
         raise GrounderError(f"body {body!r} has no colliding geom, so no contact to take a restitution from")
     g = geoms[0]
