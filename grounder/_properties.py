@@ -40,7 +40,7 @@ from grounder._properties_data import (
     project_points,
     shape_features,
 )
-from grounder._properties_materials import restitution_to_dampratio
+from grounder._restitution import contact_solref
 from grounder.errors import GrounderError
 
 if TYPE_CHECKING:
@@ -106,18 +106,18 @@ def _natural(mean_t: np.ndarray, std_t: np.ndarray) -> dict[str, Any]:
         restitution = float(sigmoid(t[4]))
         values.append((density, [sliding, torsional, rolling], restitution, float(np.exp(t[5]))))
     (d, f, e, tc), (d_lo, f_lo, e_lo, tc_lo), (d_hi, f_hi, e_hi, tc_hi) = values
+    # solref is what the exported scene writes: the time constant raised to what its step resolves, the damping ratio
+    # that bounces at the restitution there (`contact_solref`); dampratio falls as restitution rises, so the ends swap.
+    solref = contact_solref(e, tc)
     return {
-        "mean": {
-            "density_kg_m3": d,
-            "friction": f,
-            "solref": [tc, float(restitution_to_dampratio(e))],
-            "restitution": e,
-        },
+        "mean": {"density_kg_m3": d, "friction": f, "solref": list(solref), "restitution": e},
         "spread": {
             "density_kg_m3": [d_lo, d_hi],
             "friction": [[lo, hi] for lo, hi in zip(f_lo, f_hi, strict=True)],
-            # dampratio falls as restitution rises, so the interval's ends swap.
-            "solref": [[tc_lo, tc_hi], [float(restitution_to_dampratio(e_hi)), float(restitution_to_dampratio(e_lo))]],
+            "solref": [
+                [contact_solref(e, tc_lo)[0], contact_solref(e, tc_hi)[0]],
+                [contact_solref(e_hi, solref[0])[1], contact_solref(e_lo, solref[0])[1]],
+            ],
             "restitution": [e_lo, e_hi],
         },
     }
@@ -345,7 +345,7 @@ def _sample_physical(entry: dict[str, Any], rng: np.random.Generator) -> dict[st
         "density_kg_m3": float(math.exp(draw[0])),
         "friction": [float(math.exp(draw[i])) for i in (1, 2, 3)],
         "restitution": e,
-        "solref": [float(math.exp(draw[5])), float(restitution_to_dampratio(e))],
+        "solref": list(contact_solref(e, math.exp(draw[5]))),
     }
 
 

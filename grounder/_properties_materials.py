@@ -224,7 +224,11 @@ class PhysicalProperties:
 
     @property
     def solref(self) -> tuple[float, float]:
-        return (self.timeconst_s, float(restitution_to_dampratio(self.restitution)))
+        """What a scene exported with the default settings writes: the time constant, raised to what the time step
+        resolves, and the damping ratio that bounces at this restitution (`grounder._restitution.contact_solref`)."""
+        from grounder._restitution import contact_solref
+
+        return contact_solref(self.restitution, self.timeconst_s)
 
     def targets(self) -> np.ndarray:
         """(6,) the model's regression targets in `TARGET_NAMES` order."""
@@ -239,13 +243,6 @@ class PhysicalProperties:
                 math.log(self.timeconst_s),
             ]
         )
-
-
-def restitution_to_dampratio(restitution: float | np.ndarray) -> float | np.ndarray:
-    """MuJoCo solref dampratio of a linear spring-damper contact with this coefficient of restitution [MuJoCo]."""
-    log_e = np.log(np.clip(restitution, 1e-6, 1 - 1e-6))
-    out = -log_e / np.sqrt(np.pi**2 + log_e**2)
-    return float(out) if np.ndim(out) == 0 else out
 
 
 def sample_properties(material: Material, rng: np.random.Generator) -> PhysicalProperties:

@@ -224,6 +224,13 @@ class ExportOptions:
         if not self.impratio >= 1.0:
             raise InvalidSceneSpecError(f"{self.impratio=} but expected >= 1")
 
+    def set_physics(self, option: Any) -> None:
+        """Writes the physics settings (time step, integrator, cone, impratio) into an `MjSpec.option`."""
+        option.timestep = self.timestep_s
+        option.integrator = _INTEGRATORS[self.integrator]
+        option.cone = _CONES[self.cone]
+        option.impratio = self.impratio
+
 
 _INTEGRATORS = {
     "Euler": mujoco.mjtIntegrator.mjINT_EULER,
@@ -489,10 +496,7 @@ def _new_spec(staging: Path, options: ExportOptions, cameras: Sequence[CameraSpe
     spec.modelfiledir = str(staging)  # asset paths stay relative to scene.xml
     spec.meshdir = "assets"
     spec.texturedir = "assets"
-    spec.option.timestep = options.timestep_s
-    spec.option.integrator = _INTEGRATORS[options.integrator]
-    spec.option.cone = _CONES[options.cone]
-    spec.option.impratio = options.impratio
+    options.set_physics(spec.option)
     spec.visual.global_.offwidth = max([1280, *(c.width_px for c in cameras)])
     spec.visual.global_.offheight = max([960, *(c.height_px for c in cameras)])
     spec.visual.headlight.ambient = [0.25, 0.25, 0.25]
