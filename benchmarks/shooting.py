@@ -70,6 +70,9 @@ def main() -> None:
     parser.add_argument("--bodies", default="", help="comma-separated object names (default: all)")
     parser.add_argument("--grid", action="store_true", help="the cost table over a grid (time constant at the prior)")
     parser.add_argument("--node-frames", type=int, default=None, help="ShootingOptions.node_frames (default: its)")
+    parser.add_argument(
+        "--cross-fit", type=int, default=None, help="ShootingOptions.cross_fit_points (default: its, 0: off)"
+    )
     parser.add_argument("--save", type=Path, default=None, help="write each object's points and costs here (JSON)")
     args = parser.parse_args()
     scene, tracks = args.run / "grounded", args.run / "interaction" / "tracks"
@@ -89,7 +92,8 @@ def main() -> None:
     offsets = truth_offsets(scene)
     report = args.run / "interaction.json"
     windowed = json.loads(report.read_text())["calibration"]["parameters"] if report.is_file() else {}
-    options = ShootingOptions() if args.node_frames is None else ShootingOptions(node_frames=args.node_frames)
+    settings = {"node_frames": args.node_frames, "cross_fit_points": args.cross_fit}
+    options = ShootingOptions(**{k: v for k, v in settings.items() if v is not None})
     counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}  # within 20%, wrong, unresolved
     # Friction and restitution (the bounce the contact produces, `grounder._restitution`), the two values.
     bounce_counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}
