@@ -651,9 +651,9 @@ def fit_contact(
                     break
                 best_cost = min(costs)
                 centre = around[int(np.argmin(costs))]
-        # Each value 20% off both ways, the others at the best point, fitted from the tracked states too, and the
-        # cheapest points' node states tried at each other and at the checks: where another point now costs less
-        # (the fits had stopped in a local minimum), the search goes on from there with the steps below 20%.
+        # Each value 20% off both ways, the others at the best point, fitted from the tracked states too, and (with
+        # cross fits) every point refitted from the cheapest points' node states: where another point now costs
+        # less (the fits had stopped in a local minimum), the search goes on from there with the steps below 20%.
         checks = [moved(centre, j, sign * _CHECK) for j in range(m) for sign in (-1, 1)]
         costs = [evaluate(key) for key in checks]
         if options.cross_fit_points:

@@ -215,7 +215,7 @@ def contact_solref(
         solimp: the contact's solimp (None: `scene_export.SceneObjectSpec`'s default).
 
     Raises:
-        GrounderError: a restitution outside (0, 1) or a time constant that is not positive.
+        GrounderError: a restitution outside [0, 1] or a time constant that is not positive.
     """
     from scene_export._mjcf import ExportOptions, SceneObjectSpec
 
@@ -225,14 +225,14 @@ def contact_solref(
         raise GrounderError(f"timeconst_s={timeconst_s} but expected a positive contact time constant, e.g. 0.02")
     export = export if export is not None else ExportOptions()
     solimp_t = tuple(float(v) for v in (solimp if solimp is not None else SceneObjectSpec.solimp))
-    timeconsts_s, log_dampratio_rows = _bounce_table(export, solimp_t)
+    timeconsts_s, bounce_rows = _bounce_table(export, solimp_t)
     timeconst_s = float(max(timeconst_s, timeconsts_s[0]))
     # Where the time constant falls between the table's rows (log spaced), and each row's damping ratio for the bounce.
     u = float(np.interp(np.log(timeconst_s), np.log(timeconsts_s), np.arange(len(timeconsts_s))))
     i = min(int(u), len(timeconsts_s) - 2)
     w = u - i
     log_d = [
-        float(np.interp(-restitution, -bounces, np.log(_TABLE_DAMPRATIOS))) for bounces in log_dampratio_rows[i : i + 2]
+        float(np.interp(-restitution, -bounces, np.log(_TABLE_DAMPRATIOS))) for bounces in bounce_rows[i : i + 2]
     ]
     return timeconst_s, float(np.exp((1.0 - w) * log_d[0] + w * log_d[1]))
 
