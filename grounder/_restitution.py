@@ -231,9 +231,7 @@ def contact_solref(
     u = float(np.interp(np.log(timeconst_s), np.log(timeconsts_s), np.arange(len(timeconsts_s))))
     i = min(int(u), len(timeconsts_s) - 2)
     w = u - i
-    log_d = [
-        float(np.interp(-restitution, -bounces, np.log(_TABLE_DAMPRATIOS))) for bounces in bounce_rows[i : i + 2]
-    ]
+    log_d = [float(np.interp(-restitution, -bounces, np.log(_TABLE_DAMPRATIOS))) for bounces in bounce_rows[i : i + 2]]
     return timeconst_s, float(np.exp((1.0 - w) * log_d[0] + w * log_d[1]))
 
 
