@@ -192,7 +192,7 @@ def main() -> None:
     )
     parser.add_argument(
         "--calibration",
-        choices=("windows", "shooting"),
+        choices=("windows", "shooting", "impacts"),
         default=None,
         help="with --calibrate: InteractionOptions.calibration (default: the tool's, windows)",
     )
@@ -349,6 +349,7 @@ def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.N
     print_screens(calibration.get("parameters", {}))
     print_parameter_table(calibration.get("parameters", {}), clip_dir, {b: offsets[b][0] for b in offsets})
     print_window_match(calibration)
+    print_impacts(calibration)
     options = _options(args)
     if options.own_runs:
         print_start_errors(scene, clip_dir, out / "interaction/tracks/track.json", options)
@@ -367,6 +368,21 @@ def _seen(record: dict) -> str:
     if "unresolved_fit" in record:
         return f"no: prior kept (fit {record['unresolved_fit']:.3f} unresolved there)"
     return "no: prior kept"
+
+
+def print_impacts(calibration: dict) -> None:
+    """Per object, with `--calibration impacts`: the impacts fitted, the fit's chi-square and the restitution range."""
+    for body, info in calibration.get("per_object", {}).items():
+        if "impacts" not in info:
+            continue
+        fit, bounce = info["impacts"], info["restitution"]
+        print(
+            f"  {body}: {len(fit['names'])} impact(s) {fit['names']}; chi-square {fit['chi2']:.1f} for {fit['dof']} "
+            f"residuals (per impact {fit['chi2_per_impact']}, noise across/along the ray {fit['noise_mm']} mm), "
+            f"threshold {fit['threshold']:.1f}; best {fit['best']}; "
+            f"restitution {bounce['value']:.3f} in {bounce['range'][0]:.3f}..{bounce['range'][1]:.3f} "
+            f"({'resolved' if bounce['resolved'] else 'unresolved'})"
+        )
 
 
 def print_window_match(calibration: dict) -> None:
@@ -528,6 +544,7 @@ def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.N
     print_screens(entry["parameters"])
     print_parameter_table(entry["parameters"], clip_dir, {b: offsets[b][0] for b in offsets})
     print_window_match(entry)
+    print_impacts(entry)
     if options.own_runs:
         print_start_errors(scene, clip_dir, tracks / "track.json", options)
 
@@ -585,6 +602,7 @@ def true_motion_benchmark(clip_dir: Path, scene: Path, args: argparse.Namespace)
     print_screens(entry["parameters"])
     print_parameter_table(entry["parameters"], clip_dir, {b: offsets[b][0] for b in offsets})
     print_window_match(entry)
+    print_impacts(entry)
 
 
 def _options(args: argparse.Namespace, **fields: Any) -> Any:

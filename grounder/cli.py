@@ -182,8 +182,10 @@ def ground(
     calibration: Annotated[
         str,
         typer.Option(
-            help="With --interaction: 'windows' (short windows rolled out from tracked states) or 'shooting' "
-            "(multiple shooting over each object's whole tracked run: slower, does not rest on the tracked states)."
+            help="With --interaction: 'windows' (short windows rolled out from tracked states), 'shooting' "
+            "(multiple shooting over each object's whole tracked run: slower, does not rest on the tracked states) "
+            "or 'impacts' (each contact between two tracked free flights, started from the fit of the flight "
+            "before it; for tossed or dropped objects)."
         ),
     ] = "windows",
     verbose: VerboseOption = False,
