@@ -41,6 +41,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -194,7 +195,18 @@ def main() -> None:
         "--calibration",
         choices=("windows", "shooting", "impacts"),
         default=None,
-        help="with --calibrate: InteractionOptions.calibration (default: the tool's, windows)",
+        help="with --calibrate: InteractionOptions.calibration (default: the tool's, impacts)",
+    )
+    parser.add_argument(
+        "--impacts-compare",
+        choices=("flight", "frames"),
+        default=None,
+        help="with --calibration impacts: ImpactOptions.compare (default: the tool's)",
+    )
+    parser.add_argument(
+        "--impacts-only",
+        action="store_true",
+        help="with --calibration impacts: leave what the impacts do not resolve at the prior (no windows)",
     )
     parser.add_argument(
         "--along-view-weight",
@@ -609,6 +621,7 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
     """The benchmark's `InteractionOptions`: the tool's defaults (what `ground --interaction` runs), except the search
     budget and seed, `--start-rounds` and `--along-view-weight` where given."""
     from grounder._interaction import InteractionOptions
+    from grounder._interaction_impacts import ImpactOptions
 
     budget = {"generations": args.generations, "popsize": args.popsize, "seed": args.seed}
     given = {
@@ -621,7 +634,12 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
     }
     chosen = {k: v for k, v in given.items() if v is not None}
     settings = {k: v for k, v in budget.items() if v is not None}
-    return InteractionOptions(calibrate_settings=settings, **chosen, **fields)
+    impacts = ImpactOptions()
+    if args.impacts_compare is not None:
+        impacts = replace(impacts, compare=args.impacts_compare)
+    if args.impacts_only:
+        impacts = replace(impacts, windows_for_unresolved=False)
+    return InteractionOptions(calibrate_settings=settings, impacts=impacts, **chosen, **fields)
 
 
 def print_screens(params: dict) -> None:

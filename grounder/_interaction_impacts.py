@@ -1,4 +1,5 @@
-"""Contact values from impacts bracketed by free flights: `ground --interaction --calibration impacts`.
+"""Contact values from the contacts after free flights: `ground --interaction` (`--calibration impacts`, the
+default).
 
 The windowed calibration (`grounder._interaction`) rolls 0.3 s windows out from tracked start states, and a landing
 turns on that state: a velocity from a few tracked frames, at 30 fps, is tens of mm/s off, and the friction and
@@ -13,28 +14,31 @@ Per object (in a scene of its own with the table, `grounder._interaction.single_
    centre of mass (a line per axis plus the gravity term); a run whose fit improves by more than the BIC penalty when
    cut in two is cut, but only between two frames near enough to the table to touch it in between (a bounce between
    two clear frames at 30 fps). A single frame more than `outlier_sigmas` off the fit is dropped.
-2. **Impacts** (`find_impacts`): two flights at most `max_gap_s` apart bracket a contact. Its start state is the
-   first flight's fitted state at its last frame (centre of mass position and velocity from the parabola; the
-   orientation and a constant spin from a line fit of the rotation vectors), the contact still ahead.
+2. **Impacts** (`find_impacts`): a flight followed by a tracked frame within `max_gap_s` ends in a contact. Its
+   start state is the flight's fitted state at its last frame: centre of mass position and velocity from the
+   parabola, orientation and spin from a torque-free rigid-body fit of its tracked orientations (`spin_at_end`),
+   the contact still ahead; with a covariance from those fits and the tracking noise, which is estimated from the
+   object's own flights across and along the camera's viewing rays (`tracking_noise`).
 3. **Grid** (`fit_impacts`): for each sliding friction x restitution x time constant of the grid, each impact is
-   simulated (one batched `mujoco.rollout`) from its start state to the second flight's frames, and the simulated
-   centre of mass is compared with the second flight's fitted parabola there, in units of the combined uncertainty
-   (the first flight's state propagated ballistically, the second fit's). The restitution is the bounce at 1 m/s
+   simulated (one batched `mujoco.rollout` per chunk of points) from its start state over the tracked frames after
+   it (`compare` "frames", the default: for `max_post_s`, in flight, bouncing or sliding; "flight": only the next
+   flight's, where one follows), and the simulated centre of mass is compared with the tracked one. The residuals'
+   covariance is the frames' tracking noise plus the start's errors carried through the contact (a secant Jacobian
+   of 24 rollouts, at the best point, refined twice). The restitution is the bounce at 1 m/s
    (`grounder._restitution.contact_solref` gives the damping ratio for it at each time constant), so the grid's
    axes are the quantities the clip shows, not the knobs MuJoCo trades against each other.
 4. **Resolution** (`profile_range`): a value's range is the span of grid points within a chi-square increase of
-   `delta_chi2` (scaled by the misfit per degree of freedom where that exceeds 1) of the best; it is resolved where
-   that range lies within `resolution_fraction` of the best value and inside the grid. An impact that only sticks
-   bounds friction from below: its range reaches the grid's top, and the friction stays unresolved.
+   `delta_chi2` (scaled by the misfit per degree of freedom where that exceeds 1) of the best, widened halfway to
+   the next grid values; it is resolved where that range lies within `resolution_fraction` of the best value and
+   inside the grid. A landing that only sticks bounds friction from below: its range reaches the grid's top.
 
-Only the impacts are used: the frames where the object rests or slides on the table are not, so a clip whose objects
-only slide says nothing here (the windowed calibration is for those). Figures in README ("Impacts between flights").
+An object that never flies (pushed, only sliding) has no impacts: `grounder._interaction` calibrates it on windows.
+Figures in README ("Contacts after free flights").
 """
 
 from __future__ import annotations
 
 import copy
-import itertools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -83,7 +87,10 @@ class ImpactOptions:
             the misfit per degree of freedom where that exceeds 1 (4: two sigmas).
         resolution_fraction: a value is resolved where its range lies within this fraction of the best value (and
             away from the grid's ends).
-        max_post_s: at most this much of the second flight is compared (longer flights add little but cost steps).
+        max_post_s: at most this much after the contact is compared (longer flights add little but cost steps).
+        compare: "flight": a contact counts where a second flight follows it, and that flight's frames are compared;
+            "frames": every flight that ends in a contact counts, and every tracked frame after it (in flight, in
+            contact, sliding) is compared, for at most `max_post_s`.
         windows_for_unresolved: in `ground --interaction`, the values the impacts leave unresolved (friction where
             every landing sticks, everything of an object that only slides) are then screened and calibrated on
             windows, as the windowed calibration does, with the impacts' values written in
@@ -105,6 +112,7 @@ class ImpactOptions:
     delta_chi2: float = 4.0
     resolution_fraction: float = 0.2
     max_post_s: float = 0.3
+    compare: str = "frames"
     windows_for_unresolved: bool = True
 
     def __post_init__(self) -> None:
@@ -120,6 +128,8 @@ class ImpactOptions:
             grid = np.asarray(getattr(self, name), np.float64)
             if len(grid) < 1 or np.any(grid <= 0) or np.any(np.diff(grid) <= 0):
                 raise GrounderError(f"{name} must be positive values in increasing order")
+        if self.compare not in ("flight", "frames"):
+            raise GrounderError(f"compare={self.compare!r} but expected 'flight' or 'frames'")
         if np.any(np.asarray(self.restitution_grid) > 1.0):
             raise GrounderError("restitution_grid values must lie in (0, 1]")
 
@@ -164,15 +174,17 @@ class Flight:
 
 @dataclass(frozen=True, kw_only=True)
 class Impact:
-    """A contact bracketed by two flights: the start state (before it) and the frames after it that it must reach.
+    """A contact after a free flight: the start state (before it) and the tracked frames after it that a rollout from
+    that state must reach.
 
     Attributes:
-        name: a label (run index and times).
-        before, after: the two flights.
+        name: a label (run, the flight's last frame and the first frame compared).
+        before: the flight before the contact.
         qpos, qvel: the free joint's start state at `before.ref_s` (body origin; angular velocity in the body frame).
         start_cov: (12, 12) covariance of the start state's errors: centre of mass position (m) and velocity (m/s),
             a rotation (rad) and the angular velocity (rad/s), all world frame.
-        after_rows: (P,) indices into `after`'s frames compared (those within `max_post_s` of its first).
+        after_s: (P,) the times of the frames compared (`ImpactOptions.compare`).
+        after_com_m: (P, 3) their tracked centre of mass.
         noise_m: the tracked centre of mass's error across and along the camera's viewing ray used for this object
             (`ImpactOptions.estimate_noise`; equal without a view point).
         frame_cov: (3P, 3P) covariance of the compared frames' tracked centre of mass (block diagonal, each frame's
@@ -181,17 +193,13 @@ class Impact:
 
     name: str
     before: Flight
-    after: Flight
     qpos: np.ndarray
     qvel: np.ndarray
     start_cov: np.ndarray
-    after_rows: np.ndarray
+    after_s: np.ndarray
+    after_com_m: np.ndarray
     noise_m: tuple[float, float]
     frame_cov: np.ndarray
-
-    @property
-    def after_s(self) -> np.ndarray:
-        return self.after.time_s[self.after_rows]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -531,22 +539,34 @@ def find_impacts(
     )
     impacts = []
     for run, flights in enumerate(per_run):
-        for k, (before, after) in enumerate(itertools.pairwise(flights)):
-            if after.time_s[0] - before.ref_s > options.max_gap_s:
-                continue
+        step_s = float(model.opt.timestep)
+        run_s = np.rint(trajs[run].time_s / step_s) * step_s
+        run_com = _com_m(model, body, trajs[run].qpos)
+        for k, before in enumerate(flights):
+            if options.compare == "flight":
+                if k + 1 == len(flights) or flights[k + 1].time_s[0] - before.ref_s > options.max_gap_s:
+                    continue
+                after = flights[k + 1]
+                keep = after.time_s <= after.time_s[0] + options.max_post_s
+                after_s, after_com = after.time_s[keep], after.com_m[keep]
+            else:  # every tracked frame after the flight, in flight or in contact
+                later = np.flatnonzero(run_s > before.ref_s + 1e-9)
+                if not len(later) or run_s[later[0]] - before.ref_s > options.max_gap_s:
+                    continue
+                later = later[run_s[later] <= run_s[later[0]] + options.max_post_s]
+                after_s, after_com = run_s[later], run_com[later]
             ref_cov = frame_noise_cov(_rays(before.com_ref_m[None], view), (across, along), 1)[0]
             qpos, qvel, cov = _start(model, body, before, spins[run][k], ref_cov, rotation)
-            after_rows = np.flatnonzero(after.time_s <= after.time_s[0] + options.max_post_s)
-            frames = frame_noise_cov(_rays(after.com_m[after_rows], view), (across, along), len(after_rows))
+            frames = frame_noise_cov(_rays(after_com, view), (across, along), len(after_s))
             impacts.append(
                 Impact(
-                    name=f"{trajs[run].name}@{before.ref_s:.3f}-{after.time_s[0]:.3f}s",
+                    name=f"{trajs[run].name}@{before.ref_s:.3f}-{after_s[0]:.3f}s",
                     before=before,
-                    after=after,
                     qpos=qpos,
                     qvel=qvel,
                     start_cov=cov,
-                    after_rows=after_rows,
+                    after_s=after_s,
+                    after_com_m=after_com,
                     noise_m=(across, along),
                     frame_cov=scipy.linalg.block_diag(*frames),
                 )
@@ -670,7 +690,7 @@ def fit_impacts(
         by_field["solref.dampratio"].set_model(m, dampratio)
 
     trajs = [_impact_trajectory(impact, impact.qpos, impact.qvel) for impact in impacts]
-    targets = [impact.after.com_m[impact.after_rows] for impact in impacts]
+    targets = [impact.after_com_m for impact in impacts]
     # Every grid point's simulated centre of mass at every impact's compared frames (the costs are recomputed
     # from these as the start-error covariance is refined, without simulating again).
     predicted_com: list[np.ndarray] = [np.zeros((len(grid), *t.shape)) for t in targets]

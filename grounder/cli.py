@@ -182,12 +182,12 @@ def ground(
     calibration: Annotated[
         str,
         typer.Option(
-            help="With --interaction: 'windows' (short windows rolled out from tracked states), 'shooting' "
-            "(multiple shooting over each object's whole tracked run: slower, does not rest on the tracked states) "
-            "or 'impacts' (each contact between two tracked free flights, started from the fit of the flight "
-            "before it; for tossed or dropped objects)."
+            help="With --interaction: 'impacts' (each contact after a tracked free flight, rolled out from the fit "
+            "of the whole flight; what no landing resolves, e.g. an object that only slides, is calibrated on "
+            "windows), 'windows' (short windows rolled out from tracked states) or 'shooting' (multiple shooting "
+            "over each object's whole tracked run: slower, does not rest on the tracked states)."
         ),
-    ] = "windows",
+    ] = "impacts",
     verbose: VerboseOption = False,
 ) -> None:
     """Film a tabletop, get a MuJoCo scene: scene.xml, assets/, scene.json, preview.png.
@@ -219,7 +219,7 @@ def ground(
         )
         if object_markers is not None and interaction is None:
             fail("--object-markers needs --interaction CLIP: the markers are tracked in the interaction clip")
-        if calibration != "windows" and interaction is None:
+        if calibration != "impacts" and interaction is None:
             fail("--calibration needs --interaction CLIP: it is how the scene is calibrated to the clip")
         if interaction is not None:
             from grounder._interaction import CALIBRATION_METHODS, InteractionOptions, ground_with_interaction

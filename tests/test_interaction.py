@@ -154,6 +154,8 @@ def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scen
     slider, still = entry["parameters"]["slider.friction.sliding"], entry["parameters"]["still.friction.sliding"]
     assert entry["status"].startswith("calibrated per object")
     assert slider["constrained"] and slider["value"] == pytest.approx(TRUE_FRICTION, rel=0.05)
+    # It only slides: no flight, no impact, so the default calibration (impacts) hands it to the windows.
+    assert slider["method"] == "windows" and "no impact" in entry["per_object"]["slider"]["status"]
     assert not still["constrained"] and still["value"] == 0.8
     assert used and all(name.startswith("slider:") for name in used)  # the still box shows no motion to fit
     calibrated = mujoco.MjModel.from_xml_path(str(tmp_path / "calibrated" / "scene.xml"))
