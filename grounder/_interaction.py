@@ -39,6 +39,8 @@ Output folder (written in a temporary sibling and moved into place at the end):
 - `interaction/tracks/`: the tracked trajectories and `track.json` (per-frame valid mask, scores);
 - `interaction/windows/`: the windows the calibration was fitted and validated on, with their tracked starts (how
   far the refits moved each start is in the report's `start_refinement`);
+- `interaction/impacts.png`: with the impacts calibration, each object's chi-square over friction x restitution and its
+  tracked height after each flight against the rollout at the best values;
 - `interaction.json`, `interaction.md`: the report.
 """
 
@@ -59,7 +61,7 @@ from typing import Any
 import numpy as np
 
 from grounder._ground import GroundOptions, ground
-from grounder._interaction_impacts import ImpactOptions, impacts_body
+from grounder._interaction_impacts import ImpactOptions, impacts_body, impacts_figure
 from grounder._interaction_shooting import ShootingOptions, fit_contact, moving_runs
 from grounder._restitution import REFERENCE_IMPACT_SPEED_M_S, body_restitution
 from grounder._track import TrackOptions, TrackResult, object_trajectories, track
@@ -1317,6 +1319,8 @@ def ground_with_interaction(
                     else:
                         shutil.copy2(child, target)
         payload["stage_seconds"] = {k: round(v, 1) for k, v in seconds.items()}
+        if impacts_figure(payload["calibration"].get("per_object", {}), stage / "interaction" / "impacts.png"):
+            payload["impacts_figure"] = "interaction/impacts.png"
         (stage / "interaction.json").write_text(json.dumps(payload, indent=1) + "\n")
         (stage / "interaction.md").write_text(_markdown(payload))
     return InteractionResult(
@@ -1390,11 +1394,16 @@ def _markdown(payload: dict[str, Any]) -> str:
                 f"60 fps or more, or markers on the object, measure the starts better.{rate}",
                 "",
             ]
+    if payload.get("impacts_figure"):
+        lines += [
+            f"![each object's fit to the contacts after its free flights]({payload['impacts_figure']})",
+            "",
+        ]
     for body, info in payload["calibration"].get("per_object", {}).items():
         if "impacts" in info:
             hits = info["impacts"]
             lines.append(
-                f"- {body}: {len(hits['names'])} impact(s) between tracked free flights ({', '.join(hits['names'])}), "
+                f"- {body}: {len(hits['names'])} contact(s) after a tracked free flight ({', '.join(hits['names'])}), "
                 f"chi-square {hits['chi2']:.1f} for {hits['dof']} residuals, tracking noise across / along the "
                 f"viewing ray {hits['noise_mm'][0]:.2f} / {hits['noise_mm'][1]:.2f} mm"
             )

@@ -39,7 +39,7 @@ Figures in README ("Contacts after free flights").
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, cast
@@ -218,6 +218,9 @@ class ImpactFit:
         impacts: the impacts' names.
         chi2_per_impact: the best point's chi-square per impact.
         noise_m: the tracking noise across and along the viewing rays the fit assumed (`ImpactOptions.estimate_noise`).
+        profile: (restitutions, frictions) the lowest chi-square over the time constants at each grid point, minus
+            the best (the picture's heat map).
+        traces: per impact (name, times, tracked centre-of-mass height, simulated height at the best point), m.
     """
 
     friction: float
@@ -235,6 +238,8 @@ class ImpactFit:
     impacts: tuple[str, ...]
     chi2_per_impact: tuple[float, ...] = field(default_factory=tuple)
     noise_m: tuple[float, float] = (0.0, 0.0)
+    profile: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    traces: tuple[tuple[str, np.ndarray, np.ndarray, np.ndarray], ...] = ()
 
 
 def _static_geoms(model: mujoco.MjModel) -> list[int]:
@@ -666,7 +671,7 @@ def fit_impacts(
         GrounderError: no impacts, or a contact parameter missing.
     """
     if not impacts:
-        raise GrounderError("no impacts between free flights to fit; use the windowed calibration for this clip")
+        raise GrounderError("no contact after a free flight to fit; use the windowed calibration for this clip")
     by_field = {p.name.split(".", 1)[1]: p for p in contact}
     missing = {"friction.sliding", "solref.timeconst", "solref.dampratio"} - set(by_field)
     if missing:
@@ -740,6 +745,12 @@ def fit_impacts(
         threshold=threshold,
         impacts=tuple(i.name for i in impacts),
         chi2_per_impact=tuple(float(c) for c in chi2[best]),
+        profile=(
+            total.reshape(len(options.timeconst_grid), len(options.restitution_grid), -1).min(axis=0) - total[best]
+        ),
+        traces=tuple(
+            (i.name, i.after_s, i.after_com_m[:, 2], predicted_com[j][best][:, 2]) for j, i in enumerate(impacts)
+        ),
         noise_m=impacts[0].noise_m,
     )
 
@@ -768,7 +779,7 @@ def impacts_body(
     body = params[0].split(".", 1)[0]
     impacts = find_impacts(model, body, body_trajs, options, view_point_m)
     if not impacts:
-        return {"status": "skipped: no impact between two tracked free flights", "parameters": {}}, []
+        return {"status": "skipped: no impact: no tracked free flight ends in a contact", "parameters": {}}, []
     contact = resolve_parameters(model, [f"{body}.{f}" for f in _CONTACT_FIELDS])
     fit = fit_impacts(model, contact, impacts, options, progress=progress)
     fitted = {
@@ -793,7 +804,9 @@ def impacts_body(
                 record["unresolved_fit"] = float(value)
         records[name] = record
     kept = [n for n, r in records.items() if not r["constrained"]]
-    searched = f"{len(impacts)} impact(s) between free flights, chi-square {fit.chi2:.1f} for {fit.dof} residuals"
+    searched = (
+        f"{len(impacts)} contact(s) after a tracked free flight, chi-square {fit.chi2:.1f} for {fit.dof} residuals"
+    )
     if len(kept) == len(records):
         status = f"not calibrated: {searched} resolved none of its values; prior kept"
     else:
@@ -815,6 +828,59 @@ def impacts_body(
             "chi2_per_impact": [round(c, 3) for c in fit.chi2_per_impact],
             "noise_mm": [round(1e3 * v, 3) for v in fit.noise_m],
             "best": {"friction": fit.friction, "restitution": fit.restitution, "timeconst_s": fit.timeconst_s},
+            "profile": {
+                "friction": list(options.friction_grid),
+                "restitution": list(options.restitution_grid),
+                "chi2_above_best": np.round(fit.profile, 2).tolist(),
+            },
+            "traces": [
+                {
+                    "name": name,
+                    "time_s": np.round(t, 4).tolist(),
+                    "tracked_com_z_m": np.round(z_track, 5).tolist(),
+                    "simulated_com_z_m": np.round(z_sim, 5).tolist(),
+                }
+                for name, t, z_track, z_sim in fit.traces
+            ],
         },
     }
     return entry, list(fit.impacts)
+
+
+def impacts_figure(per_object: Mapping[str, Mapping[str, Any]], path: Path) -> Path | None:
+    """Writes a picture of each object's impact fit (`impacts_body`'s report entries, by object): the chi-square
+    over friction x restitution (lowest over the time constants, above the best; the threshold's contour and the
+    best point marked) and the tracked centre-of-mass height after each flight against the rollout at the best
+    point. None (nothing written) where no object has impacts."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fitted = {body: info for body, info in per_object.items() if info.get("impacts", {}).get("profile")}
+    if not fitted:
+        return None
+    fig, axes = plt.subplots(len(fitted), 2, figsize=(11, 3.6 * len(fitted)), squeeze=False)
+    for row, (body, info) in zip(axes, fitted.items(), strict=True):
+        hits = info["impacts"]
+        profile = hits["profile"]
+        friction, restitution = np.array(profile["friction"]), np.array(profile["restitution"])
+        above = np.array(profile["chi2_above_best"])
+        image = row[0].pcolormesh(friction, restitution, np.log10(1.0 + above), shading="nearest", cmap="viridis")
+        row[0].contour(friction, restitution, above, levels=[hits["threshold"]], colors="white", linewidths=1.2)
+        row[0].plot(hits["best"]["friction"], hits["best"]["restitution"], "r+", markersize=14, mew=2)
+        row[0].set_xscale("log")
+        row[0].set(xlabel="sliding friction", ylabel="restitution at 1 m/s", title=f"{body}: chi-square above the best")
+        fig.colorbar(image, ax=row[0], label="log10(1 + chi-square above best)")
+        for k, trace in enumerate(hits["traces"]):
+            color = f"C{k % 10}"
+            time_s = np.array(trace["time_s"])
+            row[1].plot(time_s, 1e3 * np.array(trace["tracked_com_z_m"]), "o", color=color, ms=4, label=trace["name"])
+            row[1].plot(time_s, 1e3 * np.array(trace["simulated_com_z_m"]), "-", color=color)
+        row[1].set(xlabel="time (s)", ylabel="centre of mass height (mm)", title="tracked (dots), rollout at the best")
+        row[1].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

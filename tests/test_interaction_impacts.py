@@ -11,7 +11,14 @@ import numpy as np
 import pytest
 
 from grounder._calibrate_params import resolve_parameters
-from grounder._interaction_impacts import ImpactOptions, find_flights, find_impacts, fit_impacts, spin_at_end
+from grounder._interaction_impacts import (
+    ImpactOptions,
+    find_flights,
+    find_impacts,
+    fit_impacts,
+    impacts_figure,
+    spin_at_end,
+)
 from grounder._residual import quat_to_mat, rotvec_to_quat
 from grounder._restitution import contact_solref, simulated_restitution
 from grounder._track_smooth import quat_mul
@@ -192,6 +199,13 @@ def test_ground_interaction_calibrates_from_impacts(tmp_path: Path) -> None:
     assert bounce["resolved"] and bounce["value"] == pytest.approx(0.6, rel=0.15)
     assert used and all(name.startswith("box:throw@") for name in used)
     assert entry["per_object"]["box"]["impacts"]["names"]
+    # The picture the report links: one row per object with impacts, nothing for none.
+    import cv2
+
+    picture = impacts_figure(entry["per_object"], tmp_path / "impacts.png")
+    assert picture is not None and cv2.imread(str(picture)).shape[0] > 200
+    assert impacts_figure({"box": {"status": "skipped"}}, tmp_path / "none.png") is None
+    assert not (tmp_path / "none.png").exists()
 
 
 def test_no_flights_no_impacts_and_bad_options_say_what_to_do() -> None:
