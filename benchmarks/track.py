@@ -33,6 +33,10 @@ rendered with) and as the coefficient of restitution e the contact produces, tim
 together, for a 1 m/s normal impact (`grounder._restitution`); the counts are given both for friction and damping
 ratio and for friction and restitution (the issue's two values; restitution counted as resolved where the damping
 ratio is).
+
+`--calibration impacts|windows|shooting` picks the calibration (default: the tool's, impacts); with impacts,
+`--impacts-compare flight|frames` sets `ImpactOptions.compare`, `--impacts-only` leaves what the landings do not
+resolve at the prior (no windows), and the per-object impacts, chi-square, noise and restitution range are printed.
 """
 
 from __future__ import annotations
