@@ -154,8 +154,8 @@ class InteractionOptions:
             contacts after its tracked free flights (`grounder._interaction_impacts`): the state before each
             contact comes from a fit of the whole flight before it, not from a few frames. A value is calibrated
             where the impacts resolve it; the others go to the windows (`ImpactOptions.windows_for_unresolved`)
-            or keep the prior. On five clips of scan D: 19 of 21 resolved friction and restitution values within
-            20% (2 wrong, 9 unresolved) against the windows' 16 of 23 (7 wrong, 7 unresolved; README, "Contacts
+            or keep the prior. On five clips of scan D: 21 of 23 resolved friction and restitution values within
+            20% (2 wrong, 7 unresolved) against the windows' 16 of 23 (7 wrong, 7 unresolved; README, "Contacts
             after free flights").
     """
 
