@@ -436,6 +436,28 @@ def _prior_record(p: Any) -> dict[str, Any]:
     }
 
 
+def fitted_record(parameter: Any, value: float, span: Sequence[float], resolved: bool) -> dict[str, Any]:
+    """A parameter's report entry after a fit that gives a best value and the range the clip cannot tell apart
+    (`indistinguishable`): calibrated to the value where `resolved`, else the prior with the fit as `unresolved_fit`.
+    Shared by the multiple-shooting and the impacts calibrations."""
+    record = _prior_record(parameter)
+    record["indistinguishable"] = [float(v) for v in span]
+    if resolved:
+        record.update(value=float(value), interval=[float(v) for v in span], constrained=True)
+    else:
+        record["unresolved_fit"] = float(value)
+    return record
+
+
+def fit_status(searched: str, records: Mapping[str, Mapping[str, Any]]) -> str:
+    """One object's calibration status after such a fit: what was searched (`searched`, a phrase) and which values
+    it left at the prior."""
+    kept = [n for n, r in records.items() if not r["constrained"]]
+    if len(kept) == len(records):
+        return f"not calibrated: {searched} resolved none of its values; prior kept"
+    return f"calibrated by {searched}" + (f"; not resolved by the clip, prior kept: {kept}" if kept else "")
+
+
 def calibrate_constrained(
     scene_xml: Path,
     trajs: Sequence[Trajectory],
@@ -1032,16 +1054,16 @@ def _windows_for_unresolved(
     fit = object_windows(body_trajs, options)
     if not fit:
         return []
+    base = mujoco.MjModel.from_xml_path(str(sub_xml))
     scene = sub_xml
     if fixed:
-        base = mujoco.MjModel.from_xml_path(str(sub_xml))
         spec = mujoco.MjSpec.from_file(str(sub_xml))
         resolved = resolve_parameters(base, list(fixed))
         apply_to_spec(spec, base, resolved, [fixed[p.name] for p in resolved])
         scene = sub_xml.with_name(f"{sub_xml.stem}_impacts.xml")  # in `single_body_scene`'s private folder
         scene.write_text(spec.to_xml())
     windowed = calibrate_constrained(scene, fit, rest, options, view_point_m=view_point_m, progress=progress)
-    parameters = {p.name: p for p in resolve_parameters(mujoco.MjModel.from_xml_path(str(sub_xml)), rest)}
+    parameters = {p.name: p for p in resolve_parameters(base, rest)}
     for name in rest:
         record = dict(windowed["parameters"][name])
         if record.get("constrained") and record.get("start_sensitive"):
@@ -1089,15 +1111,10 @@ def shoot_body(
     model = mujoco.MjModel.from_xml_path(str(scene_xml))
     contact = resolve_parameters(model, list(params))
     result = fit_contact(model, contact, runs, options, view_point_m=view_point_m, progress=progress)
-    records: dict[str, Any] = {}
-    for parameter, value, span, ok in zip(contact, result.values, result.ranges, result.resolved, strict=True):
-        record = _prior_record(parameter)
-        record["indistinguishable"] = list(span)
-        if ok:
-            record.update(value=value, interval=list(span), constrained=True)
-        else:
-            record["unresolved_fit"] = value
-        records[parameter.name] = record
+    records = {
+        parameter.name: fitted_record(parameter, value, span, ok)
+        for parameter, value, span, ok in zip(contact, result.values, result.ranges, result.resolved, strict=True)
+    }
     bounce = result.restitution
     restitution: dict[str, Any] = {}
     if bounce is not None:
@@ -1116,15 +1133,11 @@ def shoot_body(
                     record.pop("unresolved_fit", None)
                     record.update(value=value, interval=record["indistinguishable"], constrained=True)
                     record["set_with_restitution"] = True
-    kept = [n for n, r in records.items() if not r["constrained"]]
-    searched = (
+    status = fit_status(
         f"multiple shooting ({result.nodes} nodes over {len(runs)} run(s), cost {result.cost:.1f}, "
-        f"{len(result.evaluations)} points searched)"
+        f"{len(result.evaluations)} points searched)",
+        records,
     )
-    if len(kept) == len(records):
-        status = f"not calibrated: {searched} resolved none of its values; prior kept"
-    else:
-        status = f"calibrated by {searched}" + (f"; not resolved by the clip, prior kept: {kept}" if kept else "")
     shooting = {
         "nodes": result.nodes,
         "runs": [t.name for t in runs],

@@ -159,8 +159,7 @@ class Flight:
         ref_s: the time the fit is expressed at (the flight's last frame).
         com_ref_m, vel_ref_m_s: fitted centre of mass position and velocity at `ref_s`.
         cov: (2, 2) covariance of (position, velocity) per axis in units of sigma^2 (same for every axis).
-        rms_m: root-mean-square residual of the fit (3D).
-        residual_m: (K, 3) the fit's residuals.
+        residual_m: (K, 3) the fit's residuals (tracked minus fitted centre of mass).
     """
 
     run: int
@@ -171,18 +170,7 @@ class Flight:
     com_ref_m: np.ndarray
     vel_ref_m_s: np.ndarray
     cov: np.ndarray
-    rms_m: float
     residual_m: np.ndarray
-
-    def at(self, time_s: np.ndarray, gravity_m_s2: np.ndarray) -> np.ndarray:
-        """(T, 3) fitted centre of mass at the given times."""
-        dt = np.asarray(time_s, np.float64)[:, None] - self.ref_s
-        return self.com_ref_m + self.vel_ref_m_s * dt + 0.5 * gravity_m_s2 * dt**2
-
-    def variance_at(self, time_s: np.ndarray) -> np.ndarray:
-        """(T,) variance of the fitted position per axis at the given times, in units of sigma^2."""
-        dt = np.asarray(time_s, np.float64) - self.ref_s
-        return self.cov[0, 0] + 2.0 * dt * self.cov[0, 1] + dt**2 * self.cov[1, 1]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -305,13 +293,12 @@ def fit_flight(run: int, rows: np.ndarray, time_s: np.ndarray, com_m: np.ndarray
         com_ref_m=coef[0],
         vel_ref_m_s=coef[1],
         cov=np.linalg.inv(design.T @ design),
-        rms_m=float(np.sqrt(np.mean(np.sum(residual**2, axis=1)))),
         residual_m=residual,
     )
 
 
-def _chi2(flight: Flight, sigma_m: float, gravity_m_s2: np.ndarray) -> float:
-    return float(np.sum((flight.com_m - flight.at(flight.time_s, gravity_m_s2)) ** 2) / sigma_m**2)
+def _chi2(flight: Flight, sigma_m: float) -> float:
+    return float(np.sum(flight.residual_m**2) / sigma_m**2)
 
 
 def _flights_in(
@@ -330,7 +317,7 @@ def _flights_in(
         return []
     sigma = options.position_sigma_m
     whole = fit_flight(run, rows, time_s, com_m, gravity_m_s2)
-    chi_whole = _chi2(whole, sigma, gravity_m_s2)
+    chi_whole = _chi2(whole, sigma)
     shortest_cut = max(3, options.min_flight_frames)
     if n >= 2 * shortest_cut:
         # A cut costs 6 more coefficients and a cut position (BIC: 7 log(3n)); allowed only where the object could
@@ -342,7 +329,7 @@ def _flights_in(
                 continue
             first = fit_flight(run, rows[:k], time_s[:k], com_m[:k], gravity_m_s2)
             second = fit_flight(run, rows[k:], time_s[k:], com_m[k:], gravity_m_s2)
-            chi = _chi2(first, sigma, gravity_m_s2) + _chi2(second, sigma, gravity_m_s2)
+            chi = _chi2(first, sigma) + _chi2(second, sigma)
             if best is None or chi < best[0]:
                 best = (chi, k)
         if best is not None and chi_whole - best[0] > 7.0 * np.log(3 * n):
@@ -350,12 +337,19 @@ def _flights_in(
             return _flights_in(
                 run, rows[:k], time_s[:k], com_m[:k], clearance_m[:k], gravity_m_s2, options
             ) + _flights_in(run, rows[k:], time_s[k:], com_m[k:], clearance_m[k:], gravity_m_s2, options)
-    residual = np.linalg.norm(com_m - whole.at(time_s, gravity_m_s2), axis=1)
+    residual = np.linalg.norm(whole.residual_m, axis=1)
     worst = int(np.argmax(residual))
     if residual[worst] > options.outlier_sigmas * sigma and n > options.min_flight_frames:
         keep = np.arange(n) != worst
         return [fit_flight(run, rows[keep], time_s[keep], com_m[keep], gravity_m_s2)]
     return [whole]
+
+
+def step_times_s(model: mujoco.MjModel, time_s: np.ndarray) -> np.ndarray:
+    """Frame times on the model's step grid, where rollouts read them (`grounder._simulate.step_indices`) and a clip
+    rendered from MuJoCo shows them: at 30 fps a frame falls up to 1 ms off its nominal time, 2 mm at 2 m/s."""
+    step_s = float(model.opt.timestep)
+    return np.rint(np.asarray(time_s, np.float64) / step_s) * step_s
 
 
 def find_flights(
@@ -368,10 +362,7 @@ def find_flights(
         clearance = clearances_m(model, body, traj.qpos)
         com = _com_m(model, body, traj.qpos)
         clear = clearance > options.clearance_m
-        # Frame times on the model's step grid, where rollouts read them (`grounder._simulate.step_indices`) and a
-        # clip rendered from MuJoCo shows them: at 30 fps a frame falls up to 1 ms off its nominal time, 2 mm at 2 m/s.
-        step_s = float(model.opt.timestep)
-        time_s = np.rint(traj.time_s / step_s) * step_s
+        time_s = step_times_s(model, traj.time_s)
         flights: list[Flight] = []
         edges = np.flatnonzero(np.diff(np.concatenate([[0], clear.astype(np.int8), [0]])))
         for first, end in zip(edges[::2], edges[1::2], strict=True):
@@ -544,8 +535,9 @@ def find_impacts(
     options: ImpactOptions,
     view_point_m: Sequence[float] | None = None,
 ) -> list[Impact]:
-    """The impacts of one object's tracked runs: consecutive flights at most `max_gap_s` apart. `view_point_m`: the
-    camera's centre (world), for the tracking noise along its viewing rays (`tracking_noise`)."""
+    """The impacts of one object's tracked runs: each flight followed within `max_gap_s` by a tracked frame
+    (`compare` "frames") or by another flight (`compare` "flight"). `view_point_m`: the camera's centre (world), for
+    the tracking noise along its viewing rays (`tracking_noise`)."""
     view = None if view_point_m is None else np.asarray(view_point_m, np.float64)
     per_run = find_flights(model, body, trajs, options)
     spins = [
@@ -557,8 +549,7 @@ def find_impacts(
     )
     impacts = []
     for run, flights in enumerate(per_run):
-        step_s = float(model.opt.timestep)
-        run_s = np.rint(trajs[run].time_s / step_s) * step_s
+        run_s = step_times_s(model, trajs[run].time_s)
         run_com = _com_m(model, body, trajs[run].qpos)
         for k, before in enumerate(flights):
             if options.compare == "flight":
@@ -622,7 +613,7 @@ def _impact_trajectory(impact: Impact, qpos: np.ndarray, qvel: np.ndarray) -> Tr
     )
 
 
-def _ballistic_covariance(impact: Impact, options: ImpactOptions) -> np.ndarray:
+def _ballistic_covariance(impact: Impact) -> np.ndarray:
     """(3P, 3P) covariance of the compared frames' residuals as if the start's position and velocity errors went on
     ballistically: a first guess, before the contact's own propagation is known."""
     dt = impact.after_s - impact.before.ref_s
@@ -735,7 +726,7 @@ def fit_impacts(
             progress(f"impacts of {body}", min(start + _CHUNK, len(grid)), len(grid))
     # The start's errors reach the compared frames through the contact: linearised at the best point (first with
     # a ballistic guess, then at the best point under the covariance found), twice.
-    covariances = [_ballistic_covariance(impact, options) for impact in impacts]
+    covariances = [_ballistic_covariance(impact) for impact in impacts]
     for _ in range(3):
         chi2 = np.stack([_chi2_all(predicted_com[j], targets[j], covariances[j]) for j in range(len(impacts))], 1)
         best = int(np.argmin(chi2.sum(axis=1)))
@@ -797,7 +788,7 @@ def impacts_body(
     range; `impacts`: the impacts used and the fit's chi-square) and the impacts' names.
     """
     from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction import _prior_record
+    from grounder._interaction import _prior_record, fit_status, fitted_record
 
     model = mujoco.MjModel.from_xml_path(str(scene_xml))
     body = params[0].split(".", 1)[0]
@@ -815,26 +806,15 @@ def impacts_body(
     by_name = {p.name: p for p in resolve_parameters(model, list(params))}
     records: dict[str, Any] = {}
     for name, parameter in by_name.items():
-        record = _prior_record(parameter)
         sub = name.split(".", 1)[1]
-        if sub in fitted:
-            value, span, resolved = fitted[sub]
-            record["indistinguishable"] = [float(span[0]), float(span[1])]
-            if resolved:
-                record.update(value=float(value), interval=[float(span[0]), float(span[1])], constrained=True)
-                if sub == "solref.timeconst":
-                    record["set_with_restitution"] = True
-            else:
-                record["unresolved_fit"] = float(value)
+        record = fitted_record(parameter, *fitted[sub]) if sub in fitted else _prior_record(parameter)
+        if record["constrained"] and sub == "solref.timeconst":
+            record["set_with_restitution"] = True
         records[name] = record
-    kept = [n for n, r in records.items() if not r["constrained"]]
-    searched = (
-        f"{len(impacts)} contact(s) after a tracked free flight, chi-square {fit.chi2:.1f} for {fit.dof} residuals"
+    status = fit_status(
+        f"{len(impacts)} contact(s) after a tracked free flight, chi-square {fit.chi2:.1f} for {fit.dof} residuals",
+        records,
     )
-    if len(kept) == len(records):
-        status = f"not calibrated: {searched} resolved none of its values; prior kept"
-    else:
-        status = f"calibrated from {searched}" + (f"; not resolved by the clip, prior kept: {kept}" if kept else "")
     entry = {
         "status": status,
         "parameters": records,
