@@ -208,6 +208,12 @@ def main() -> None:
         help="with --calibration impacts: ImpactOptions.compare (default: the tool's)",
     )
     parser.add_argument(
+        "--impacts-rotation",
+        choices=("on", "off"),
+        default=None,
+        help="with --calibration impacts: ImpactOptions.compare_rotation (default: the tool's)",
+    )
+    parser.add_argument(
         "--impacts-only",
         action="store_true",
         help="with --calibration impacts: leave what the impacts do not resolve at the prior (no windows)",
@@ -641,6 +647,8 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
     impacts = ImpactOptions()
     if args.impacts_compare is not None:
         impacts = replace(impacts, compare=args.impacts_compare)
+    if args.impacts_rotation is not None:
+        impacts = replace(impacts, compare_rotation=args.impacts_rotation == "on")
     if args.impacts_only:
         impacts = replace(impacts, windows_for_unresolved=False)
     return InteractionOptions(calibrate_settings=settings, impacts=impacts, **chosen, **fields)

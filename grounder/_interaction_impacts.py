@@ -84,6 +84,14 @@ class ImpactOptions:
             0.2 mm while its tracked centre is 0.2-1.8 mm off the true one, in runs of frames; hence the floor of
             0.5 mm, about the per-axis tracking error against the truth (with 0.2 mm: 19 of 21 resolved values
             within 20% and 9 unresolved on scan D's five clips; with 0.5 mm 21 of 23 and 7).
+        drift_sigma_m, drift_time_s: the part of the tracking error that drifts: an error along the camera's viewing
+            ray (depth) that changes slowly, modelled as a Gaussian process with this standard deviation and
+            correlation time (squared exponential) over the flight's frames and the frames compared after it. It
+            moves the flight's fitted start and the compared frames together, and no flight's residuals show it.
+            On `samples/toss` the tracked bowl is 0.2-1.8 mm off along the ray in runs of 3-8 frames and the can
+            1.5-9 mm for 14 frames. Carried by the sampled propagation (`start_samples`) and the first, ballistic
+            guess; needs a view point. 0 turns it off.
+        drift_rotation_deg: the same for the tracked orientation (per axis, world frame; same correlation time).
         outlier_sigmas: a single frame this many sigmas off its flight's fit is dropped.
         friction_grid, restitution_grid, timeconst_grid: the grid searched (restitution at 1 m/s; time constants
             below `grounder._restitution.MIN_TIMECONST_STEPS` steps are raised to it).
@@ -102,6 +110,9 @@ class ImpactOptions:
         compare: "flight": a contact counts where a second flight follows it, and that flight's frames are compared;
             "frames": every flight that ends in a contact counts, and every tracked frame after it (in flight, in
             contact, sliding) is compared, for at most `max_post_s`.
+        compare_rotation: compare the simulated orientation with the tracked one at the compared frames as well as
+            the centre of mass (rotation residuals, world frame, with the tracking's rotation noise): the friction
+            that turns a landing's slide into spin shows in the orientation more than in the centre's path.
         windows_for_unresolved: in `ground --interaction`, the values the impacts leave unresolved (friction where
             every landing sticks, everything of an object that only slides) are then screened and calibrated on
             windows, as the windowed calibration does, with the impacts' values written in
@@ -112,10 +123,13 @@ class ImpactOptions:
     min_flight_frames: int = 2
     max_gap_s: float = 0.12
     position_sigma_m: float = 1e-3
-    rotation_sigma_deg: float = 0.5
+    rotation_sigma_deg: float = 1.0
     estimate_noise: bool = True
     min_position_sigma_m: float = 5e-4
-    min_rotation_sigma_deg: float = 0.1
+    min_rotation_sigma_deg: float = 0.5
+    drift_sigma_m: float = 1e-3
+    drift_time_s: float = 0.1
+    drift_rotation_deg: float = 1.0
     outlier_sigmas: float = 4.0
     friction_grid: tuple[float, ...] = tuple(float(v) for v in np.geomspace(0.1, 1.5, 28))
     restitution_grid: tuple[float, ...] = tuple(float(v) for v in np.linspace(0.1, 0.9, 33))
@@ -126,6 +140,7 @@ class ImpactOptions:
     compare: str = "frames"
     start_samples: int = 64
     start_seed: int = 0
+    compare_rotation: bool = True
     windows_for_unresolved: bool = True
 
     def __post_init__(self) -> None:
@@ -135,6 +150,8 @@ class ImpactOptions:
             raise GrounderError(f"min_flight_frames={self.min_flight_frames} but expected 2 or more")
         if not self.max_gap_s > 0 or not self.max_post_s > 0:
             raise GrounderError("max_gap_s and max_post_s must be positive durations in seconds")
+        if not self.drift_sigma_m >= 0 or not self.drift_rotation_deg >= 0 or not self.drift_time_s > 0:
+            raise GrounderError("drift_sigma_m and drift_rotation_deg must be >= 0 and drift_time_s positive (s)")
         if not self.position_sigma_m > 0 or not self.outlier_sigmas > 0 or not self.delta_chi2 > 0:
             raise GrounderError("position_sigma_m, outlier_sigmas and delta_chi2 must be positive")
         for name in ("friction_grid", "restitution_grid", "timeconst_grid"):
@@ -186,10 +203,17 @@ class Impact:
             a rotation (rad) and the angular velocity (rad/s), all world frame.
         after_s: (P,) the times of the frames compared (`ImpactOptions.compare`).
         after_com_m: (P, 3) their tracked centre of mass.
+        after_quat_wxyz: (P, 4) their tracked orientations.
+        rotation_sigma_rad: the tracked orientation's error per axis used for this object.
         noise_m: the tracked centre of mass's error across and along the camera's viewing ray used for this object
             (`ImpactOptions.estimate_noise`; equal without a view point).
         frame_cov: (3P, 3P) covariance of the compared frames' tracked centre of mass (block diagonal, each frame's
             noise across and along its own viewing ray).
+        drift_cov: (Z, Z) covariance of the drifting tracking error (`ImpactOptions.drift_sigma_m`,
+            `drift_rotation_deg`) at the flight's K frames and the P compared frames: the depth error (m, K + P
+            values, with a view point), then the orientation error (rad, 3 (K + P)); empty without drift.
+        drift_start: (12, Z) the start state's error (`start_cov`'s order) per unit of that drift.
+        drift_after: (6P, Z) the compared frames' centre-of-mass error (3P), then orientation error (3P), per unit.
     """
 
     name: str
@@ -199,8 +223,13 @@ class Impact:
     start_cov: np.ndarray
     after_s: np.ndarray
     after_com_m: np.ndarray
+    after_quat_wxyz: np.ndarray
+    rotation_sigma_rad: float
     noise_m: tuple[float, float]
     frame_cov: np.ndarray
+    drift_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    drift_start: np.ndarray = field(default_factory=lambda: np.zeros((12, 0)))
+    drift_after: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -528,6 +557,46 @@ def tracking_noise(
     return max(float(np.sqrt(across_ss / (2 * dof))), floor), max(float(np.sqrt(along_ss / dof)), floor), rotation
 
 
+def _drift(
+    flight: Flight, after_s: np.ndarray, after_com_m: np.ndarray, view: np.ndarray | None, options: ImpactOptions
+) -> dict[str, np.ndarray]:
+    """`Impact`'s drift fields for a flight and the frames compared after it (`ImpactOptions.drift_sigma_m`)."""
+    times = np.concatenate([flight.time_s, after_s])
+    k, p = len(flight.time_s), len(after_s)
+    lag = times[:, None] - times[None, :]
+    shape = np.exp(-0.5 * (lag / options.drift_time_s) ** 2)
+    dt = flight.time_s - flight.ref_s
+    fit = np.linalg.pinv(np.stack([np.ones_like(dt), dt], axis=1))  # (2, K): a fit's value and rate at its end
+    covs, starts, afters = [], [], []
+    if view is not None and options.drift_sigma_m > 0:  # the depth error, along each frame's viewing ray
+        rays_before, rays_after = _rays(flight.com_m, view), _rays(after_com_m, view)
+        assert rays_before is not None and rays_after is not None
+        start = np.zeros((12, k + p))
+        start[:3, :k] = rays_before.T * fit[0]
+        start[3:6, :k] = rays_before.T * fit[1]
+        after = np.zeros((6 * p, k + p))
+        after[np.arange(3 * p), k + np.repeat(np.arange(p), 3)] = rays_after.reshape(-1)
+        covs.append(options.drift_sigma_m**2 * shape)
+        starts.append(start)
+        afters.append(after)
+    if options.drift_rotation_deg > 0:  # the orientation error, per world axis (the spin fit, as a constant spin)
+        start = np.zeros((12, 3 * (k + p)))
+        start[6:9, : 3 * k] = np.kron(fit[0], np.eye(3))
+        start[9:12, : 3 * k] = np.kron(fit[1], np.eye(3))
+        after = np.zeros((6 * p, 3 * (k + p)))
+        after[3 * p :, 3 * k :] = np.eye(3 * p)
+        covs.append(np.radians(options.drift_rotation_deg) ** 2 * np.kron(shape, np.eye(3)))
+        starts.append(start)
+        afters.append(after)
+    if not covs:
+        return {}
+    return {
+        "drift_cov": scipy.linalg.block_diag(*covs),
+        "drift_start": np.concatenate(starts, axis=1),
+        "drift_after": np.concatenate(afters, axis=1),
+    }
+
+
 def find_impacts(
     model: mujoco.MjModel,
     body: str,
@@ -558,12 +627,14 @@ def find_impacts(
                 after = flights[k + 1]
                 keep = after.time_s <= after.time_s[0] + options.max_post_s
                 after_s, after_com = after.time_s[keep], after.com_m[keep]
+                after_quat = trajs[run].qpos[after.rows[keep], 3:7]
             else:  # every tracked frame after the flight, in flight or in contact
                 later = np.flatnonzero(run_s > before.ref_s + 1e-9)
                 if not len(later) or run_s[later[0]] - before.ref_s > options.max_gap_s:
                     continue
                 later = later[run_s[later] <= run_s[later[0]] + options.max_post_s]
                 after_s, after_com = run_s[later], run_com[later]
+                after_quat = trajs[run].qpos[later, 3:7]
             ref_cov = frame_noise_cov(_rays(before.com_ref_m[None], view), (across, along), 1)[0]
             qpos, qvel, cov = _start(model, body, before, spins[run][k], ref_cov, rotation)
             frames = frame_noise_cov(_rays(after_com, view), (across, along), len(after_s))
@@ -576,8 +647,11 @@ def find_impacts(
                     start_cov=cov,
                     after_s=after_s,
                     after_com_m=after_com,
+                    after_quat_wxyz=after_quat,
+                    rotation_sigma_rad=rotation,
                     noise_m=(across, along),
                     frame_cov=scipy.linalg.block_diag(*frames),
+                    **_drift(before, after_s, after_com, view, options),
                 )
             )
     return impacts
@@ -613,14 +687,41 @@ def _impact_trajectory(impact: Impact, qpos: np.ndarray, qvel: np.ndarray) -> Tr
     )
 
 
-def _ballistic_covariance(impact: Impact) -> np.ndarray:
-    """(3P, 3P) covariance of the compared frames' residuals as if the start's position and velocity errors went on
-    ballistically: a first guess, before the contact's own propagation is known."""
+def _frames_cov(impact: Impact, rotation: bool) -> np.ndarray:
+    """(D, D) covariance of the compared frames' tracked values (`_compared`'s order): centre of mass, then, with
+    `rotation`, orientation (`impact.rotation_sigma_rad` per axis)."""
+    if not rotation:
+        return impact.frame_cov
+    return scipy.linalg.block_diag(impact.frame_cov, impact.rotation_sigma_rad**2 * np.eye(3 * len(impact.after_s)))
+
+
+def _compared(model: mujoco.MjModel, body: str, impact: Impact, qpos: np.ndarray, rotation: bool) -> np.ndarray:
+    """(D,) what is compared at the impact's frames for simulated states `qpos` (P, nq): the centre of mass
+    (3P, frame by frame) minus the tracked one, then, with `rotation`, the rotation from the tracked orientation
+    to the simulated one (3P, world-frame rotation vectors)."""
+    com = (_com_m(model, body, qpos) - impact.after_com_m).reshape(-1)
+    if not rotation:
+        return com
+    adr = int(model.jnt_qposadr[model.body_jntadr[model.body(body).id]])
+    turn = quat_to_rotvec(quat_mul(qpos[:, adr + 3 : adr + 7], quat_conj(impact.after_quat_wxyz)))
+    return np.concatenate([com, turn.reshape(-1)])
+
+
+def _ballistic_covariance(impact: Impact, rotation: bool) -> np.ndarray:
+    """(D, D) covariance of the compared frames' residuals as if the start's errors went on ballistically (position
+    and velocity; with `rotation`, orientation and constant spin): a first guess, before the contact's own
+    propagation is known."""
     dt = impact.after_s - impact.before.ref_s
     design = np.stack([np.ones_like(dt), dt], axis=1)
-    start = impact.start_cov[:6, :6]
     lift = np.kron(design, np.eye(3))  # (3P, 6): position and velocity to each frame's position
-    return lift @ start @ lift.T + impact.frame_cov
+    start = lift @ impact.start_cov[:6, :6] @ lift.T
+    if rotation:
+        start = scipy.linalg.block_diag(start, lift @ impact.start_cov[6:, 6:] @ lift.T)
+    if impact.drift_cov.size:
+        lifted = [lift @ impact.drift_start[:6]] + ([lift @ impact.drift_start[6:]] if rotation else [])
+        drift_map = np.concatenate(lifted) - impact.drift_after[: len(start)]
+        start = start + drift_map @ impact.drift_cov @ drift_map.T
+    return start + _frames_cov(impact, rotation)
 
 
 def _start_variant(model: mujoco.MjModel, body: str, impact: Impact, delta: np.ndarray) -> Trajectory:
@@ -636,31 +737,43 @@ def _start_variant(model: mujoco.MjModel, body: str, impact: Impact, delta: np.n
 
 
 def _propagated_covariance(model: mujoco.MjModel, body: str, impact: Impact, options: ImpactOptions) -> np.ndarray:
-    """(3P, 3P) covariance of the compared frames' residuals: the tracked frames' own error plus the start's errors
-    carried through the contact. With `options.start_samples`, the sample covariance of the simulated centre of mass
-    over that many start states drawn from `impact.start_cov` (seeded; over several contacts the map from start to
-    frames is far from linear); else J start_cov J^T, with J the central difference over each start-state direction
-    (steps of one standard deviation, so across the contact's switches a secant, not a tangent)."""
+    """(D, D) covariance of the compared frames' residuals (`_compared`'s): the tracked frames' own error plus the
+    start's errors carried through the contact. With `options.start_samples`, the sample covariance of the simulated
+    values over that many start states drawn from `impact.start_cov` and the drift (`Impact.drift_cov`, which also
+    moves the compared frames), seeded; over several contacts the map from start to frames is far from linear. Else
+    J start_cov J^T + the frames' noise, with J the central difference over each start-state direction (steps of one
+    standard deviation, so across the contact's switches a secant, not a tangent); the drift is then left out."""
     if options.start_samples:
         rng = np.random.default_rng(options.start_seed)
         deltas = rng.multivariate_normal(np.zeros(12), impact.start_cov, size=options.start_samples)
+        shifts = np.zeros((options.start_samples, 0))
+        if impact.drift_cov.size:  # the drift moves the start and the compared frames together
+            drift = rng.multivariate_normal(np.zeros(len(impact.drift_cov)), impact.drift_cov, size=len(deltas))
+            deltas += drift @ impact.drift_start.T
+            shifts = drift @ impact.drift_after[: (6 if options.compare_rotation else 3) * len(impact.after_s)].T
         trajs = [_start_variant(model, body, impact, d) for d in deltas]
         drawn = np.stack(
-            [_com_m(model, body, pred.qpos[1:]).reshape(-1) for pred in cast(list[Trajectory], simulate(model, trajs))]
+            [
+                _compared(model, body, impact, pred.qpos[1:], options.compare_rotation)
+                for pred in cast(list[Trajectory], simulate(model, trajs))
+            ]
         )
-        return np.cov(drawn, rowvar=False) + impact.frame_cov
+        drawn[:, : shifts.shape[1]] -= shifts
+        return np.cov(drawn, rowvar=False) + _frames_cov(impact, options.compare_rotation)
     steps = np.sqrt(np.clip(np.diag(impact.start_cov), 1e-12, None))
     trajs = [
         _start_variant(model, body, impact, sign * steps[k] * np.eye(12)[k]) for k in range(12) for sign in (1, -1)
     ]
-    coms = [_com_m(model, body, pred.qpos[1:]).reshape(-1) for pred in cast(list[Trajectory], simulate(model, trajs))]
-    jac = np.stack([(coms[2 * k] - coms[2 * k + 1]) / (2.0 * steps[k]) for k in range(12)], axis=1)
-    return jac @ impact.start_cov @ jac.T + impact.frame_cov
+    values = [
+        _compared(model, body, impact, pred.qpos[1:], options.compare_rotation)
+        for pred in cast(list[Trajectory], simulate(model, trajs))
+    ]
+    jac = np.stack([(values[2 * k] - values[2 * k + 1]) / (2.0 * steps[k]) for k in range(12)], axis=1)
+    return jac @ impact.start_cov @ jac.T + _frames_cov(impact, options.compare_rotation)
 
 
-def _chi2_all(predicted: np.ndarray, target: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """(G,) chi-square of each grid point's (G, P, 3) simulated centre of mass against the (P, 3) tracked one."""
-    residual = (predicted - target[None]).reshape(len(predicted), -1)
+def _chi2_all(residual: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(G,) chi-square of each grid point's (G, D) residuals (`_compared`'s) under covariance `cov` (D, D)."""
     chol = np.linalg.cholesky(cov)
     white = np.linalg.solve(chol, residual.T)
     return np.sum(white**2, axis=0)
@@ -710,10 +823,11 @@ def fit_impacts(
         by_field["solref.dampratio"].set_model(m, dampratio)
 
     trajs = [_impact_trajectory(impact, impact.qpos, impact.qvel) for impact in impacts]
-    targets = [impact.after_com_m for impact in impacts]
-    # Every grid point's simulated centre of mass at every impact's compared frames (the costs are recomputed
-    # from these as the start-error covariance is refined, without simulating again).
-    predicted_com: list[np.ndarray] = [np.zeros((len(grid), *t.shape)) for t in targets]
+    rotation = options.compare_rotation
+    # Every grid point's residuals at every impact's compared frames (the costs are recomputed from these as the
+    # start-error covariance is refined, without simulating again), and its simulated centre of mass (the picture).
+    residuals: list[np.ndarray] = [np.zeros((len(grid), (6 if rotation else 3) * len(i.after_s))) for i in impacts]
+    predicted_com: list[np.ndarray] = [np.zeros((len(grid), *i.after_com_m.shape)) for i in impacts]
     for start in range(0, len(grid), _CHUNK):
         chunk = grid[start : start + _CHUNK]
         models = pool[: len(chunk)]
@@ -722,20 +836,21 @@ def fit_impacts(
         for i, per_model in enumerate(cast(list[list[Trajectory]], simulate(models, trajs))):
             for j, pred in enumerate(per_model):
                 predicted_com[j][start + i] = _com_m(model, body, pred.qpos[1:])
+                residuals[j][start + i] = _compared(model, body, impacts[j], pred.qpos[1:], rotation)
         if progress is not None:
             progress(f"impacts of {body}", min(start + _CHUNK, len(grid)), len(grid))
     # The start's errors reach the compared frames through the contact: linearised at the best point (first with
     # a ballistic guess, then at the best point under the covariance found), twice.
-    covariances = [_ballistic_covariance(impact) for impact in impacts]
+    covariances = [_ballistic_covariance(impact, rotation) for impact in impacts]
     for _ in range(3):
-        chi2 = np.stack([_chi2_all(predicted_com[j], targets[j], covariances[j]) for j in range(len(impacts))], 1)
+        chi2 = np.stack([_chi2_all(residuals[j], covariances[j]) for j in range(len(impacts))], 1)
         best = int(np.argmin(chi2.sum(axis=1)))
         set_point(pool[0], grid[best])
         covariances = [_propagated_covariance(pool[0], body, impact, options) for impact in impacts]
-    chi2 = np.stack([_chi2_all(predicted_com[j], targets[j], covariances[j]) for j in range(len(impacts))], 1)
+    chi2 = np.stack([_chi2_all(residuals[j], covariances[j]) for j in range(len(impacts))], 1)
     total = chi2.sum(axis=1)
     best = int(np.argmin(total))
-    dof = max(1, sum(t.size for t in targets) - 3)
+    dof = max(1, sum(r.shape[1] for r in residuals) - 3)
     threshold = options.delta_chi2 * max(1.0, float(total[best]) / dof)
     points = np.array(grid)
     mu_best, e_best, tc_best = grid[best]

@@ -107,14 +107,15 @@ def test_a_sliding_landing_between_two_flights_gives_friction_and_restitution_ba
 
 def test_the_frames_after_a_sticking_landing_resolve_its_friction() -> None:
     """A tumbling box landing with friction 0.5 does not slip at its contacts: any friction above what it needs
-    explains the next flight as well (`compare="flight"`: unresolved, the range reaching the grid's top and holding
-    the truth). The frames after the landing (`compare="frames"`, the default: 0.3 s of bouncing and sliding) do
-    resolve it, within 10%; the restitution comes back within 10% either way."""
+    explains the next flight's centre of mass as well (`compare="flight"` without the orientations: unresolved, the
+    range reaching the grid's top and holding the truth). The frames after the landing (`compare="frames"`, the
+    default: 0.3 s of bouncing and sliding, centre of mass and orientation) do resolve it, within 10%; the
+    restitution comes back within 10% either way."""
     truth = _scene(0.5, 0.5).compile()
     traj, _ = _throw(truth, (0.9, 0.1, -0.3), (2.0, -6.0, 1.0))
     model = _prior()
     contact = resolve_parameters(model, list(CONTACT))
-    flight = ImpactOptions(compare="flight")
+    flight = ImpactOptions(compare="flight", compare_rotation=False)
     fit = fit_impacts(model, contact, find_impacts(model, "box", [_tracked(traj)], flight), flight)
     assert not fit.friction_resolved
     assert fit.friction_range[1] == flight.friction_grid[-1] and fit.friction_range[0] <= 0.5
@@ -226,3 +227,56 @@ def test_no_flights_no_impacts_and_bad_options_say_what_to_do() -> None:
         ImpactOptions(restitution_grid=(0.5, 1.2))
     with pytest.raises(GrounderError, match="min_flight_frames"):
         ImpactOptions(min_flight_frames=1)
+
+
+VIEW_POINT_M = np.array([0.0, -0.6, 0.45])
+
+
+def _drifting(traj: Trajectory, seed: int, drift_m: float = 1.5e-3, drift_time_s: float = 0.1) -> Trajectory:
+    """Tracking whose depth error drifts, as a tracker's does: an error along the viewing ray from `VIEW_POINT_M`
+    that changes slowly (a Gaussian process, `drift_m`, correlation time `drift_time_s`), plus 0.3 mm and 0.3 deg of
+    frame-to-frame noise per axis (seeded)."""
+    rng = np.random.default_rng(seed)
+    qpos = traj.qpos.copy()
+    lag = traj.time_s[:, None] - traj.time_s[None, :]
+    cov = drift_m**2 * np.exp(-0.5 * (lag / drift_time_s) ** 2) + 1e-12 * np.eye(len(lag))
+    depth = rng.multivariate_normal(np.zeros(len(lag)), cov)
+    rays = qpos[:, :3] - VIEW_POINT_M
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    qpos[:, :3] += depth[:, None] * rays + rng.normal(scale=3e-4, size=(len(qpos), 3))
+    qpos[:, 3:7] = quat_mul(rotvec_to_quat(rng.normal(scale=np.radians(0.3), size=(len(qpos), 3))), qpos[:, 3:7])
+    return Trajectory(time_s=traj.time_s, qpos=qpos, qvel=traj.qvel, name=traj.name)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_drifting_depth_error_leaves_the_values_within_10_percent(seed: int) -> None:
+    """Tracked with a depth error that drifts by 1.5 mm over a few frames (which no flight's residuals show), the
+    sliding throw's friction and restitution still come back within 10%, compared in position and orientation."""
+    truth = _scene(0.3, 0.6).compile()
+    traj, _ = _throw(truth, (1.5, 0.3, -0.8), (1.0, -3.0, 0.5))
+    model = _prior()
+    options = ImpactOptions()
+    assert options.compare_rotation and options.drift_sigma_m > 0
+    impacts = find_impacts(model, "box", [_drifting(traj, seed)], options, VIEW_POINT_M)
+    fit = fit_impacts(model, resolve_parameters(model, list(CONTACT)), impacts, options)
+    assert fit.dof == sum(6 * len(i.after_s) for i in impacts) - 3  # centre of mass and orientation per frame
+    assert fit.friction == pytest.approx(0.3, rel=0.1)
+    assert fit.restitution == pytest.approx(0.6, rel=0.1)
+
+
+def test_a_constant_depth_error_moves_the_start_and_the_frames_together() -> None:
+    """The drift model's point: a depth error shared by the flight and the frames after it shifts the fitted start
+    and the compared frames alike (seen from afar, every ray is the same), so ballistically it leaves the residuals
+    as they were, while each frame itself moves by it."""
+    truth = _scene(0.3, 0.6).compile()
+    traj, _ = _throw(truth, (1.5, 0.3, -0.8), (1.0, -3.0, 0.5))
+    far = np.array([0.0, -300.0, 200.0])
+    options = ImpactOptions(compare="flight", drift_rotation_deg=0.0)
+    impact = find_impacts(truth, "box", [traj], options, far)[0]
+    count = len(impact.drift_cov)
+    assert impact.drift_start.shape == (12, count) and impact.drift_after.shape == (6 * len(impact.after_s), count)
+    shared = np.ones(count)  # 1 m along the ray at every frame
+    lift = np.kron(np.stack([np.ones(len(impact.after_s)), impact.after_s - impact.before.ref_s], 1), np.eye(3))
+    moved = lift @ impact.drift_start[:6] @ shared - impact.drift_after[: 3 * len(impact.after_s)] @ shared
+    assert np.abs(moved).max() < 1e-3  # mm per metre of shared depth error
+    assert np.abs(impact.drift_after @ shared).max() > 0.5  # while each frame itself moves by it
