@@ -35,7 +35,8 @@ ratio and for friction and restitution (the issue's two values; restitution coun
 ratio is).
 
 `--calibration impacts|windows|shooting` picks the calibration (default: the tool's, impacts); with impacts,
-`--impacts-compare flight|frames` sets `ImpactOptions.compare`, `--impacts-only` leaves what the landings do not
+`--impacts-compare flight|frames` sets `ImpactOptions.compare`, `--impacts-rotation on|off` sets
+`ImpactOptions.compare_rotation`, `--impacts-only` leaves what the landings do not
 resolve at the prior (no windows), and the per-object impacts, chi-square, noise and restitution range are printed.
 """
 

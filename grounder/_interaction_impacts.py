@@ -22,11 +22,14 @@ Per object (in a scene of its own with the table, `grounder._interaction.single_
 3. **Grid** (`fit_impacts`): for each sliding friction x restitution x time constant of the grid, each impact is
    simulated (one batched `mujoco.rollout` per chunk of points) from its start state over the tracked frames after
    it (`compare` "frames", the default: for `max_post_s`, in flight, bouncing or sliding; "flight": only the next
-   flight's, where one follows), and the simulated centre of mass is compared with the tracked one. The residuals'
-   covariance is the frames' tracking noise plus the start's errors carried through the contact (the spread of 64
-   rollouts from starts drawn from the start's covariance, at the best point, refined twice). The restitution is
-   the bounce at 1 m/s (`grounder._restitution.contact_solref` gives the damping ratio for it at each time
-   constant), so the grid's
+   flight's, where one follows), and the simulated centre of mass and orientation are compared with the tracked
+   ones (`compare_rotation`). The residuals' covariance is the frames' tracking noise, plus a tracking error that
+   drifts slowly (depth and orientation, `drift_sigma_m`, `drift_rotation_deg`: it moves the flight's fitted start
+   and the compared frames together), plus the start's errors carried through the contact (the spread of 64
+   rollouts from starts drawn from the start's covariance and the drift, at the best point, refined twice). A
+   tumbling landing on convex hulls can be chaotic: `benchmarks/impacts_stability.py` measures how far a fit moves
+   under sub-micrometre changes of the tracked poses (README). The restitution is the bounce at 1 m/s
+   (`grounder._restitution.contact_solref` gives the damping ratio for it at each time constant), so the grid's
    axes are the quantities the clip shows, not the knobs MuJoCo trades against each other.
 4. **Resolution** (`profile_range`): a value's range is the span of grid points within a chi-square increase of
    `delta_chi2` (scaled by the misfit per degree of freedom where that exceeds 1) of the best, widened halfway to
