@@ -5,7 +5,9 @@ rounding of `track.json`; seeded draws), against the values the clip was rendere
 
 A tumbling object's landings on convex hulls can be chaotic: which hull vertex touches first turns the spin, so a
 fit may move with the last digits of its start. This prints, per object and draw, each value's error (or "unc." where
-not resolved) and the chi-square, and per draw whether every value is within 20% (the issue's target).
+not resolved) and the chi-square, and per draw whether every value is within 20% (the issue's target). Each draw is
+a single `fit_impacts`, without the tool's own check on such copies (`ImpactOptions.stability_copies`), which is
+what this measures the need for.
 
 Run: `.venv/bin/python benchmarks/impacts_stability.py --scene out/det/scene --tracks out/tracks/toss
 [--clip samples/toss] [--draws 8] [--sigma-um 0.1]` (about 10 s per object and draw on 2 cores).

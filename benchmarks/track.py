@@ -36,8 +36,9 @@ ratio is).
 
 `--calibration impacts|windows|shooting` picks the calibration (default: the tool's, impacts); with impacts,
 `--impacts-compare flight|frames` sets `ImpactOptions.compare`, `--impacts-rotation on|off` sets
-`ImpactOptions.compare_rotation`, `--impacts-only` leaves what the landings do not
-resolve at the prior (no windows), and the per-object impacts, chi-square, noise and restitution range are printed.
+`ImpactOptions.compare_rotation`, `--impacts-stability N` sets `ImpactOptions.stability_copies`, `--impacts-only`
+leaves what the landings do not resolve at the prior (no windows), and the per-object impacts, chi-square, noise and
+restitution range are printed.
 """
 
 from __future__ import annotations
@@ -213,6 +214,12 @@ def main() -> None:
         choices=("on", "off"),
         default=None,
         help="with --calibration impacts: ImpactOptions.compare_rotation (default: the tool's)",
+    )
+    parser.add_argument(
+        "--impacts-stability",
+        type=int,
+        default=None,
+        help="with --calibration impacts: ImpactOptions.stability_copies (0: off; default: the tool's)",
     )
     parser.add_argument(
         "--impacts-only",
@@ -650,6 +657,8 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
         impacts = replace(impacts, compare=args.impacts_compare)
     if args.impacts_rotation is not None:
         impacts = replace(impacts, compare_rotation=args.impacts_rotation == "on")
+    if args.impacts_stability is not None:
+        impacts = replace(impacts, stability_copies=args.impacts_stability)
     if args.impacts_only:
         impacts = replace(impacts, windows_for_unresolved=False)
     return InteractionOptions(calibrate_settings=settings, impacts=impacts, **chosen, **fields)

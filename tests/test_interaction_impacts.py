@@ -4,6 +4,7 @@ and leave a value unresolved where it does not."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -258,6 +259,7 @@ def test_a_drifting_depth_error_leaves_the_values_within_10_percent(seed: int) -
     options = ImpactOptions()
     assert options.compare_rotation and options.drift_sigma_m > 0
     impacts = find_impacts(model, "box", [_drifting(traj, seed)], options, VIEW_POINT_M)
+    # `fit_impacts` alone: the stability check (`stable_fit`, tested below) refits copies and changes no best value.
     fit = fit_impacts(model, resolve_parameters(model, list(CONTACT)), impacts, options)
     assert fit.dof == sum(6 * len(i.after_s) for i in impacts) - 3  # centre of mass and orientation per frame
     assert fit.friction == pytest.approx(0.3, rel=0.1)
@@ -280,3 +282,31 @@ def test_a_constant_depth_error_moves_the_start_and_the_frames_together() -> Non
     moved = lift @ impact.drift_start[:6] @ shared - impact.drift_after[: 3 * len(impact.after_s)] @ shared
     assert np.abs(moved).max() < 1e-3  # mm per metre of shared depth error
     assert np.abs(impact.drift_after @ shared).max() > 0.5  # while each frame itself moves by it
+
+
+def test_a_value_stays_resolved_only_where_copies_of_the_tracks_agree() -> None:
+    """The stability check (`stable_fit`): on the sliding throw, copies of the tracks moved by 0.1 um give the same
+    values, so both stay resolved (within 10%); copies moved by 2 cm (far past any tracking error, standing in for
+    a chaotic landing) disagree, and the values they do not confirm lose their resolved flag."""
+    from grounder._interaction_impacts import stable_fit
+
+    truth = _scene(0.3, 0.6).compile()
+    traj, _ = _throw(truth, (1.5, 0.3, -0.8), (1.0, -3.0, 0.5))
+    model = _prior()
+    contact = resolve_parameters(model, list(CONTACT))
+    tracked = [_tracked(traj)]
+    options = ImpactOptions(compare="flight")
+    assert options.stability_copies == 2
+    impacts = find_impacts(model, "box", tracked, options)
+    fit = stable_fit(model, contact, tracked, impacts, options)
+    assert len(fit.copies) == 2
+    assert fit.friction_resolved and fit.friction == pytest.approx(0.3, rel=0.1)
+    assert fit.restitution_resolved and fit.restitution == pytest.approx(0.6, rel=0.1)
+    shaken = stable_fit(model, contact, tracked, impacts, replace(options, stability_m=0.02))
+    assert (shaken.friction, shaken.restitution) == (fit.friction, fit.restitution)  # the first fit is unchanged
+    confirmed = [
+        all(c[2 + k] and abs(c[k] / best - 1.0) <= 0.2 for c in shaken.copies)
+        for k, best in enumerate((fit.friction, fit.restitution))
+    ]
+    assert not all(confirmed)
+    assert shaken.friction_resolved == confirmed[0] and shaken.restitution_resolved == confirmed[1]
