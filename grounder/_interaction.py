@@ -228,6 +228,19 @@ def calibration_available() -> bool:
     return importlib.util.find_spec("grounder._calibrate") is not None
 
 
+def _copies_text(copies: Sequence[Mapping[str, Any]], moved_um: float) -> str:
+    """The report's words for the impacts' stability copies (`ImpactOptions.stability_copies`): each copy's best
+    friction and restitution, "?" where it did not resolve them."""
+    if not copies:
+        return ""
+
+    def value(copy: Mapping[str, Any], name: str) -> str:
+        return f"{copy[name]:.3g}" if copy[f"{name}_resolved"] else "?"
+
+    shown = "; ".join(f"{value(c, 'friction')}, {value(c, 'restitution')}" for c in copies)
+    return f"; on copies of the tracks moved by {moved_um:g} um (friction, restitution; ? not resolved): {shown}"
+
+
 def view_point_of(world_from_cam: np.ndarray) -> tuple[float, float, float] | None:
     """The camera centre (world, metres) of a clip's (F, 4, 4) or (4, 4) camera poses, for weighing tracked depth:
     the mean over the frames where the camera is known (a moving camera's rays are then approximate); None if it is
@@ -1419,7 +1432,9 @@ def _markdown(payload: dict[str, Any]) -> str:
             lines.append(
                 f"- {body}: {len(hits['names'])} contact(s) after a tracked free flight ({', '.join(hits['names'])}), "
                 f"chi-square {hits['chi2']:.1f} for {hits['dof']} residuals, tracking noise across / along the "
-                f"viewing ray {hits['noise_mm'][0]:.2f} / {hits['noise_mm'][1]:.2f} mm"
+                f"viewing ray {hits['noise_mm'][0]:.2f} / {hits['noise_mm'][1]:.2f} mm; best friction "
+                f"{hits['best']['friction']:.3g}, restitution {hits['best']['restitution']:.3g}"
+                + _copies_text(hits.get("stability_copies", []), hits.get("stability_um", 0.0))
             )
         if "shooting" in info:
             shot = info["shooting"]

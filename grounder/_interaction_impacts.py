@@ -1024,6 +1024,7 @@ def impacts_body(
             "chi2_per_impact": [round(c, 3) for c in fit.chi2_per_impact],
             "noise_mm": [round(1e3 * v, 3) for v in fit.noise_m],
             "best": {"friction": fit.friction, "restitution": fit.restitution, "timeconst_s": fit.timeconst_s},
+            "stability_um": 1e6 * options.stability_m,
             "stability_copies": [
                 {"friction": f, "restitution": e, "friction_resolved": fr, "restitution_resolved": er}
                 for f, e, fr, er in fit.copies

@@ -199,6 +199,16 @@ def test_ground_interaction_calibrates_from_impacts(tmp_path: Path) -> None:
     assert simulated_restitution(solref, prior.geom_solimp[1], prior.opt) == pytest.approx(0.6, rel=0.2)
     bounce = entry["per_object"]["box"]["restitution"]
     assert bounce["resolved"] and bounce["value"] == pytest.approx(0.6, rel=0.2)
+    # The stability copies that confirmed the friction are in the report, and in its words.
+    from grounder._interaction import _copies_text
+
+    hits = entry["per_object"]["box"]["impacts"]
+    copies = hits["stability_copies"]
+    assert len(copies) == 2 and hits["stability_um"] == pytest.approx(0.1)
+    friction = records["box.friction.sliding"]["value"]
+    assert all(c["friction_resolved"] and c["friction"] == pytest.approx(friction, rel=0.2) for c in copies)
+    text = _copies_text(copies, hits["stability_um"])
+    assert "moved by 0.1 um" in text and text.count(f"{copies[0]['friction']:.3g}") >= 1
     assert used and all(name.startswith("box:throw@") for name in used)
     assert entry["per_object"]["box"]["impacts"]["names"]
     # The picture the report links: one row per object with impacts, nothing for none.
