@@ -42,10 +42,9 @@ def main() -> None:
 
     from grounder._calibrate_params import collision_geoms, resolve_parameters
     from grounder._interaction import single_body_scene, view_point_of
-    from grounder._interaction_impacts import ImpactOptions, find_impacts, fit_impacts
+    from grounder._interaction_impacts import _CONTACT_FIELDS, ImpactOptions, _moved, find_impacts, fit_impacts
     from grounder._restitution import body_restitution, simulated_restitution
     from grounder._track import load_object_trajectories
-    from grounder._trajectory import Trajectory
 
     track_json = json.loads((args.tracks / "track.json").read_text())
     view = view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64))
@@ -69,17 +68,9 @@ def main() -> None:
         tally = {"friction": [0, 0, 0], "restitution": [0, 0, 0]}  # within 20%, wrong, unresolved
         with single_body_scene(args.scene / "scene.xml", body) as sub_xml:
             model = mujoco.MjModel.from_xml_path(str(sub_xml))
-            contact = resolve_parameters(
-                model, [f"{body}.friction.sliding", f"{body}.solref.timeconst", f"{body}.solref.dampratio"]
-            )
+            contact = resolve_parameters(model, [f"{body}.{f}" for f in _CONTACT_FIELDS])
             for k, seed in enumerate(draws):
-                trajs = []
-                for t in runs:
-                    qpos = t.qpos.copy()
-                    if seed is not None:
-                        rng = np.random.default_rng(seed)
-                        qpos[:, :3] += rng.normal(scale=1e-6 * args.sigma_um, size=qpos[:, :3].shape)
-                    trajs.append(Trajectory(time_s=t.time_s, qpos=qpos, qvel=t.qvel, name=t.name))
+                trajs = runs if seed is None else _moved(runs, 1e-6 * args.sigma_um, seed)
                 impacts = find_impacts(model, body, trajs, options, view)
                 if not impacts:
                     print(f"| {body} ({true_name}) | {seed} | no impact | no impact | - |")

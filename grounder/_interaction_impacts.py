@@ -842,9 +842,8 @@ def fit_impacts(
     trajs = [_impact_trajectory(impact, impact.qpos, impact.qvel) for impact in impacts]
     rotation = options.compare_rotation
     # Every grid point's residuals at every impact's compared frames (the costs are recomputed from these as the
-    # start-error covariance is refined, without simulating again), and its simulated centre of mass (the picture).
+    # start-error covariance is refined, without simulating again).
     residuals: list[np.ndarray] = [np.zeros((len(grid), (6 if rotation else 3) * len(i.after_s))) for i in impacts]
-    predicted_com: list[np.ndarray] = [np.zeros((len(grid), *i.after_com_m.shape)) for i in impacts]
     for start in range(0, len(grid), _CHUNK):
         chunk = grid[start : start + _CHUNK]
         models = pool[: len(chunk)]
@@ -852,7 +851,6 @@ def fit_impacts(
             set_point(m, point)
         for i, per_model in enumerate(cast(list[list[Trajectory]], simulate(models, trajs))):
             for j, pred in enumerate(per_model):
-                predicted_com[j][start + i] = _com_m(model, body, pred.qpos[1:])
                 residuals[j][start + i] = _compared(model, body, impacts[j], pred.qpos[1:], rotation)
         if progress is not None:
             progress(f"impacts of {body}", min(start + _CHUNK, len(grid)), len(grid))
@@ -895,8 +893,15 @@ def fit_impacts(
         profile=(
             total.reshape(len(options.timeconst_grid), len(options.restitution_grid), -1).min(axis=0) - total[best]
         ),
+        # The simulated centre of mass at the best point: its residual (`_compared`'s first 3P values) plus the tracked.
         traces=tuple(
-            (i.name, i.after_s, i.after_com_m[:, 2], predicted_com[j][best][:, 2]) for j, i in enumerate(impacts)
+            (
+                i.name,
+                i.after_s,
+                i.after_com_m[:, 2],
+                residuals[j][best][2 : 3 * len(i.after_s) : 3] + i.after_com_m[:, 2],
+            )
+            for j, i in enumerate(impacts)
         ),
         noise_m=impacts[0].noise_m,
     )
