@@ -36,7 +36,8 @@ ratio is).
 
 `--calibration impacts|windows|shooting` picks the calibration (default: the tool's, impacts); with impacts,
 `--impacts-compare flight|frames` sets `ImpactOptions.compare`, `--impacts-rotation on|off` sets
-`ImpactOptions.compare_rotation`, `--impacts-stability N` sets `ImpactOptions.stability_copies`, `--impacts-only`
+`ImpactOptions.compare_rotation`, `--impacts-stability N` sets `ImpactOptions.stability_copies`, `--impacts-drift
+MM,S` sets `ImpactOptions.drift_sigma_m` (in mm) and `drift_time_s`, `--impacts-only`
 leaves what the landings do not resolve at the prior (no windows), and the per-object impacts, chi-square, noise and
 restitution range are printed.
 """
@@ -220,6 +221,13 @@ def main() -> None:
         type=int,
         default=None,
         help="with --calibration impacts: ImpactOptions.stability_copies (0: off; default: the tool's)",
+    )
+    parser.add_argument(
+        "--impacts-drift",
+        type=lambda text: tuple(float(v) for v in text.split(",")),
+        default=None,
+        metavar="MM,S",
+        help="with --calibration impacts: ImpactOptions.drift_sigma_m in mm and drift_time_s (default: the tool's)",
     )
     parser.add_argument(
         "--impacts-only",
@@ -659,6 +667,9 @@ def _options(args: argparse.Namespace, **fields: Any) -> Any:
         impacts = replace(impacts, compare_rotation=args.impacts_rotation == "on")
     if args.impacts_stability is not None:
         impacts = replace(impacts, stability_copies=args.impacts_stability)
+    if args.impacts_drift is not None:
+        drift_mm, drift_s = args.impacts_drift
+        impacts = replace(impacts, drift_sigma_m=1e-3 * drift_mm, drift_time_s=drift_s)
     if args.impacts_only:
         impacts = replace(impacts, windows_for_unresolved=False)
     return InteractionOptions(calibrate_settings=settings, impacts=impacts, **chosen, **fields)
