@@ -717,6 +717,11 @@ def _frames_cov(impact: Impact, rotation: bool) -> np.ndarray:
     return scipy.linalg.block_diag(impact.frame_cov, impact.rotation_sigma_rad**2 * np.eye(3 * len(impact.after_s)))
 
 
+def _compared_size(impact: Impact, rotation: bool) -> int:
+    """D: how many values `_compared` gives for the impact (3 per frame, 6 with `rotation`)."""
+    return (6 if rotation else 3) * len(impact.after_s)
+
+
 def _compared(model: mujoco.MjModel, body: str, impact: Impact, qpos: np.ndarray, rotation: bool) -> np.ndarray:
     """(D,) what is compared at the impact's frames for simulated states `qpos` (P, nq): the centre of mass
     (3P, frame by frame) minus the tracked one, then, with `rotation`, the rotation from the tracked orientation
@@ -741,7 +746,7 @@ def _ballistic_covariance(impact: Impact, rotation: bool) -> np.ndarray:
         start = scipy.linalg.block_diag(start, lift @ impact.start_cov[6:, 6:] @ lift.T)
     if impact.drift_cov.size:
         lifted = [lift @ impact.drift_start[:6]] + ([lift @ impact.drift_start[6:]] if rotation else [])
-        drift_map = np.concatenate(lifted) - impact.drift_after[: len(start)]
+        drift_map = np.concatenate(lifted) - impact.drift_after[: _compared_size(impact, rotation)]
         start = start + drift_map @ impact.drift_cov @ drift_map.T
     return start + _frames_cov(impact, rotation)
 
@@ -772,7 +777,7 @@ def _propagated_covariance(model: mujoco.MjModel, body: str, impact: Impact, opt
         if impact.drift_cov.size:  # the drift moves the start and the compared frames together
             drift = rng.multivariate_normal(np.zeros(len(impact.drift_cov)), impact.drift_cov, size=len(deltas))
             deltas += drift @ impact.drift_start.T
-            shifts = drift @ impact.drift_after[: (6 if options.compare_rotation else 3) * len(impact.after_s)].T
+            shifts = drift @ impact.drift_after[: _compared_size(impact, options.compare_rotation)].T
         trajs = [_start_variant(model, body, impact, d) for d in deltas]
         drawn = np.stack(
             [
@@ -848,7 +853,7 @@ def fit_impacts(
     rotation = options.compare_rotation
     # Every grid point's residuals at every impact's compared frames (the costs are recomputed from these as the
     # start-error covariance is refined, without simulating again).
-    residuals: list[np.ndarray] = [np.zeros((len(grid), (6 if rotation else 3) * len(i.after_s))) for i in impacts]
+    residuals: list[np.ndarray] = [np.zeros((len(grid), _compared_size(i, rotation))) for i in impacts]
     for start in range(0, len(grid), _CHUNK):
         chunk = grid[start : start + _CHUNK]
         models = pool[: len(chunk)]
