@@ -558,25 +558,21 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:
     """Screen + calibrate the grounded scene on saved tracks (e.g. `OUT/interaction/tracks` of a `--calibrate` run),
     per object as `ground --interaction` does."""
-    from grounder._interaction import calibrate_per_body, default_params, view_point_of
-    from grounder._track import load_object_trajectories
-    from grounder._trajectory import load_trajectories
+    from grounder._interaction import calibrate_per_body, default_params, saved_tracks
+    from grounder._track_smooth import SmoothingOptions
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
-    track_json = json.loads((tracks / "track.json").read_text())
-    from grounder._track_smooth import SmoothingOptions
-
-    smoothing = SmoothingOptions(smooth_poses=args.smooth_poses)
-    options = _options(args, track=TrackOptions(smoothing=smoothing))
+    options = _options(args, track=TrackOptions(smoothing=SmoothingOptions(smooth_poses=args.smooth_poses)))
+    saved = saved_tracks(tracks, options.track)  # what `ground --interaction` calibrates from, too
     entry, _ = calibrate_per_body(
         scene / "scene.xml",
-        load_trajectories(tracks),
+        saved.segments,
         default_params(names),
         options,
-        view_point_m=view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64)),
-        object_tracks=load_object_trajectories(tracks / "track.json", smoothing) if options.own_runs else None,
+        view_point_m=saved.view_point_m,
+        object_tracks=saved.object_tracks if options.own_runs else None,
     )
     print(f"screen + calibration on {tracks}: {time.perf_counter() - tick:.1f} s; {entry['status']}")
     print_screens(entry["parameters"])

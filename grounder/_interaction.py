@@ -64,9 +64,9 @@ from grounder._ground import GroundOptions, ground
 from grounder._interaction_impacts import ImpactOptions, impacts_body, impacts_figure
 from grounder._interaction_shooting import ShootingOptions, fit_contact, moving_runs
 from grounder._restitution import REFERENCE_IMPACT_SPEED_M_S, body_restitution
-from grounder._track import TrackOptions, TrackResult, object_trajectories, track
+from grounder._track import TrackOptions, TrackResult, load_object_trajectories, track
 from grounder._track_smooth import SmoothingOptions, quat_from_matrix
-from grounder._trajectory import Trajectory, save_trajectories
+from grounder._trajectory import Trajectory, load_trajectories, save_trajectories
 from grounder.errors import GrounderError
 
 log = logging.getLogger(__name__)
@@ -252,6 +252,44 @@ def view_point_of(world_from_cam: np.ndarray) -> tuple[float, float, float] | No
         return None
     x, y, z = (float(v) for v in centres[known].mean(axis=0))
     return (x, y, z)
+
+
+@dataclass(frozen=True)
+class SavedTracks:
+    """What calibration reads of an `image2sim track` output folder.
+
+    Attributes:
+        segments: the trajectories of the tracked segments (every object tracked), in name order.
+        object_tracks: per object its own tracked runs (`object_trajectories` of `track.json`).
+        view_point_m: the camera centre (world, metres) from `track.json`'s camera poses; None if never known.
+    """
+
+    segments: list[Trajectory]
+    object_tracks: dict[str, list[Trajectory]]
+    view_point_m: tuple[float, float, float] | None
+
+
+def saved_tracks(tracks_dir: Path, track_options: TrackOptions | None = None) -> SavedTracks:
+    """The tracks of a `track` output folder as written: the segments' trajectory files, and each object's runs
+    and the camera from `track.json` (poses rounded to 0.1 um there).
+
+    `ground --interaction` calibrates from these rather than from the tracks it holds in memory, so that calibrating
+    its saved tracks again (`benchmarks/track.py --calibrate --tracks`, the Python API) gives the same scene: a
+    tumbling object's landings on its convex hulls are chaotic at the scale of that rounding, and on `samples/toss`
+    the can's fit differed between the two (README, "A calibrated scene from video alone").
+    """
+    options = track_options or TrackOptions()
+    track_json = Path(tracks_dir) / "track.json"
+    try:
+        payload = json.loads(track_json.read_text())
+    except (OSError, ValueError) as exc:
+        raise GrounderError(f"cannot read {track_json} ({exc}); pass a folder written by `image2sim track`") from exc
+    segments = load_trajectories(tracks_dir) if any(Path(tracks_dir).glob("*.npz")) else []
+    return SavedTracks(
+        segments=segments,
+        object_tracks=load_object_trajectories(track_json, options.smoothing, options.min_segment_frames),
+        view_point_m=view_point_of(np.array(payload["world_from_cam"], dtype=np.float64)),
+    )
 
 
 def reliable_starts(traj: Trajectory, smoothing: SmoothingOptions | None = None) -> np.ndarray:
@@ -1213,7 +1251,9 @@ def ground_with_interaction(
         tracks_dir = stage / "interaction" / "tracks"
         tracked = track(Path(clip), grounded, tracks_dir, track_options, progress=report)
         seconds["track"] = time.perf_counter() - tick
-        segments = list(tracked.trajectories)
+        # Calibrate from the tracks as written, not as held in memory: they reproduce this scene (`saved_tracks`).
+        saved = saved_tracks(tracks_dir, track_options)
+        segments = saved.segments
         if segments:
             per_body = options.per_object and separable_bodies(grounded / "scene.xml", segments)
         else:
@@ -1274,7 +1314,7 @@ def ground_with_interaction(
         payload["calibration_method"] = options.calibration
         payload["match_before"] = _clip_match(grounded / "scene.xml", segments)
         calibrated = False
-        view_point_m = view_point_of(tracked.world_from_cam)
+        view_point_m = saved.view_point_m
         if not calibration_available():
             payload["calibration"] = {"status": "skipped: grounder._calibrate is not installed"}
         elif per_body:
@@ -1286,18 +1326,7 @@ def ground_with_interaction(
                 params,
                 options,
                 view_point_m=view_point_m,
-                object_tracks=object_trajectories(
-                    tracked.time_s,
-                    tracked.world_from_objects,
-                    tracked.valid,
-                    names,
-                    track_options.smoothing,
-                    track_options.min_segment_frames,
-                    Path(clip).stem,
-                    sources=np.array([[score.source for score in row] for row in tracked.scores]),
-                )
-                if options.own_runs
-                else None,
+                object_tracks=saved.object_tracks if options.own_runs else None,
                 out=stage / "calibrated",
                 progress=report,
             )

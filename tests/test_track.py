@@ -266,13 +266,26 @@ def test_windows_cut_tracked_segments_and_drop_still_ones() -> None:
     assert [t.name for t in windows([traj], None, 0.5, 0.05)] == ["clip_00"]
 
 
-def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(tmp_path: Path) -> None:
+def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """End to end on 6 toss frames with the true scene standing in for the grounded one and a tiny search budget:
-    the output holds the tracks, a calibrated scene and a report naming what was calibrated."""
+    the output holds the tracks, a calibrated scene and a report naming what was calibrated. Calibration is given
+    the tracks as written to `interaction/tracks` (rounded there), not as tracking held them, so that calibrating
+    the saved tracks again gives the same scene."""
+    import grounder._interaction as interaction
     from grounder._interaction import InteractionOptions, calibration_available, ground_with_interaction
 
     if not calibration_available():
         pytest.skip("grounder._calibrate is not installed")
+    given: list[dict[str, Any]] = []
+    calibrate_per_body = interaction.calibrate_per_body
+
+    def recording(scene_xml: Path, segments: Any, params: Any, options: Any, **kwargs: Any) -> Any:
+        given.append({"segments": list(segments), **kwargs})
+        return calibrate_per_body(scene_xml, segments, params, options, **kwargs)
+
+    monkeypatch.setattr(interaction, "calibrate_per_body", recording)
     out = tmp_path / "scene"
     result = ground_with_interaction(
         REPO / "samples" / "tabletop" / "video.mp4",
@@ -307,6 +320,23 @@ def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(tmp_pa
         assert bounce[name]["after"] == pytest.approx(body_restitution(calibrated, name), abs=1e-4)
     assert bounce["box"]["after"] == bounce["box"]["before"]  # not calibrated
     assert "## Bounce" in (out / "interaction.md").read_text()
+
+    # What calibration was given is what the tracks folder holds, to the last digit.
+    saved = interaction.saved_tracks(out / "interaction" / "tracks", _options(min_segment_frames=3))
+    assert len(given) == 1 and given[0]["view_point_m"] == saved.view_point_m
+    assert [t.name for t in given[0]["segments"]] == [t.name for t in saved.segments] == ["video_00"]
+    for a, b in zip(given[0]["segments"], saved.segments, strict=True):
+        assert np.array_equal(a.qpos, b.qpos) and np.array_equal(a.qvel, b.qvel)
+    runs = given[0]["object_tracks"]
+    assert set(runs) == set(saved.object_tracks) == {"bowl", "box", "can"}
+    for name, body_runs in runs.items():
+        assert len(body_runs) == len(saved.object_tracks[name]) > 0
+        for a, b in zip(body_runs, saved.object_tracks[name], strict=True):
+            assert np.array_equal(a.qpos, b.qpos) and np.array_equal(a.qvel, b.qvel)
+    # ... which is not what tracking held in memory: track.json rounds the poses.
+    held = result.track.world_from_objects[:, result.track.object_names.index("can"), :3, 3]
+    assert len(held) == len(runs["can"][0].qpos)
+    assert 0 < np.abs(held - runs["can"][0].qpos[:, :3]).max() < 1e-6
 
 
 def test_marker_camera_pose_static_and_per_frame(toss_truth: dict[str, np.ndarray]) -> None:
