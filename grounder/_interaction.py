@@ -1251,6 +1251,11 @@ def ground_with_interaction(
         tracks_dir = stage / "interaction" / "tracks"
         tracked = track(Path(clip), grounded, tracks_dir, track_options, progress=report)
         seconds["track"] = time.perf_counter() - tick
+        # track.json names the scene it tracked: the grounded scene where it will be, not in the staging folder.
+        track_json = tracks_dir / "track.json"
+        written = json.loads(track_json.read_text())
+        written["scene_xml"] = str(Path(out) / "grounded" / "scene.xml")
+        track_json.write_text(json.dumps(written, indent=1) + "\n")
         # Calibrate from the tracks as written, not as held in memory: they reproduce this scene (`saved_tracks`).
         saved = saved_tracks(tracks_dir, track_options)
         segments = saved.segments

@@ -321,6 +321,8 @@ def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(
     assert bounce["box"]["after"] == bounce["box"]["before"]  # not calibrated
     assert "## Bounce" in (out / "interaction.md").read_text()
 
+    written = json.loads((out / "interaction" / "tracks" / "track.json").read_text())
+    assert written["scene_xml"] == str(out / "grounded" / "scene.xml")  # where it is now, not the staging folder
     # What calibration was given is what the tracks folder holds, to the last digit.
     saved = interaction.saved_tracks(out / "interaction" / "tracks", _options(min_segment_frames=3))
     assert len(given) == 1 and given[0]["view_point_m"] == saved.view_point_m
