@@ -41,13 +41,13 @@ def main() -> None:
     import mujoco
 
     from grounder._calibrate_params import collision_geoms, resolve_parameters
-    from grounder._interaction import single_body_scene, view_point_of
+    from grounder._interaction import camera_poses_of, single_body_scene, view_point_of
     from grounder._interaction_impacts import _CONTACT_FIELDS, ImpactOptions, _moved, find_impacts, fit_impacts
     from grounder._restitution import body_restitution, simulated_restitution
     from grounder._track import load_object_trajectories
 
     track_json = json.loads((args.tracks / "track.json").read_text())
-    view = view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64))
+    view = view_point_of(camera_poses_of(track_json["world_from_cam"]))
     own = load_object_trajectories(args.tracks / "track.json")
     truth_xml = args.clip / "truth/scene.xml"
     if not truth_xml.exists():

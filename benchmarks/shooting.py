@@ -23,7 +23,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
-import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -32,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from track import contact_values, truth_offsets  # noqa: E402
 
 from grounder._calibrate_params import Parameter, collision_geoms, resolve_parameters  # noqa: E402
-from grounder._interaction import InteractionOptions, single_body_scene, view_point_of  # noqa: E402
+from grounder._interaction import InteractionOptions, camera_poses_of, single_body_scene, view_point_of  # noqa: E402
 from grounder._interaction_shooting import ShootingOptions, contact_profile, fit_contact, moving_runs  # noqa: E402
 from grounder._restitution import body_restitution, simulated_restitution  # noqa: E402
 from grounder._track import load_object_trajectories  # noqa: E402
@@ -86,7 +85,7 @@ def main() -> None:
         parser.error(f"--bodies {unknown}: not objects of {scene} ({objects})")
     track_json = json.loads((tracks / "track.json").read_text())
     fps = float(track_json["fps"])
-    view = view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64))
+    view = view_point_of(camera_poses_of(track_json["world_from_cam"]))
     object_tracks = load_object_trajectories(tracks / "track.json", InteractionOptions().track.smoothing)
     rendered = contact_values(args.clip / "truth" / "scene.xml", args.clip)
     offsets = truth_offsets(scene)

@@ -36,6 +36,7 @@ from grounder._interaction import (  # noqa: E402
     InteractionOptions,
     _single_body_trajectory,
     calibrate_constrained,
+    camera_poses_of,
     object_windows,
     single_body_scene,
     view_point_of,
@@ -85,7 +86,7 @@ def main() -> None:
     options = InteractionOptions()
     track_json = json.loads((tracks / "track.json").read_text())
     fps = float(track_json["fps"])
-    view = view_point_of(np.array(track_json["world_from_cam"], dtype=np.float64))
+    view = view_point_of(camera_poses_of(track_json["world_from_cam"]))
     object_tracks = load_object_trajectories(tracks / "track.json", options.track.smoothing)
     truth = true_motion_in_grounded_frames(scene, args.clip)
     model = mujoco.MjModel.from_xml_path(str(scene / "scene.xml"))

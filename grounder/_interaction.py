@@ -288,8 +288,18 @@ def saved_tracks(tracks_dir: Path, track_options: TrackOptions | None = None) ->
     return SavedTracks(
         segments=segments,
         object_tracks=load_object_trajectories(track_json, options.smoothing, options.min_segment_frames),
-        view_point_m=view_point_of(np.array(payload["world_from_cam"], dtype=np.float64)),
+        view_point_m=view_point_of(camera_poses_of(payload["world_from_cam"])),
     )
+
+
+def camera_poses_of(rows: Sequence[Any]) -> np.ndarray:
+    """(F, 4, 4) camera poses from `track.json`'s `world_from_cam` rows, NaN where a row is null (a moving camera
+    in a frame without the marker)."""
+    poses = np.full((len(rows), 4, 4), np.nan)
+    for f, row in enumerate(rows):
+        if row is not None:
+            poses[f] = np.asarray(row, dtype=np.float64).reshape(4, 4)
+    return poses
 
 
 def reliable_starts(traj: Trajectory, smoothing: SmoothingOptions | None = None) -> np.ndarray:

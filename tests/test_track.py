@@ -603,3 +603,17 @@ def test_moving_camera_is_placed_per_frame_and_the_objects_tracked_in_the_world(
             pos_err.append(np.linalg.norm(pose[:3, 3] - qpos[f, 7 * i : 7 * i + 3]))
             rot_err.append(np.rad2deg(quat_angle_rad(quat_from_matrix(pose[:3, :3]), qpos[f, 7 * i + 3 : 7 * i + 7])))
     assert np.median(pos_err) < 3e-3 and np.median(rot_err) < 1.0, (np.median(pos_err), np.median(rot_err))
+
+
+def test_saved_camera_poses_keep_the_frames_without_a_camera_unknown() -> None:
+    """A moving camera's `track.json` has a null row where the marker was not seen: those frames are unknown (NaN),
+    and the view point calibration weighs depth by is the mean centre of the known ones."""
+    from grounder._interaction import camera_poses_of, view_point_of
+
+    known = [np.eye(4), np.eye(4)]
+    known[0][:3, 3], known[1][:3, 3] = (0.0, -0.6, 0.4), (0.2, -0.6, 0.6)
+    poses = camera_poses_of([known[0].tolist(), None, known[1].tolist()])
+    assert poses.shape == (3, 4, 4) and np.isnan(poses[1]).all()
+    assert np.array_equal(poses[[0, 2]], np.stack(known))
+    assert view_point_of(poses) == pytest.approx((0.1, -0.6, 0.5))
+    assert view_point_of(camera_poses_of([None])) is None
