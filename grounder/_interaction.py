@@ -274,9 +274,9 @@ def saved_tracks(tracks_dir: Path, track_options: TrackOptions | None = None) ->
     and the camera from `track.json` (poses rounded to 0.1 um there).
 
     `ground --interaction` calibrates from these rather than from the tracks it holds in memory, so that calibrating
-    its saved tracks again (`benchmarks/track.py --calibrate --tracks`, the Python API) gives the same scene: a
-    tumbling object's landings on its convex hulls are chaotic at the scale of that rounding, and on `samples/toss`
-    the can's fit differed between the two (README, "A calibrated scene from video alone").
+    its saved tracks again (`benchmarks/track.py --calibrate --tracks`, which reads them here too) gives the same
+    scene: a tumbling object's landings on its convex hulls are chaotic at the scale of that rounding, and on
+    `samples/toss` the can's fit differed between the two (README, "A calibrated scene from video alone").
     """
     options = track_options or TrackOptions()
     track_json = Path(tracks_dir) / "track.json"
