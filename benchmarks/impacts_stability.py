@@ -10,7 +10,8 @@ a single `fit_impacts`, without the tool's own check on such copies (`ImpactOpti
 what this measures the need for.
 
 Run: `.venv/bin/python benchmarks/impacts_stability.py --scene out/det/scene --tracks out/tracks/toss
-[--clip samples/toss] [--draws 8] [--sigma-um 0.1]` (about 10 s per object and draw on 2 cores).
+[--clip samples/toss] [--draws 8] [--sigma-um 0.1] [--objects object_2] [--max-post-s 0.3]` (about 10 s per object
+and draw on 2 cores).
 """
 
 from __future__ import annotations
@@ -36,6 +37,10 @@ def main() -> None:
     parser.add_argument("--clip", type=Path, default=ROOT / "samples/toss", help="the clip's folder (its truth/)")
     parser.add_argument("--draws", type=int, default=8, help="perturbed copies of the tracks")
     parser.add_argument("--sigma-um", type=float, default=0.1, help="position change per axis, micrometres")
+    parser.add_argument("--objects", nargs="*", default=None, help="only these grounded bodies (e.g. object_2)")
+    parser.add_argument(
+        "--max-post-s", type=float, default=None, help="ImpactOptions.max_post_s (seconds compared after a contact)"
+    )
     args = parser.parse_args()
 
     import mujoco
@@ -55,12 +60,14 @@ def main() -> None:
     rendered = contact_values(truth_xml, args.clip)
     truth = mujoco.MjModel.from_xml_path(str(truth_xml))
     offsets = truth_offsets(args.scene)
-    options = ImpactOptions()
+    options = ImpactOptions() if args.max_post_s is None else ImpactOptions(max_post_s=args.max_post_s)
     draws: list[int | None] = [None, *range(args.draws)]
     all_right = np.ones(len(draws), bool)
     print("| object | draw | friction | restitution (1 m/s) | chi-square / dof |")
     print("|---|---|---|---|---|")
     for body, runs in own.items():
+        if args.objects and body not in args.objects:
+            continue
         true_name = offsets[body][0]
         mu_true = rendered[true_name]["friction.sliding"]
         e_true = body_restitution(truth, true_name)
