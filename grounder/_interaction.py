@@ -64,7 +64,7 @@ from grounder._ground import GroundOptions, ground
 from grounder._interaction_impacts import ImpactOptions, impacts_body, impacts_figure
 from grounder._interaction_shooting import ShootingOptions, fit_contact, moving_runs
 from grounder._restitution import REFERENCE_IMPACT_SPEED_M_S, body_restitution
-from grounder._track import TrackOptions, TrackResult, load_object_trajectories, track
+from grounder._track import TrackOptions, TrackResult, track, track_payload_trajectories
 from grounder._track_smooth import SmoothingOptions, quat_from_matrix
 from grounder._trajectory import Trajectory, load_trajectories, save_trajectories
 from grounder.errors import GrounderError
@@ -287,7 +287,7 @@ def saved_tracks(tracks_dir: Path, track_options: TrackOptions | None = None) ->
     segments = load_trajectories(tracks_dir) if any(Path(tracks_dir).glob("*.npz")) else []
     return SavedTracks(
         segments=segments,
-        object_tracks=load_object_trajectories(track_json, options.smoothing, options.min_segment_frames),
+        object_tracks=track_payload_trajectories(payload, options.smoothing, options.min_segment_frames),
         view_point_m=view_point_of(camera_poses_of(payload["world_from_cam"])),
     )
 
@@ -1259,13 +1259,16 @@ def ground_with_interaction(
 
         tick = time.perf_counter()
         tracks_dir = stage / "interaction" / "tracks"
-        tracked = track(Path(clip), grounded, tracks_dir, track_options, progress=report)
+        # track.json names the grounded scene where it will be, not in the staging folder.
+        tracked = track(
+            Path(clip),
+            grounded,
+            tracks_dir,
+            track_options,
+            progress=report,
+            scene_recorded_as=Path(out) / "grounded" / "scene.xml",
+        )
         seconds["track"] = time.perf_counter() - tick
-        # track.json names the scene it tracked: the grounded scene where it will be, not in the staging folder.
-        track_json = tracks_dir / "track.json"
-        written = json.loads(track_json.read_text())
-        written["scene_xml"] = str(Path(out) / "grounded" / "scene.xml")
-        track_json.write_text(json.dumps(written, indent=1) + "\n")
         # Calibrate from the tracks as written, not as held in memory: they reproduce this scene (`saved_tracks`).
         saved = saved_tracks(tracks_dir, track_options)
         segments = saved.segments

@@ -39,9 +39,10 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -1134,7 +1135,13 @@ def load_object_trajectories(
     track_json: Path, smoothing: SmoothingOptions | None = None, min_frames: int | None = None
 ) -> dict[str, list[Trajectory]]:
     """`object_trajectories` of a `track.json` written by `track` (its poses, valid mask and frame times)."""
-    payload = json.loads(Path(track_json).read_text())
+    return track_payload_trajectories(json.loads(Path(track_json).read_text()), smoothing, min_frames)
+
+
+def track_payload_trajectories(
+    payload: Mapping[str, Any], smoothing: SmoothingOptions | None = None, min_frames: int | None = None
+) -> dict[str, list[Trajectory]]:
+    """`load_object_trajectories` of a `track.json` already read."""
     names = list(payload["object_names"])
     valid = np.array([payload["objects"][n]["valid"] for n in names], dtype=bool).T
     poses = np.tile(np.eye(4), (len(valid), len(names), 1, 1))
@@ -1176,6 +1183,7 @@ def track(
     *,
     overwrite: bool = False,
     progress: ProgressFn | None = None,
+    scene_recorded_as: Path | None = None,
 ) -> TrackResult:
     """Tracks every object of a grounded scene through a clip; writes trajectories and `track.json` to `out_dir`.
 
@@ -1186,6 +1194,8 @@ def track(
         options: tracking settings; `aruco_size_m` is required (the camera pose comes from the marker).
         overwrite: replace a non-empty `out_dir` once the result is complete.
         progress: called as progress(stage, done, total).
+        scene_recorded_as: the scene.xml path `track.json` names, where `scene` is a copy that will move (a staging
+            folder); default: `scene`'s scene.xml.
 
     Returns:
         The poses, valid mask, scores, segments and their trajectories.
@@ -1343,7 +1353,7 @@ def track(
             result,
             Path(out_dir),
             clip=Path(clip),
-            scene_xml=scene_xml,
+            scene_xml=scene_recorded_as or scene_xml,
             camera=camera,
             fps=fps,
             options=options,
