@@ -19,7 +19,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -28,6 +30,37 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from track import contact_values, truth_offsets  # noqa: E402
+
+
+@dataclass(frozen=True)
+class TrueContact:
+    """What a clip was rendered with for one grounded body: the true object's name, its sliding friction, the
+    restitution its contact produces at 1 m/s, and its solimp (for `simulated_restitution`)."""
+
+    name: str
+    friction: float
+    restitution: float
+    solimp: np.ndarray
+
+
+def true_contacts(scene: Path, clip: Path) -> tuple[Any, dict[str, TrueContact]]:
+    """The truth model's options (`simulated_restitution`'s physics) and, per grounded body of `scene`, its
+    `TrueContact` in `clip` (`clip/truth/scene.xml`, else `samples/toss`'s: the occluded clip is that toss)."""
+    import mujoco
+
+    from grounder._calibrate_params import collision_geoms
+    from grounder._restitution import body_restitution
+
+    truth_xml = clip / "truth/scene.xml"
+    if not truth_xml.exists():
+        truth_xml = ROOT / "samples/toss/truth/scene.xml"
+    rendered = contact_values(truth_xml, clip)
+    truth = mujoco.MjModel.from_xml_path(str(truth_xml))
+    out = {}
+    for body, (name, _) in truth_offsets(scene).items():
+        solimp = truth.geom_solimp[collision_geoms(truth, truth.body(name).id)[0]]
+        out[body] = TrueContact(name, rendered[name]["friction.sliding"], body_restitution(truth, name), solimp)
+    return truth.opt, out
 
 
 def main() -> None:
@@ -45,21 +78,16 @@ def main() -> None:
 
     import mujoco
 
-    from grounder._calibrate_params import collision_geoms, resolve_parameters
+    from grounder._calibrate_params import resolve_parameters
     from grounder._interaction import camera_poses_of, single_body_scene, view_point_of
     from grounder._interaction_impacts import _CONTACT_FIELDS, ImpactOptions, _moved, find_impacts, fit_impacts
-    from grounder._restitution import body_restitution, simulated_restitution
+    from grounder._restitution import simulated_restitution
     from grounder._track import load_object_trajectories
 
     track_json = json.loads((args.tracks / "track.json").read_text())
     view = view_point_of(camera_poses_of(track_json["world_from_cam"]))
     own = load_object_trajectories(args.tracks / "track.json")
-    truth_xml = args.clip / "truth/scene.xml"
-    if not truth_xml.exists():
-        truth_xml = ROOT / "samples/toss/truth/scene.xml"
-    rendered = contact_values(truth_xml, args.clip)
-    truth = mujoco.MjModel.from_xml_path(str(truth_xml))
-    offsets = truth_offsets(args.scene)
+    truth_opt, truths = true_contacts(args.scene, args.clip)
     options = ImpactOptions() if args.max_post_s is None else ImpactOptions(max_post_s=args.max_post_s)
     draws: list[int | None] = [None, *range(args.draws)]
     all_right = np.ones(len(draws), bool)
@@ -68,10 +96,8 @@ def main() -> None:
     for body, runs in own.items():
         if args.objects and body not in args.objects:
             continue
-        true_name = offsets[body][0]
-        mu_true = rendered[true_name]["friction.sliding"]
-        e_true = body_restitution(truth, true_name)
-        solimp = truth.geom_solimp[collision_geoms(truth, truth.body(true_name).id)[0]]
+        true = truths[body]
+        true_name = true.name
         tally = {"friction": [0, 0, 0], "restitution": [0, 0, 0]}  # within 20%, wrong, unresolved
         with single_body_scene(args.scene / "scene.xml", body) as sub_xml:
             model = mujoco.MjModel.from_xml_path(str(sub_xml))
@@ -84,13 +110,13 @@ def main() -> None:
                     all_right[k] = False
                     continue
                 fit = fit_impacts(model, contact, impacts, options)
-                e_fit = simulated_restitution((fit.timeconst_s, fit.dampratio), solimp, truth.opt)
+                e_fit = simulated_restitution((fit.timeconst_s, fit.dampratio), true.solimp, truth_opt)
                 cells = []
-                for name, value, true, resolved in (
-                    ("friction", fit.friction, mu_true, fit.friction_resolved),
-                    ("restitution", e_fit, e_true, fit.restitution_resolved),
+                for name, value, rendered, resolved in (
+                    ("friction", fit.friction, true.friction, fit.friction_resolved),
+                    ("restitution", e_fit, true.restitution, fit.restitution_resolved),
                 ):
-                    error = value / true - 1.0
+                    error = value / rendered - 1.0
                     slot = 2 if not resolved else 0 if abs(error) <= 0.2 else 1
                     tally[name][slot] += 1
                     all_right[k] &= slot == 0

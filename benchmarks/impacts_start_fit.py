@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from track import contact_values, truth_offsets  # noqa: E402
+from impacts_stability import true_contacts  # noqa: E402
 
 from grounder._calibrate_params import collision_geoms, contact_priority, resolve_parameters  # noqa: E402
 from grounder._interaction import camera_poses_of, single_body_scene, view_point_of  # noqa: E402
@@ -52,8 +52,8 @@ from grounder._interaction_impacts import (  # noqa: E402
     profile_range,
     widened,
 )
-from grounder._restitution import body_restitution, contact_solref, simulated_restitution  # noqa: E402
-from grounder._simulate import prepare  # noqa: E402
+from grounder._restitution import contact_solref, simulated_restitution  # noqa: E402
+from grounder._simulate import initial_state, prepare  # noqa: E402
 from grounder._track import load_object_trajectories  # noqa: E402
 
 
@@ -92,8 +92,6 @@ def fit_grid(model, contact, body, impact, grid, iters=10, chunk=64, fd=0.02, nt
     def costs_and_w(models, deltas):
         """models: list (R,), deltas: (R, 12) -> whitened residuals (R, D + 12)."""
         trajs = [_start_variant(model, body, impact, d) for d in deltas]
-        from grounder._simulate import initial_state
-
         states0 = np.stack([initial_state(model, t.qpos[0], t.qvel[0], data0) for t in trajs])
         state, _ = mj_rollout.rollout(list(models), datas, states0, nstep=nstep)
         full = np.concatenate([states0[:, None, :], state], axis=1)
@@ -158,12 +156,7 @@ def main():
     tj = json.loads((args.tracks / "track.json").read_text())
     view = view_point_of(camera_poses_of(tj["world_from_cam"]))
     own = load_object_trajectories(args.tracks / "track.json")
-    truth_xml = args.clip / "truth/scene.xml"
-    if not truth_xml.exists():  # the occluded clip is samples/toss's motion and values
-        truth_xml = ROOT / "samples/toss/truth/scene.xml"
-    rendered = contact_values(truth_xml, args.clip)
-    truth = mujoco.MjModel.from_xml_path(str(truth_xml))
-    offsets = truth_offsets(args.scene)
+    truth_opt, truths = true_contacts(args.scene, args.clip)
     options = ImpactOptions()
     fr = options.friction_grid[:: args.coarse]
     re = options.restitution_grid[:: args.coarse]
@@ -174,10 +167,8 @@ def main():
     for body, body_runs in own.items():
         if args.objects and body not in args.objects:
             continue
-        tname = offsets[body][0]
-        mu_true = rendered[tname]["friction.sliding"]
-        e_true = body_restitution(truth, tname)
-        solimp_t = truth.geom_solimp[collision_geoms(truth, truth.body(tname).id)[0]]
+        true = truths[body]
+        tname, mu_true, e_true = true.name, true.friction, true.restitution
         with single_body_scene(args.scene / "scene.xml", body) as sub:
             model = mujoco.MjModel.from_xml_path(str(sub))
             contact = resolve_parameters(model, [f"{body}.{f}" for f in _CONTACT_FIELDS])
@@ -203,7 +194,7 @@ def main():
                 espan = widened(profile_range(pts[:, 1], total, thr), re)
                 mres = _resolved(mu_b, mspan, fr, options.resolution_fraction)
                 eres = _resolved(e_b, espan, re, options.resolution_fraction)
-                e_fit = simulated_restitution(contact_solref(e_b, tc_b, solimp=tuple(solimp)), solimp_t, truth.opt)
+                e_fit = simulated_restitution(contact_solref(e_b, tc_b, solimp=tuple(solimp)), true.solimp, truth_opt)
                 print(
                     f"{body} ({tname}) {s}: chi2 {total[best]:.0f} / {dof}; friction {mu_b:.3f} "
                     f"({100 * (mu_b / mu_true - 1):+.0f}%, range {mspan[0]:.3f}..{mspan[1]:.3f}, "
