@@ -46,6 +46,17 @@ def grounded_tabletop(tabletop_dir: Path, tmp_path_factory: pytest.TempPathFacto
     return out
 
 
+@pytest.fixture(scope="session")
+def grounded_apple(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`image2sim ground` on the real apple video with `--known-extent 0.08`, once per session (about 90 s): the
+    film-a-scene test reads its scene, the reconstruct test its `reconstruction/` stage output (one run, not two)."""
+    out = tmp_path_factory.mktemp("apple") / "scene"
+    cmd = [sys.executable, "-m", "grounder.cli", "ground", str(shared_data / "apple_video" / "apple.mp4")]
+    proc = subprocess.run([*cmd, "-o", str(out), "--known-extent", "0.08"], capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return out
+
+
 @pytest.fixture
 def reconstruction_of_points() -> Callable[[np.ndarray], ReconstructionResult]:
     """Factory: a minimal ReconstructionResult (one camera at (0, -0.6, 0.4) m) holding the given sparse points."""

@@ -114,11 +114,8 @@ def test_concave_object_holds_a_ball(scene_dir: Path, errors: dict[str, ObjectEr
     assert ball_pos[2] < top  # below the rim: in the cavity, not resting on a lid
 
 
-def test_real_apple_video(shared_data: Path, tmp_path: Path) -> None:
-    out = tmp_path / "apple"
-    proc = _ground(shared_data / "apple_video" / "apple.mp4", out, "--known-extent", "0.08")
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    manifest = json.loads((out / "scene.json").read_text())
+def test_real_apple_video(grounded_apple: Path) -> None:
+    manifest = json.loads((grounded_apple / "scene.json").read_text())
     assert list(manifest["objects"]) == ["object_0"]  # exactly one object: the apple
     (apple,) = manifest["objects"].values()
     assert max(apple["extents_m"]) == pytest.approx(0.08, rel=1e-3)
