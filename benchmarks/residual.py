@@ -20,6 +20,13 @@ for what a state-independent change of contact parameters can reach on this prot
 the 75 rollouts (positions averaged, quaternions by their chordal mean): where the tosses scatter unpredictably
 after the impacts, a model trained to minimise the expected error would drift toward such an average.
 
+``--predictability`` (with ``--calibrated DIR``) measures how much of the calibrated scene's horizontal position
+error the toss's first recorded state predicts at all: a ridge regression, fitted on the training tosses, from
+that state (position, linear and angular velocity, gravity's direction in the cube frame) to each toss's error
+(time-averaged and final, x and y), scored on the validation tosses. A residual sees no more than the state, so
+what this linear read of it cannot predict is mostly scatter; the same with the recorded final position added is
+a hindsight reference.
+
 ``--ablation`` also rolls the validation tosses out with only the pose outputs (position, rotation) or only the
 velocity outputs of the trained residual, at forced gains 0.25, 0.5 and 1, to show which part helps or hurts.
 """
@@ -268,6 +275,57 @@ def hindsight_oracle(scene: Path) -> None:
     print(f"  {label:41s}  {fmt(*metric(ensemble, val))}")
 
 
+def _first_state_features(toss: Trajectory, with_landing: bool) -> list[float]:
+    """Position, linear and angular velocity, and gravity's direction in the cube frame at the first recorded
+    state; with ``with_landing`` also the recorded final x, y (hindsight)."""
+    cube_from_world = np.empty(9)
+    mujoco.mju_quat2Mat(cube_from_world, toss.qpos[0, 3:7])
+    up_in_cube = cube_from_world.reshape(3, 3).T @ np.array([0.0, 0.0, 1.0])
+    features = [*toss.qpos[0, :3], *toss.qvel[0, :6], *up_in_cube]
+    return features + list(toss.qpos[-1, :2]) if with_landing else features
+
+
+def error_predictability(scene: Path) -> None:
+    """How much of the calibrated scene's horizontal position error a linear read of the first state predicts
+    (ridge regression fitted on the training tosses, R^2 on the validation tosses; see the module docstring)."""
+    train, val = split(load_dair_pll_cube(DATA))
+    model = Simulator(scene, use_residual=False).model
+    errors = {}
+    for label, tosses in (("train", train), ("val", val)):
+        preds = [p for p in simulate(model, tosses) if isinstance(p, Trajectory)]
+        horizontal = [p.qpos[:, :2] - t.qpos[:, :2] for p, t in zip(preds, tosses, strict=True)]
+        errors[label] = {
+            "time-averaged": np.array([e.mean(axis=0) for e in horizontal]),
+            "final": np.array([e[-1] for e in horizontal]),
+        }
+    print(
+        f"\nhorizontal position error of the calibrated scene, predicted from the first state "
+        f"(R^2 on {len(val)} validation tosses)"
+    )
+    final = errors["val"]["final"]
+    mean_mm, std_mm = (np.array2string(1000 * v, precision=1) for v in (final.mean(axis=0), final.std(axis=0)))
+    print(f"  final error x, y over the validation tosses: mean {mean_mm} mm, std {std_mm} mm")
+    for with_landing in (False, True):
+        x_train = np.array([_first_state_features(t, with_landing) for t in train])
+        x_val = np.array([_first_state_features(t, with_landing) for t in val])
+        mean, std = x_train.mean(axis=0), x_train.std(axis=0) + 1e-12
+        x_train = np.c_[np.ones(len(train)), (x_train - mean) / std]
+        x_val = np.c_[np.ones(len(val)), (x_val - mean) / std]
+        for ridge in (1.0, 10.0, 100.0):
+            normal = x_train.T @ x_train + ridge * np.diag([0.0] + [1.0] * (x_train.shape[1] - 1))
+            for kind in ("time-averaged", "final"):
+                y_train, y_val = errors["train"][kind], errors["val"][kind]
+                coef = np.linalg.solve(normal, x_train.T @ y_train)
+                left = y_val - x_val @ coef
+                r2 = 1.0 - np.sum(left**2) / np.sum((y_val - y_val.mean(axis=0)) ** 2)
+                size, after = (1000 * np.linalg.norm(y, axis=1).mean() for y in (y_val, left))
+                inputs = "first state + recorded final x, y (hindsight)" if with_landing else "first state"
+                print(
+                    f"  {inputs:46s} ridge {ridge:4g}  {kind:13s} R^2 {r2:6.3f}  "
+                    f"mean |error| {size:5.1f} -> {after:5.1f} mm"
+                )
+
+
 def synthetic_drag(options: ResidualOptions) -> None:
     """Withheld effect: the recorded cube feels air drag the nominal model lacks (tests/test_residual.py's case)."""
     sys.path.insert(0, str(REPO / "tests"))
@@ -299,6 +357,11 @@ def main() -> None:
         "--oracle", action="store_true", help="with --calibrated: only the per-toss hindsight bound of contact changes"
     )
     parser.add_argument(
+        "--predictability",
+        action="store_true",
+        help="with --calibrated: how much of the error the first state predicts",
+    )
+    parser.add_argument(
         "--ablation", action="store_true", help="also roll out with only the pose or only the velocity outputs"
     )
     parser.add_argument("--steps", type=int, default=ResidualOptions().steps)
@@ -310,6 +373,11 @@ def main() -> None:
         if args.calibrated is None or not DATA.is_dir():
             parser.error("--oracle needs --calibrated DIR and ../shared/data/cube_toss")
         hindsight_oracle(args.calibrated)
+        return
+    if args.predictability:
+        if args.calibrated is None or not DATA.is_dir():
+            parser.error("--predictability needs --calibrated DIR and ../shared/data/cube_toss")
+        error_predictability(args.calibrated)
         return
     if not DATA.is_dir():
         print(f"{DATA} is absent: skipping the cube tosses")
