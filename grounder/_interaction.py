@@ -148,7 +148,8 @@ class InteractionOptions:
             with every state of its whole tracked run by multiple shooting (`grounder._interaction_shooting.
             fit_contact`, settings `shooting`), which does not rest on the tracked start states; the screen, the
             windows and the start-error profiles are not used. A value is calibrated where the points searched
-            resolve it (`ContactFit.resolved`); the others keep the prior. Opt-in: README, "Multiple shooting".
+            resolve it (`ContactFit.resolved`); the others keep the prior. Opt-in: docs/interaction_history.md,
+            "Multiple shooting".
         shooting: settings of the "shooting" calibration.
         impacts: settings of the "impacts" calibration: with `per_object`, each object's contact values from the
             contacts after its tracked free flights (`grounder._interaction_impacts`): the state before each
@@ -398,7 +399,7 @@ CALIBRATE_SETTINGS: dict[str, Any] = {"generations": 30, "popsize": 10, "robust_
 
 # Below this frame rate a bounce or a slide lasts a few frames, and contact values rest on a handful of window starts:
 # the same toss calibrated 22 of 24 resolved values within 20% at 30 fps (12 unresolved) and 23 of 24 at 60 fps
-# (6 unresolved), over the same scans (README, "Frame rate").
+# (6 unresolved), over the same scans (docs/interaction_history.md, "Frame rate").
 MIN_ADVISED_FPS = 50.0
 
 

@@ -24,8 +24,8 @@ cost counts. `contact_profile` instead fills a grid of sliding friction x dampin
 (`benchmarks/shooting.py --grid`).
 
 Opt-in, not the default calibration: the node fit stops in local minima that depend on where it starts (less so
-with the sampling sweeps), so the costs it compares are rough. Figures in README ("Multiple shooting over the whole
-run").
+with the sampling sweeps), so the costs it compares are rough. Figures in docs/interaction_history.md ("Multiple
+shooting over the whole run").
 """
 
 from __future__ import annotations

@@ -86,7 +86,7 @@ def test_the_fit_recovers_the_throw_and_is_exact_at_the_truth() -> None:
     """At the true values the true states cost nothing. From velocities 0.1 m/s off (per axis), the fit brings
     the throw's velocity (the first node, before the first bounce) back to within 1 cm/s and the cost down by 90%.
     Not to zero: around the bounces the nodes' vertical velocities stay 3-13 cm/s off (a local minimum, cost 31
-    against 0; README, "Multiple shooting")."""
+    against 0; docs/interaction_history.md, "Multiple shooting")."""
     model, truth = _thrown()
     _set_contact(model, *TRUE)
     exact = ShootingProblem(model, [truth], ShootingOptions())

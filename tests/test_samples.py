@@ -401,7 +401,7 @@ def test_toss_at_60_fps_shows_every_30_fps_frame(
     toss_model: mujoco.MjModel, toss_traj: Trajectory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """`samples/make_toss.py --fps 60` renders the same toss: its even frames are the physics steps of
-    `samples/toss`'s frames, so the two clips show the same states (README, "Frame rate")."""
+    `samples/toss`'s frames, so the two clips show the same states (docs/interaction_history.md, "Frame rate")."""
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "samples"))
     import make_toss
 
@@ -413,10 +413,10 @@ def test_toss_at_60_fps_shows_every_30_fps_frame(
 
 
 def test_heldout_toss_is_a_valid_clip_with_other_values(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """`samples/make_toss.py --heldout` (README, "Held-out toss") simulates a clip that passes the toss's own checks
-    (every object in view, apart, on the table and at rest for the last 0.7 s), renders each object with
-    `HELDOUT_CONTACT`'s values, and those differ from `samples/toss`'s by more than the 20% the target allows, so
-    calibrating it checks other values than the ones the defaults were chosen on."""
+    """`samples/make_toss.py --heldout` (docs/interaction_history.md, "Held-out toss") simulates a clip that passes
+    the toss's own checks (every object in view, apart, on the table and at rest for the last 0.7 s), renders each
+    object with `HELDOUT_CONTACT`'s values, and those differ from `samples/toss`'s by more than the 20% the target
+    allows, so calibrating it checks other values than the ones the defaults were chosen on."""
     monkeypatch.syspath_prepend(str(SAMPLES))
     import make_toss
 
