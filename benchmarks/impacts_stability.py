@@ -10,8 +10,8 @@ a single `fit_impacts`, without the tool's own check on such copies (`ImpactOpti
 what this measures the need for.
 
 Run: `.venv/bin/python benchmarks/impacts_stability.py --scene out/det/scene --tracks out/tracks/toss
-[--clip samples/toss] [--draws 8] [--sigma-um 0.1] [--objects object_2] [--max-post-s 0.3]` (about 10 s per object
-and draw on 2 cores).
+[--clip samples/toss] [--draws 8] [--sigma-um 0.1] [--objects object_2] [--max-post-s 0.3] [--drift 6,0.3]`
+(about 10 s per object and draw on 2 cores).
 """
 
 from __future__ import annotations
@@ -74,6 +74,11 @@ def main() -> None:
     parser.add_argument(
         "--max-post-s", type=float, default=None, help="ImpactOptions.max_post_s (seconds compared after a contact)"
     )
+    parser.add_argument(
+        "--drift",
+        default=None,
+        help="SIGMA_MM,TIME_S: ImpactOptions.drift_sigma_m (in mm) and drift_time_s (the tracking error's drift)",
+    )
     args = parser.parse_args()
 
     import mujoco
@@ -88,7 +93,11 @@ def main() -> None:
     view = view_point_of(camera_poses_of(track_json["world_from_cam"]))
     own = load_object_trajectories(args.tracks / "track.json")
     truth_opt, truths = true_contacts(args.scene, args.clip)
-    options = ImpactOptions() if args.max_post_s is None else ImpactOptions(max_post_s=args.max_post_s)
+    overrides: dict[str, float] = {} if args.max_post_s is None else {"max_post_s": args.max_post_s}
+    if args.drift is not None:
+        sigma_mm, time_s = (float(v) for v in args.drift.split(","))
+        overrides |= {"drift_sigma_m": 1e-3 * sigma_mm, "drift_time_s": time_s}
+    options = ImpactOptions(**overrides)
     draws: list[int | None] = [None, *range(args.draws)]
     all_right = np.ones(len(draws), bool)
     print("| object | draw | friction | restitution (1 m/s) | chi-square / dof |")
