@@ -17,6 +17,7 @@ import numpy as np
 
 from grounder.errors import GrounderError
 from reconstruction import ReconstructOptions, ScaleSource, reconstruct, staged_output_dir
+from reconstruction._primitives import CylinderFit, CylinderSnapOptions, snap_to_upright_cylinder
 from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
 from reconstruction._texture import TextureOptions, TextureView, bake_texture_report
 from reconstruction._types import ObjectInstance, ReconstructionResult, TexturedMesh
@@ -51,6 +52,10 @@ class GroundOptions:
         property_model: predict each object's density, friction and solref with the learned property model
             (`grounder._properties`) from video crops and shape, and store its embedding and spread in scene.json.
         settle_seconds: simulated time of the stability check written to scene.json.
+        cylinder_snap: an object whose mesh is nearly an upright cylinder (a can) has its visual mesh snapped onto
+            that cylinder after the property model has seen it (`reconstruction._primitives`): the scan's surface
+            ripple biased model-based tracking's depth. The collision hulls stay the scanned mesh's; mass and
+            inertia come from the snapped mesh. None: off.
     """
 
     reconstruct: ReconstructOptions = field(default_factory=ReconstructOptions)
@@ -61,6 +66,7 @@ class GroundOptions:
     default_friction: tuple[float, float, float] = (0.6, 0.005, 0.0001)
     property_model: bool = True
     settle_seconds: float = 2.0
+    cylinder_snap: CylinderSnapOptions | None = field(default_factory=CylinderSnapOptions)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -176,6 +182,7 @@ def ground(
                 tick = time.perf_counter()
                 properties = _predict_properties(textured, views, report, warnings) if options.property_model else {}
                 seconds["properties"] = time.perf_counter() - tick
+                textured, cylinders = _snap_cylinders(textured, options.cylinder_snap)
 
                 tick = time.perf_counter()
                 specs = _object_specs(textured, hull_jobs, properties, options, report)
@@ -189,7 +196,7 @@ def ground(
         preview_frame = rec.frames[0]
         camera = CameraSpec.from_intrinsics("video", preview_frame.world_from_cam, rec.intrinsics)
         table = TableSpec(half_extents_m=scene.table_half_extents)
-        provenance = _provenance(rec, scene, textured, coverage, scale_note, options, bool(properties))
+        provenance = _provenance(rec, scene, textured, coverage, scale_note, options, bool(properties), cylinders)
         exported = export_scene(specs, table, [camera], stage / "export", manifest_extra=provenance)
         for child in exported.out_dir.iterdir():
             shutil.move(str(child), stage / child.name)
@@ -292,6 +299,21 @@ def _object_specs(
     return specs
 
 
+def _snap_cylinders(
+    objects: list[ObjectInstance], options: CylinderSnapOptions | None
+) -> tuple[list[ObjectInstance], dict[str, CylinderFit]]:
+    """Each object whose mesh is nearly an upright cylinder with its mesh snapped onto it, and the fits by name."""
+    if options is None:
+        return objects, {}
+    snapped, fits = [], {}
+    for obj in objects:
+        mesh, fit = snap_to_upright_cylinder(obj.mesh, options)
+        snapped.append(obj if fit is None else replace(obj, mesh=mesh))
+        if fit is not None:
+            fits[obj.name] = fit
+    return snapped, fits
+
+
 def _provenance(
     rec: ReconstructionResult,
     scene: SceneObjects,
@@ -300,8 +322,11 @@ def _provenance(
     scale_note: str | None,
     options: GroundOptions,
     learned_properties: bool = False,
+    cylinders: dict[str, CylinderFit] | None = None,
 ) -> dict[str, object]:
     import importlib.metadata as md
+
+    fits = cylinders or {}
 
     def version(pkg: str) -> str:
         try:
@@ -336,6 +361,7 @@ def _provenance(
                 "closed_bottom": o.closed_bottom,
                 "num_views": o.num_views,
                 "texture_coverage": coverage.get(o.name),
+                "visual_snapped_to_cylinder": fits[o.name].as_json() if o.name in fits else None,
                 "warnings": list(o.warnings),
             }
             for o in objects
