@@ -261,16 +261,15 @@ def _drifting(traj: Trajectory, seed: int, drift_m: float, drift_time_s: float) 
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_drifting_depth_error_leaves_the_values_within_10_percent(seed: int) -> None:
-    """Tracked with a depth error that drifts as much as the default drift model says (4 mm over 0.3 s, which no
-    flight's residuals show), the sliding throw's friction and restitution still come back within 10%, compared in
-    position and orientation."""
+    """Tracked with a depth error that drifts by 6 mm over 0.3 s (which no flight's residuals show; the scanned can of
+    `samples/toss` was 4.4-9.4 mm off for 0.45 s), more than the default drift model's 4 mm, the sliding throw's
+    friction and restitution still come back within 10%, compared in position and orientation."""
     truth = _scene(0.3, 0.6).compile()
     traj, _ = _throw(truth, (1.5, 0.3, -0.8), (1.0, -3.0, 0.5))
     model = _prior()
     options = ImpactOptions()
     assert options.compare_rotation and options.drift_sigma_m > 0
-    drifting = _drifting(traj, seed, options.drift_sigma_m, options.drift_time_s)
-    impacts = find_impacts(model, "box", [drifting], options, VIEW_POINT_M)
+    impacts = find_impacts(model, "box", [_drifting(traj, seed, 6e-3, 0.3)], options, VIEW_POINT_M)
     # `fit_impacts` alone: the stability check (`stable_fit`, tested below) refits copies and changes no best value.
     fit = fit_impacts(model, resolve_parameters(model, list(CONTACT)), impacts, options)
     assert fit.dof == sum(6 * len(i.after_s) for i in impacts) - 3  # centre of mass and orientation per frame
