@@ -37,25 +37,24 @@ def main() -> None:
     parser.add_argument("--object", required=True, help="grounded body whose visual mesh is snapped (e.g. object_2)")
     parser.add_argument("--out", type=Path, required=True, help="new scene folder (must not exist)")
     args = parser.parse_args()
-    mesh = args.scene / "assets" / f"{args.object}_visual.obj"
-    if not mesh.is_file():
-        sys.exit(f"cylinder_snap: error: {mesh} not found; pass a grounded scene folder and one of its objects")
+    obj_path = args.scene / "assets" / f"{args.object}_visual.obj"
+    if not obj_path.is_file():
+        sys.exit(f"cylinder_snap: error: {obj_path} not found; pass a grounded scene folder and one of its objects")
     if args.out.exists():
         sys.exit(f"cylinder_snap: error: {args.out} exists; pass a new folder")
-    lines = mesh.read_text().split("\n")
+    lines = obj_path.read_text().split("\n")
     rows = [i for i, line in enumerate(lines) if line.startswith("v ")]
     vertices = np.array([[float(v) for v in lines[i].split()[1:4]] for i in rows])
-    mesh, fit = snap_to_upright_cylinder(TexturedMesh(vertices_m=vertices, faces=np.zeros((0, 3), np.int64)))
+    snapped, fit = snap_to_upright_cylinder(TexturedMesh(vertices_m=vertices, faces=np.zeros((0, 3), np.int64)))
     if fit is None:
         print(f"cylinder_snap: error: {args.object} is not an upright cylinder; pick a round one", file=sys.stderr)
         sys.exit(2)
-    moved = mesh.vertices_m
     about = (
         f"cylinder radius {1000 * fit.radius_m:.2f} mm, side ripple {1000 * fit.ripple_rms_m:.2f} mm RMS, "
         f"vertices moved median {1000 * fit.moved_median_m:.2f} mm, max {1000 * fit.moved_max_m:.2f} mm"
     )
     shutil.copytree(args.scene, args.out)
-    for row, vertex in zip(rows, moved, strict=True):
+    for row, vertex in zip(rows, snapped.vertices_m, strict=True):
         extra = lines[row].split()[4:]  # vertex colours, if any
         lines[row] = " ".join(["v", *(f"{v:.7f}" for v in vertex), *extra])
     (args.out / "assets" / f"{args.object}_visual.obj").write_text("\n".join(lines))

@@ -278,9 +278,9 @@ def hindsight_oracle(scene: Path) -> None:
 def _first_state_features(toss: Trajectory, with_landing: bool) -> list[float]:
     """Position, linear and angular velocity, and gravity's direction in the cube frame at the first recorded
     state; with ``with_landing`` also the recorded final x, y (hindsight)."""
-    cube_from_world = np.empty(9)
-    mujoco.mju_quat2Mat(cube_from_world, toss.qpos[0, 3:7])
-    up_in_cube = cube_from_world.reshape(3, 3).T @ np.array([0.0, 0.0, 1.0])
+    world_from_cube = np.empty(9)
+    mujoco.mju_quat2Mat(world_from_cube, toss.qpos[0, 3:7])
+    up_in_cube = world_from_cube.reshape(3, 3).T @ np.array([0.0, 0.0, 1.0])
     features = [*toss.qpos[0, :3], *toss.qvel[0, :6], *up_in_cube]
     return features + list(toss.qpos[-1, :2]) if with_landing else features
 

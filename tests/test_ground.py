@@ -101,9 +101,9 @@ def test_only_the_can_is_snapped_onto_a_cylinder_and_lands_on_the_true_radius(
     """`GroundOptions.cylinder_snap`: the scanned can's visual mesh is moved onto its fitted upright cylinder (the true
     can: radius 35 mm), its side's ripple recorded; the box and the bowl are left as scanned."""
     extra = json.loads((scene_dir / "scene.json").read_text())["objects_extra"]
-    snapped = {errors[name].name: extra[errors[name].name]["visual_snapped_to_cylinder"] for name in errors}
-    assert snapped[errors["box"].name] is None and snapped[errors["bowl"].name] is None
-    can = snapped[errors["can"].name]
+    snapped = {true_name: extra[e.name]["visual_snapped_to_cylinder"] for true_name, e in errors.items()}
+    assert snapped["box"] is None and snapped["bowl"] is None
+    can = snapped["can"]
     assert can is not None and can["radius_m"] == pytest.approx(0.035, abs=5e-4)
     assert 0.0 < can["ripple_rms_m"] < 0.05 * can["radius_m"]
     assert errors["can"].extent_error < 0.02  # the ripple's outward bumps no longer widen it (5.6-6.6% before)
