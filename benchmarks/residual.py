@@ -27,6 +27,18 @@ that state (position, linear and angular velocity, gravity's direction in the cu
 what this linear read of it cannot predict is mostly scatter; the same with the recorded final position added is
 a hindsight reference.
 
+``--noise-floor`` (with ``--calibrated DIR``) measures how much of the error the recorded first state's own error
+sets. Each toss's first free-flight frames (every corner of the cube at least 10 mm above the board, at least 8
+frames) are fitted by free flight: a parabola under the scene's gravity for the position, a constant body rate for
+the orientation (exact for the cube's isotropic inertia). The fit's residuals give the tracking noise, and the
+fitted state at the first frame, against the recorded one, gives the error of the recorded first state (its
+velocities are differences of the poses). The calibrated scene is then rolled out from the fitted start (a
+hindsight reference: it reads later frames), and from the fitted start plus another toss's first-state error
+drawn at random, scored against the roll-out from the fitted start. That last figure is the error a model as
+sensitive to its start as the calibrated scene would show against *itself* when started from a state as wrong as
+the recorded ones: a floor for any model rolled out from the recorded first state, unless reality is much less
+sensitive to its start than the simulation.
+
 ``--ablation`` also rolls the validation tosses out with only the pose outputs (position, rotation) or only the
 velocity outputs of the trained residual, at forced gains 0.25, 0.5 and 1, to show which part helps or hurts.
 """
@@ -39,7 +51,7 @@ import re
 import sys
 import tempfile
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import mujoco
@@ -51,9 +63,11 @@ sys.path.insert(0, str(REPO))
 from cube_toss import DEFAULT_PARAMS as CUBE_TOSS_PARAMS  # noqa: E402  (benchmarks/cube_toss.py's fit)
 
 from grounder._import import load_dair_pll_cube  # noqa: E402
+from grounder._residual import quat_to_mat, quat_to_rotvec, rotvec_to_quat  # noqa: E402
 from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
 from grounder._simulate import quat_angle_rad, simulate  # noqa: E402
 from grounder._simulator import Simulator  # noqa: E402
+from grounder._track_smooth import quat_conj, quat_mul  # noqa: E402
 from grounder._trajectory import Trajectory  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data" / "cube_toss"
@@ -326,6 +340,143 @@ def error_predictability(scene: Path) -> None:
                 )
 
 
+FLIGHT_CLEARANCE_M = 0.01  # every cube corner at least this far above the board: free flight
+MIN_FLIGHT_FRAMES = 8
+
+
+def _leading_flight_frames(toss: Trajectory, corners_body_m: np.ndarray) -> int:
+    """How many frames from the first one the cube is in free flight (every corner above the clearance)."""
+    lowest_m = (toss.qpos[:, None, :3] + np.einsum("tij,cj->tci", quat_to_mat(toss.qpos[:, 3:]), corners_body_m))[
+        ..., 2
+    ].min(axis=1)
+    touching = np.flatnonzero(lowest_m < FLIGHT_CLEARANCE_M)
+    return int(touching[0]) if len(touching) else len(lowest_m)
+
+
+@dataclass(frozen=True)
+class _FlightStart:
+    """A toss's first state from a free-flight fit of its first frames, and the recorded first state's error."""
+
+    frames: int
+    qpos0: np.ndarray
+    qvel0: np.ndarray
+    pos_rms_m: float  # fit residuals: the tracking noise
+    rot_rms_rad: float
+    dpos_world_m: np.ndarray  # recorded - fitted, first frame
+    drot_body_rad: np.ndarray
+    dvel: np.ndarray  # (6,) world linear m/s, body angular rad/s
+
+
+def _free_flight_start(toss: Trajectory, frames: int, gravity_m_s2: float) -> _FlightStart:
+    """Fits the first ``frames`` frames by free flight: the position a parabola under gravity, the orientation
+    q(t) = q_mid exp(omega_body (t - t_mid)); the state at the first frame, against the recorded one."""
+    tau_s = toss.time_s[:frames] - toss.time_s[0]
+    lifted_m = toss.qpos[:frames, :3] + 0.5 * np.outer(tau_s**2, [0.0, 0.0, gravity_m_s2])  # gravity taken out
+    line = np.c_[np.ones(frames), tau_s]
+    pos_coef, *_ = np.linalg.lstsq(line, lifted_m, rcond=None)
+    mid = frames // 2
+    quat_mid = toss.qpos[mid, 3:]
+    rotvec_rad = quat_to_rotvec(quat_mul(quat_conj(quat_mid)[None], toss.qpos[:frames, 3:]))  # body frame at mid
+    line_mid = np.c_[np.ones(frames), tau_s - tau_s[mid]]
+    rot_coef, *_ = np.linalg.lstsq(line_mid, rotvec_rad, rcond=None)
+    dof = max(frames - 2, 1)
+    quat0 = quat_mul(quat_mid, rotvec_to_quat(rot_coef[0] + rot_coef[1] * (tau_s[0] - tau_s[mid])))
+    qpos0, qvel0 = np.r_[pos_coef[0], quat0], np.r_[pos_coef[1], rot_coef[1]]
+    return _FlightStart(
+        frames=frames,
+        qpos0=qpos0,
+        qvel0=qvel0,
+        pos_rms_m=float(np.sqrt(np.sum((lifted_m - line @ pos_coef) ** 2) / dof)),
+        rot_rms_rad=float(np.sqrt(np.sum((rotvec_rad - line_mid @ rot_coef) ** 2) / dof)),
+        dpos_world_m=toss.qpos[0, :3] - qpos0[:3],
+        drot_body_rad=quat_to_rotvec(quat_mul(quat_conj(quat0), toss.qpos[0, 3:])),
+        dvel=toss.qvel[0] - qvel0,
+    )
+
+
+def _started_at(toss: Trajectory, qpos0: np.ndarray, qvel0: np.ndarray) -> Trajectory:
+    qpos, qvel = toss.qpos.copy(), toss.qvel.copy()
+    qpos[0], qvel[0] = qpos0, qvel0
+    return replace(toss, qpos=qpos, qvel=qvel)
+
+
+def _rollouts(model: mujoco.MjModel, tosses: list[Trajectory]) -> list[Trajectory]:
+    return [p for p in simulate(model, tosses) if isinstance(p, Trajectory)]
+
+
+def _p50_p90(values: list[float], scale: float = 1.0) -> str:
+    p50, p90 = np.percentile(np.array(values) * scale, [50, 90])
+    return f"{p50:.3g} / {p90:.3g}"
+
+
+def start_noise_floor(scene: Path) -> None:
+    """What the recorded first state's own error costs a rollout (see the module docstring)."""
+    train, val = split(load_dair_pll_cube(DATA))
+    model = Simulator(scene, use_residual=False).model
+    boxes = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+    half_m = model.geom_size[boxes[0]]
+    corners_body_m = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half_m
+    gravity_m_s2 = float(-model.opt.gravity[2])
+    starts: dict[str, _FlightStart] = {}
+    for toss in train + val:
+        frames = _leading_flight_frames(toss, corners_body_m)
+        if frames >= MIN_FLIGHT_FRAMES:
+            starts[toss.name] = _free_flight_start(toss, frames, gravity_m_s2)
+    fits = list(starts.values())
+    print(
+        f"\nfirst state of the recorded tosses, against a free-flight fit of their first frames "
+        f"({len(starts)} of {len(train) + len(val)} tosses with >= {MIN_FLIGHT_FRAMES} frames clear of the board by "
+        f"{1000 * FLIGHT_CLEARANCE_M:g} mm; median {np.median([f.frames for f in fits]):.0f} frames); median / p90"
+    )
+    degrees = 180.0 / np.pi
+    print(
+        f"  fit residual rms (tracking noise)   position {_p50_p90([f.pos_rms_m for f in fits], 1000)} mm, "
+        f"rotation {_p50_p90([f.rot_rms_rad for f in fits], degrees)} deg"
+    )
+    print(
+        "  recorded - fitted, first frame      position "
+        f"{_p50_p90([float(np.linalg.norm(f.dpos_world_m)) for f in fits], 1000)} mm, rotation "
+        f"{_p50_p90([float(np.linalg.norm(f.drot_body_rad)) for f in fits], degrees)} deg"
+    )
+    mean_dvel = np.mean([f.dvel for f in fits], axis=0)
+    print(
+        "  recorded - fitted, first frame      linear velocity "
+        f"{_p50_p90([float(np.linalg.norm(f.dvel[:3])) for f in fits])} m/s (mean "
+        f"{np.array2string(mean_dvel[:3], precision=3)}), angular velocity "
+        f"{_p50_p90([float(np.linalg.norm(f.dvel[3:])) for f in fits])} rad/s"
+    )
+    scored = [t for t in val if t.name in starts]
+    from_recorded = _rollouts(model, scored)
+    from_fitted = _rollouts(model, [_started_at(t, starts[t.name].qpos0, starts[t.name].qvel0) for t in scored])
+    print(f"\ncalibrated scene on the {len(scored)} of {len(val)} validation tosses with a fitted start")
+    print(f"  {'from the recorded first state, against the recording':70s} {fmt(*metric(from_recorded, scored))}")
+    print(f"  {'from the fitted start (hindsight), against the recording':70s} {fmt(*metric(from_fitted, scored))}")
+    label = "from the recorded first state, against the fitted start's roll-out"
+    print(f"  {label:70s} {fmt(*metric(from_recorded, from_fitted))}")
+    rng = np.random.default_rng(0)
+    draws = (
+        ("another toss's first-state error (draw 1)", True, True, False),
+        ("another toss's first-state error (draw 2)", True, True, False),
+        ("another toss's first-state error (draw 3)", True, True, False),
+        ("  the same, the errors' mean taken out", True, True, True),
+        ("  its pose part only", True, False, False),
+        ("  its velocity part only", False, True, False),
+    )
+    print("noise floor: the fitted start's roll-out against a roll-out from the fitted start plus")
+    for label, pose, velocity, unbiased in draws:
+        perturbed = []
+        for toss in scored:
+            start, error = starts[toss.name], fits[rng.integers(len(fits))]
+            qpos0, qvel0 = start.qpos0.copy(), start.qvel0.copy()
+            if pose:
+                qpos0[:3] += error.dpos_world_m
+                qpos0[3:] = quat_mul(qpos0[3:], rotvec_to_quat(error.drot_body_rad))
+            if velocity:
+                qvel0 += error.dvel - (mean_dvel if unbiased else 0.0)
+            perturbed.append(_started_at(toss, qpos0, qvel0))
+        print(f"  {label:68s} {fmt(*metric(_rollouts(model, perturbed), from_fitted))}")
+
+
 def synthetic_drag(options: ResidualOptions) -> None:
     """Withheld effect: the recorded cube feels air drag the nominal model lacks (tests/test_residual.py's case)."""
     sys.path.insert(0, str(REPO / "tests"))
@@ -362,6 +513,11 @@ def main() -> None:
         help="with --calibrated: how much of the error the first state predicts",
     )
     parser.add_argument(
+        "--noise-floor",
+        action="store_true",
+        help="with --calibrated: the error the recorded first state's own error sets",
+    )
+    parser.add_argument(
         "--ablation", action="store_true", help="also roll out with only the pose or only the velocity outputs"
     )
     parser.add_argument("--steps", type=int, default=ResidualOptions().steps)
@@ -378,6 +534,11 @@ def main() -> None:
         if args.calibrated is None or not DATA.is_dir():
             parser.error("--predictability needs --calibrated DIR and ../shared/data/cube_toss")
         error_predictability(args.calibrated)
+        return
+    if args.noise_floor:
+        if args.calibrated is None or not DATA.is_dir():
+            parser.error("--noise-floor needs --calibrated DIR and ../shared/data/cube_toss")
+        start_noise_floor(args.calibrated)
         return
     if not DATA.is_dir():
         print(f"{DATA} is absent: skipping the cube tosses")
