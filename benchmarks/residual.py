@@ -63,6 +63,7 @@ sys.path.insert(0, str(REPO))
 from cube_toss import DEFAULT_PARAMS as CUBE_TOSS_PARAMS  # noqa: E402  (benchmarks/cube_toss.py's fit)
 
 from grounder._import import load_dair_pll_cube  # noqa: E402
+from grounder._interaction_impacts import fit_flight  # noqa: E402
 from grounder._residual import quat_to_mat, quat_to_rotvec, rotvec_to_quat  # noqa: E402
 from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
 from grounder._simulate import quat_angle_rad, simulate  # noqa: E402
@@ -371,9 +372,12 @@ def _free_flight_start(toss: Trajectory, frames: int, gravity_m_s2: float) -> _F
     """Fits the first ``frames`` frames by free flight: the position a parabola under gravity, the orientation
     q(t) = q_mid exp(omega_body (t - t_mid)); the state at the first frame, against the recorded one."""
     tau_s = toss.time_s[:frames] - toss.time_s[0]
-    lifted_m = toss.qpos[:frames, :3] + 0.5 * np.outer(tau_s**2, [0.0, 0.0, gravity_m_s2])  # gravity taken out
-    line = np.c_[np.ones(frames), tau_s]
-    pos_coef, *_ = np.linalg.lstsq(line, lifted_m, rcond=None)
+    # the calibration's flight fit (known gravity), given the frames last to first so that it is expressed at the
+    # first; the cube's origin is its centre of mass
+    last_first = np.arange(frames)[::-1]
+    flight = fit_flight(
+        0, last_first, toss.time_s[last_first], toss.qpos[last_first, :3], np.array([0.0, 0.0, -gravity_m_s2])
+    )
     mid = frames // 2
     quat_mid = toss.qpos[mid, 3:]
     rotvec_rad = quat_to_rotvec(quat_mul(quat_conj(quat_mid)[None], toss.qpos[:frames, 3:]))  # body frame at mid
@@ -381,12 +385,12 @@ def _free_flight_start(toss: Trajectory, frames: int, gravity_m_s2: float) -> _F
     rot_coef, *_ = np.linalg.lstsq(line_mid, rotvec_rad, rcond=None)
     dof = max(frames - 2, 1)
     quat0 = quat_mul(quat_mid, rotvec_to_quat(rot_coef[0] + rot_coef[1] * (tau_s[0] - tau_s[mid])))
-    qpos0, qvel0 = np.r_[pos_coef[0], quat0], np.r_[pos_coef[1], rot_coef[1]]
+    qpos0, qvel0 = np.r_[flight.com_ref_m, quat0], np.r_[flight.vel_ref_m_s, rot_coef[1]]
     return _FlightStart(
         frames=frames,
         qpos0=qpos0,
         qvel0=qvel0,
-        pos_rms_m=float(np.sqrt(np.sum((lifted_m - line @ pos_coef) ** 2) / dof)),
+        pos_rms_m=float(np.sqrt(np.sum(flight.residual_m**2) / dof)),
         rot_rms_rad=float(np.sqrt(np.sum((rotvec_rad - line_mid @ rot_coef) ** 2) / dof)),
         dpos_world_m=toss.qpos[0, :3] - qpos0[:3],
         drot_body_rad=quat_to_rotvec(quat_mul(quat_conj(quat0), toss.qpos[0, 3:])),
