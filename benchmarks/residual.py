@@ -62,7 +62,7 @@ sys.path.insert(0, str(REPO))
 
 from cube_toss import DEFAULT_PARAMS as CUBE_TOSS_PARAMS  # noqa: E402  (benchmarks/cube_toss.py's fit)
 
-from grounder._import import load_dair_pll_cube  # noqa: E402
+from grounder._import import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
 from grounder._interaction_impacts import fit_flight  # noqa: E402
 from grounder._residual import quat_to_mat, quat_to_rotvec, rotvec_to_quat  # noqa: E402
 from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
@@ -307,7 +307,7 @@ def error_predictability(scene: Path) -> None:
     model = Simulator(scene, use_residual=False).model
     errors = {}
     for label, tosses in (("train", train), ("val", val)):
-        preds = [p for p in simulate(model, tosses) if isinstance(p, Trajectory)]
+        preds = _rollouts(model, tosses)
         horizontal = [p.qpos[:, :2] - t.qpos[:, :2] for p, t in zip(preds, tosses, strict=True)]
         errors[label] = {
             "time-averaged": np.array([e.mean(axis=0) for e in horizontal]),
@@ -408,6 +408,12 @@ def _rollouts(model: mujoco.MjModel, tosses: list[Trajectory]) -> list[Trajector
     return [p for p in simulate(model, tosses) if isinstance(p, Trajectory)]
 
 
+def _cube_half_size_m(model: mujoco.MjModel) -> np.ndarray:
+    """(3,) half sizes of the scene's cube (its first box geom)."""
+    boxes = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+    return model.geom_size[boxes[0]].copy()
+
+
 def _p50_p90(values: list[float], scale: float = 1.0) -> str:
     p50, p90 = np.percentile(np.array(values) * scale, [50, 90])
     return f"{p50:.3g} / {p90:.3g}"
@@ -421,13 +427,12 @@ def _check_free_flight_fit(
     spec = mujoco.MjSpec()
     body = spec.worldbody.add_body()
     body.add_freejoint()
-    boxes = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
-    body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=model.geom_size[boxes[0]], mass=0.37)
+    body.add_geom(type=mujoco.mjtGeom.mjGEOM_BOX, size=_cube_half_size_m(model), mass=0.37)
     spec.option.timestep = model.opt.timestep
     spec.option.gravity = model.opt.gravity
     flight_model = spec.compile()
     data = mujoco.MjData(flight_model)
-    frame_steps = round((1.0 / 148.0) / model.opt.timestep)
+    frame_steps = round((1.0 / DAIR_PLL_CUBE_RATE_HZ) / model.opt.timestep)
     rng = np.random.default_rng(1)
     worst = np.zeros(2)
     for _ in range(flights):
@@ -455,9 +460,7 @@ def start_noise_floor(scene: Path) -> None:
     """What the recorded first state's own error costs a rollout (see the module docstring)."""
     train, val = split(load_dair_pll_cube(DATA))
     model = Simulator(scene, use_residual=False).model
-    boxes = [g for g in range(model.ngeom) if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
-    half_m = model.geom_size[boxes[0]]
-    corners_body_m = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * half_m
+    corners_body_m = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * _cube_half_size_m(model)
     gravity_m_s2 = float(-model.opt.gravity[2])
     starts: dict[str, _FlightStart] = {}
     for toss in train + val:
@@ -475,9 +478,10 @@ def start_noise_floor(scene: Path) -> None:
         f"  fit residual rms (tracking noise)   position {_p50_p90([f.pos_rms_m for f in fits], 1000)} mm, "
         f"rotation {_p50_p90([f.rot_rms_rad for f in fits], degrees)} deg"
     )
-    noise_m, noise_rad = (float(np.median([getattr(f, k) for f in fits])) for k in ("pos_rms_m", "rot_rms_rad"))
-    # per-axis noise with the measured rms (the rms above is of the 3-vector)
-    worst_linear, worst_angular = _check_free_flight_fit(model, noise_m / np.sqrt(3.0), noise_rad / np.sqrt(3.0))
+    # per-axis noise with the median rms above (that rms is of the 3-vector)
+    noise_m = float(np.median([f.pos_rms_m for f in fits])) / np.sqrt(3.0)
+    noise_rad = float(np.median([f.rot_rms_rad for f in fits])) / np.sqrt(3.0)
+    worst_linear, worst_angular = _check_free_flight_fit(model, noise_m, noise_rad)
     print(
         f"  the fit itself, on 20 simulated flights with that noise: start within {worst_linear:.3g} m/s and "
         f"{worst_angular:.3g} rad/s (worst)"
