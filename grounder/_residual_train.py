@@ -30,6 +30,7 @@ from grounder._residual import (
     META_FILE,
     NUM_OUTPUTS,
     ONNX_FILE,
+    OUTPUT_NAMES,
     WEIGHTS_FILE,
     FreeBody,
     GateOptions,
@@ -45,11 +46,11 @@ from grounder._residual_joint import (
     JOINT_SPACE,
     JointSpace,
     NumpyJointResidual,
-    joint_error,
     joint_features,
     joint_space,
     joint_targets,
 )
+from grounder._residual_report import ResidualReport, rollout_errors, write_residual_report
 from grounder._simulate import free_joints, quat_angle_rad, step_indices
 from grounder._simulator import SCENE_XML, Simulator, scene_xml_path
 from grounder._trajectory import Trajectory, validate_against_model
@@ -547,8 +548,9 @@ def train_residual(
         residual = _numpy_residual(torch_model, meta, trainer)
         before = _group_rms(base.targets, joint=space is not None)
         after = _group_rms(base.targets - residual(base.feats), joint=space is not None)  # gain 1, before choosing
+        held_rms, held_gate = _held_out_one_step(scene_xml, select_trajs, options, residual, joint=space is not None)
         report("residual: gain on held-out rollouts", 0, 1)
-        gain, scores = _select_gain(trainer.sim, residual, select_trajs, options.gains)
+        gain, scores, preds_by_gain = _select_gain(trainer.sim, residual, select_trajs, options.gains)
         report("residual: gain on held-out rollouts", 1, 1)
         with torch.no_grad():
             torch_model.out_gain.fill_(gain)
@@ -585,6 +587,29 @@ def train_residual(
             torch.save({k: v.detach().clone() for k, v in torch_model.state_dict().items()}, staging / WEIGHTS_FILE)
             (staging / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
             export_onnx(torch_model, staging / ONNX_FILE)
+            labels = ("joint position, rad or m", "joint velocity, rad/s or m/s") if space is not None else _FREE_RMS
+            groups = (0, 2) if space is not None else (0, 1, 2, 3)
+            write_residual_report(
+                staging / REPORT_FILE,
+                ResidualReport(
+                    model=trainer.model,
+                    space="free" if space is None else JOINT_SPACE,
+                    num_fit=len(fit_trajs),
+                    held_out=select_trajs,
+                    num_samples=len(data.feats),
+                    seconds=seconds,
+                    period_steps=trainer.period,
+                    gain=gain,
+                    preds_by_gain=preds_by_gain,
+                    one_step_rms=[
+                        (label, before[g], after[g], held_rms[0][g], held_rms[1][g])
+                        for label, g in zip(labels, groups, strict=True)
+                    ],
+                    output_names=meta.output_names if space is not None else OUTPUT_NAMES,
+                    output_bound=np.asarray(residual.out_bound),
+                    held_out_gate=held_gate,
+                ),
+            )
             if out.exists():
                 shutil.rmtree(out)
             os.replace(staging, out)
@@ -606,6 +631,32 @@ def train_residual(
     )
 
 
+_FREE_RMS = ("position, m", "rotation, rad", "velocity, m/s", "angular velocity, rad/s")
+REPORT_FILE = "report.html"
+
+
+def _held_out_one_step(
+    scene_xml: Path,
+    trajs: Sequence[Trajectory],
+    options: ResidualOptions,
+    residual: NumpyResidual | NumpyJointResidual,
+    *,
+    joint: bool,
+) -> tuple[tuple[tuple[float, ...], tuple[float, ...]], np.ndarray]:
+    """One-step RMS on the held-out trajectories (MuJoCo alone, with the residual at its present gain) and the gate
+    at their recorded states; NaNs and an empty gate where there are none, or no two samples one period apart."""
+    nan = (float("nan"),) * 4
+    if not trajs:
+        return (nan, nan), np.empty(0)
+    try:
+        held = _Trainer(scene_xml, trajs, options).one_step()
+    except GrounderError:
+        return (nan, nan), np.empty(0)
+    before = _group_rms(held.targets, joint=joint)
+    after = _group_rms(held.targets - residual(held.feats), joint=joint)
+    return (before, after), residual.gate(held.feats)
+
+
 def _selection_split(
     trajs: Sequence[Trajectory], options: ResidualOptions
 ) -> tuple[list[Trajectory], list[Trajectory]]:
@@ -625,36 +676,26 @@ def rollout_score(model: mujoco.MjModel, preds: Sequence[Trajectory], real: Sequ
     cube's edge; for the cube tosses exactly the cube width). A scene without free bodies: the mean over
     trajectories and joints of the time-averaged joint error (rad for hinges, m for slides).
     """
-    if not free_joints(model):
-        space = joint_space(model)
-        pairs = zip(preds, real, strict=True)
-        return float(np.mean([np.mean(np.abs(joint_error(p.qpos, r.qpos, space))) for p, r in pairs]))
-    bodies = free_bodies(model)
-    scores = []
-    for pred, rec in zip(preds, real, strict=True):
-        for body in bodies:
-            p = body.qpos_adr
-            size = 2.0 * body.radius_m / np.sqrt(3.0)
-            pos = np.mean(np.linalg.norm(pred.qpos[:, p : p + 3] - rec.qpos[:, p : p + 3], axis=1)) / size
-            rot = np.degrees(np.mean(quat_angle_rad(pred.qpos[:, p + 3 : p + 7], rec.qpos[:, p + 3 : p + 7])))
-            scores.append(pos + rot / 100.0)
-    return float(np.mean(scores))
+    return float(np.mean(rollout_errors(model, preds, real).scores()))
 
 
 def _select_gain(
     sim: Simulator, residual: NumpyResidual | NumpyJointResidual, trajs: Sequence[Trajectory], gains: Sequence[float]
-) -> tuple[float, dict[float, float]]:
+) -> tuple[float, dict[float, float], dict[float, list[Trajectory]]]:
+    """The gain whose held-out rollouts score lowest (ties to the smaller), every gain's score and rollouts."""
     if not trajs:
-        return 1.0, {}
+        return 1.0, {}, {}
     scores: dict[float, float] = {}
+    preds: dict[float, list[Trajectory]] = {}
     for gain in sorted(set(gains)):
         residual.out_gain[:] = gain
         sim._set_residual(residual)
-        scores[gain] = rollout_score(sim.model, sim.rollout(trajs), trajs)
+        preds[gain] = sim.rollout(trajs)
+        scores[gain] = rollout_score(sim.model, preds[gain], trajs)
     sim._set_residual(None)
     best = min(scores, key=lambda g: (scores[g], g))
     log.info("held-out rollout score per gain: %s", scores)
-    return best, scores
+    return best, scores, preds
 
 
 def _options_json(options: ResidualOptions) -> dict[str, Any]:

@@ -45,7 +45,7 @@ def register(app: typer.Typer) -> None:
         if steps < 1 or rounds < 0 or hidden < 1:
             fail("--steps and --hidden must be >= 1 and --rounds >= 0")
         with user_errors_exit_2():
-            from grounder._residual_train import ResidualOptions, train_residual
+            from grounder._residual_train import REPORT_FILE, ResidualOptions, train_residual
             from grounder._simulator import scene_xml_path
             from grounder._trajectory import load_trajectories
 
@@ -78,6 +78,6 @@ def register(app: typer.Typer) -> None:
             f"{result.seconds:.1f} s; {errors}; output gain chosen on held-out rollouts: "
             f"{result.gain:g}" + (" (the residual did not help: MuJoCo alone)" if result.gain == 0 else "")
         )
-        typer.echo(f"residual scene: {result.out}")
+        typer.echo(f"residual scene: {result.out} (report: {result.out / REPORT_FILE})")
 
     app.add_typer(group, name="residual")

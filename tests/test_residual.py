@@ -349,3 +349,53 @@ def test_fast_single_state_path_equals_reference(trained: Path) -> None:
             np.testing.assert_allclose(q, q_ref[i], rtol=0, atol=1e-12)
             np.testing.assert_allclose(v, v_ref[i], rtol=0, atol=1e-10)
     residual._fast = fast
+
+
+def test_rollout_errors_known_answer(nominal_scene: Path) -> None:
+    """A prediction 6 mm and 30 deg off the recording all along: 6% of the 0.1 m cube and 30 deg, score 0.36."""
+    from grounder._residual_report import rollout_errors
+    from grounder._residual_train import rollout_score
+
+    model = mujoco.MjModel.from_xml_path(str(nominal_scene / "scene.xml"))
+    real = _tosses(2, seed=7, fluid_density=0.0, num_samples=15)
+    half = np.radians(30.0) / 2.0
+    turn = np.array([np.cos(half), 0.0, 0.0, np.sin(half)])  # 30 deg about z
+    preds = []
+    for r in real:
+        qpos = r.qpos.copy()
+        qpos[:, 0] += 0.006
+        w, x, y, z = qpos[:, 3:].T
+        tw, _, _, tz = turn  # quaternion product q * turn, turn about z
+        qpos[:, 3:] = np.stack([w * tw - z * tz, x * tw + y * tz, y * tw - x * tz, w * tz + z * tw], axis=1)
+        preds.append(Trajectory(time_s=r.time_s, qpos=qpos, qvel=r.qvel))
+    errors = rollout_errors(model, preds, real)
+    np.testing.assert_allclose(errors.position_pct, 6.0, rtol=1e-9)
+    np.testing.assert_allclose(errors.rotation_deg, 30.0, rtol=1e-6)
+    assert rollout_score(model, preds, real) == pytest.approx(0.36, rel=1e-6)
+    assert rollout_score(model, real, real) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_report_shows_the_gain_check_and_the_gate(trained: Path) -> None:
+    """report.html: one self-contained file whose gain table is the gain check's own scores, with the chosen gain,
+    the held-out rollouts and the gate's share of held-out states."""
+    import html
+    import re
+
+    from grounder._residual_train import REPORT_FILE
+
+    text = (trained / REPORT_FILE).read_text()
+    assert "http://" not in text and "https://" not in text and 'src="data:image/png;base64,' in text
+    meta = json.loads((trained / META_FILE).read_text())["training"]
+    rows = dict(re.findall(r"<tr><td>([0-9.]+)</td><td>([0-9.]+)</td>", text))
+    assert rows, "no gain table"
+    assert {float(g): float(s) for g, s in rows.items()} == pytest.approx(
+        {float(g): s for g, s in meta["gain_scores"].items()}, abs=6e-5
+    )
+    assert f"chose gain {meta['selected_gain']:g}" in html.unescape(text)
+    shares = re.search(
+        r"closed \(no correction\) in ([0-9.]+)%, fully open in ([0-9.]+)%, in between in ([0-9.-]+)%", text
+    )
+    assert shares is not None
+    assert sum(float(v) for v in shares.groups()) == pytest.approx(100.0, abs=0.2)
+    assert float(shares.group(2)) > 50.0  # tosses in flight: the gate is open most of the time
+    assert text.count("<img") >= 4  # gain curve, held-out scatter, trajectories, gate histogram

@@ -210,6 +210,9 @@ def test_cli_trains_and_rolls_out_a_jointed_scene(pendulum: tuple[Path, Path], t
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "joint-space residual" in result.output and (out / ONNX_FILE).is_file()
+    report = (out / "report.html").read_text()  # 6 trajectories: 1 held out for the gain, its rollouts shown
+    assert "joint error (rad or m)" in report and "joint velocity, rad/s or m/s" in report
+    assert str(out / "report.html") in result.output.replace("\n", "")
     result = runner.invoke(app, ["rollout", str(out), str(traj_dir), "-o", str(tmp_path / "pred")])
     assert result.exit_code == 0, result.output
     assert len(list((tmp_path / "pred").glob("*.npz"))) == 6
