@@ -39,6 +39,11 @@ sensitive to its start as the calibrated scene would show against *itself* when 
 the recorded ones: a floor for any model rolled out from the recorded first state, unless reality is much less
 sensitive to its start than the simulation.
 
+``--board-position`` (with ``--calibrated DIR``) asks whether the board varies from place to place in a way the
+residual's features (all in the cube's own frame) cannot see: all tosses are rolled out with the 75 contact
+variants of ``--oracle``, and each validation toss gets the variant that scores best on its k nearest training
+tosses by where it lands (or starts, or, with hindsight, ends) on the board.
+
 ``--ablation`` also rolls the validation tosses out with only the pose outputs (position, rotation) or only the
 velocity outputs of the trained residual, at forced gains 0.25, 0.5 and 1, to show which part helps or hurts.
 """
@@ -240,9 +245,9 @@ ORACLE_SCALES = {  # factors applied to the calibrated value; 1 is the calibrate
 }
 
 
-def hindsight_oracle(scene: Path) -> None:
-    """Per validation toss, the best of 75 contact variants of the calibrated scene (see the module docstring)."""
-    _, val = split(load_dair_pll_cube(DATA))
+def _contact_variants(scene: Path) -> tuple[list[mujoco.MjModel], list[tuple[float, float, float]]]:
+    """The calibrated scene with the cube's sliding friction, torsional friction and damping ratio scaled over
+    ``ORACLE_SCALES`` (75 models), and each one's (sliding, torsional, damping) scales."""
     base = Simulator(scene, use_residual=False).model
     contact = [g for g in range(base.ngeom) if base.body_dofnum[base.geom_bodyid[g]] == 6]  # the cube's geoms
     models, labels = [], []
@@ -255,6 +260,66 @@ def hindsight_oracle(scene: Path) -> None:
                 model.geom_solref[contact, 1] = base.geom_solref[contact, 1] * fd
                 models.append(model)
                 labels.append((fs, ft, fd))
+    return models, labels
+
+
+def _landing_xy(toss: Trajectory) -> np.ndarray:
+    """Recorded x, y where the cube's centre first comes within 1.6 half-widths of the board (its last frame if
+    never): roughly where it first lands."""
+    low = toss.qpos[:, 2] < 0.8 * CUBE_WIDTH_M
+    return toss.qpos[int(np.argmax(low)) if low.any() else -1, :2]
+
+
+def board_position(scene: Path) -> None:
+    """Whether where on the board a toss lands says which contact variant it wants (see the module docstring)."""
+    train, val = split(load_dair_pll_cube(DATA))
+    models, labels = _contact_variants(scene)
+    t0 = time.perf_counter()
+    scores = {}
+    for name, tosses in (("train", train), ("val", val)):
+        pos = np.empty((len(models), len(tosses)))
+        rot = np.empty_like(pos)
+        for i, model in enumerate(models):
+            pos[i], rot[i] = metric(simulate(model, tosses), tosses)  # type: ignore[arg-type]
+        scores[name] = (pos, rot)
+    (pos_tr, rot_tr), (pos_va, rot_va) = scores["train"], scores["val"]
+    cols = np.arange(len(val))
+    seconds = time.perf_counter() - t0
+    print(f"\n{len(models)} contact variants x {len(train) + len(val)} tosses rolled out in {seconds:.0f} s")
+    single = int(np.argmin((pos_tr + rot_tr / 100.0).mean(axis=1)))
+    print(f"  one variant best over the training tosses {labels[single]}: {fmt(pos_va[single], rot_va[single])}")
+    places = {
+        "landing x, y": _landing_xy,
+        "start x, y": lambda t: t.qpos[0, :2],
+        "final x, y (hindsight)": lambda t: t.qpos[-1, :2],
+    }
+    for place, of in places.items():
+        x_train = np.array([of(t) for t in train])
+        x_val = np.array([of(t) for t in val])
+        nearest = np.argsort(np.linalg.norm(x_val[:, None] - x_train[None], axis=2), axis=1)
+        for label, train_score in (("position", pos_tr), ("position + rotation / 100", pos_tr + rot_tr / 100.0)):
+            for k in (5, 10, 20, 40, 80):
+                choice = np.array([np.argmin(train_score[:, nearest[v, :k]].mean(axis=1)) for v in cols])
+                print(
+                    f"  variant best on the {k:2d} nearest training tosses by {place:22s} ({label:25s}): "
+                    f"{fmt(pos_va[choice, cols], rot_va[choice, cols])}"
+                )
+    best = np.argmin(pos_tr + rot_tr / 100.0, axis=0)
+    log_sliding = np.log([labels[b][0] for b in best])
+    landing = np.array([_landing_xy(t) for t in train])
+    for axis, name in enumerate("xy"):
+        below = landing[:, axis] < np.median(landing[:, axis])
+        halves = [log_sliding[m] for m in (below, ~below)]
+        print(
+            f"  per-toss best sliding friction, log multiplier, landing {name} below / above its median: "
+            + " / ".join(f"{h.mean():+.3f} +- {h.std() / np.sqrt(len(h)):.3f}" for h in halves)
+        )
+
+
+def hindsight_oracle(scene: Path) -> None:
+    """Per validation toss, the best of 75 contact variants of the calibrated scene (see the module docstring)."""
+    _, val = split(load_dair_pll_cube(DATA))
+    models, labels = _contact_variants(scene)
     t0 = time.perf_counter()
     pos = np.empty((len(models), len(val)))
     rot = np.empty_like(pos)
@@ -571,6 +636,11 @@ def main() -> None:
         help="with --calibrated: the error the recorded first state's own error sets",
     )
     parser.add_argument(
+        "--board-position",
+        action="store_true",
+        help="with --calibrated: whether where a toss lands says which contact variant it wants",
+    )
+    parser.add_argument(
         "--ablation", action="store_true", help="also roll out with only the pose or only the velocity outputs"
     )
     parser.add_argument("--steps", type=int, default=ResidualOptions().steps)
@@ -592,6 +662,11 @@ def main() -> None:
         if args.calibrated is None or not DATA.is_dir():
             parser.error("--noise-floor needs --calibrated DIR and ../shared/data/cube_toss")
         start_noise_floor(args.calibrated)
+        return
+    if args.board_position:
+        if args.calibrated is None or not DATA.is_dir():
+            parser.error("--board-position needs --calibrated DIR and ../shared/data/cube_toss")
+        board_position(args.calibrated)
         return
     if not DATA.is_dir():
         print(f"{DATA} is absent: skipping the cube tosses")
