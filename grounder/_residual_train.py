@@ -58,6 +58,9 @@ from grounder.errors import GrounderError
 
 log = logging.getLogger(__name__)
 
+REPORT_FILE = "report.html"  # the residual's HTML report, beside residual.pt/.json/.onnx
+_FREE_RMS = ("position, m", "rotation, rad", "velocity, m/s", "angular velocity, rad/s")  # one-step RMS groups
+
 Progress = Callable[[str, int, int], None]
 
 
@@ -629,10 +632,6 @@ def train_residual(
         seconds=seconds,
         space="free" if space is None else JOINT_SPACE,
     )
-
-
-_FREE_RMS = ("position, m", "rotation, rad", "velocity, m/s", "angular velocity, rad/s")
-REPORT_FILE = "report.html"
 
 
 def _held_out_one_step(
