@@ -7,9 +7,13 @@ orbit and needs nothing from the network.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
+import itertools
 import logging
 import os
+import shutil
+import sqlite3
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -18,7 +22,7 @@ import numpy as np
 import pycolmap
 
 from reconstruction._types import SfmOptions
-from reconstruction.errors import RegistrationError
+from reconstruction.errors import ReconstructionError, RegistrationError
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +37,43 @@ def _quiet_colmap() -> None:
 
 
 def extract_features(database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions) -> None:
-    """SIFT features for every image into a new COLMAP database, all images sharing one camera."""
+    """SIFT features for every image into a new COLMAP database, all images sharing one camera.
+
+    With one extraction thread (reproducible) the frames are shared out among ``extraction_workers`` threads (0:
+    one per usable core), each running pycolmap's single-threaded extraction on a contiguous share into a database
+    of its own; the shares are then merged in frame order (`merge_feature_databases`), which gives the database one
+    thread would write, byte for byte.
+    """
+    workers = options.extraction_workers or _usable_cores()
+    workers = min(workers, len(image_names)) if options.extraction_threads == 1 else 1
+    if workers <= 1:
+        _extract_share(database_path, image_dir, image_names, options)
+        return
+    bounds = np.linspace(0, len(image_names), workers + 1).round().astype(int)
+    shares = [image_names[a:b] for a, b in itertools.pairwise(bounds)]
+    parts = [database_path.with_name(f"{database_path.stem}.share{i}{database_path.suffix}") for i in range(workers)]
+    try:
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:  # pycolmap releases the GIL while it extracts
+            jobs = [
+                pool.submit(_extract_share, part, image_dir, share, options)
+                for part, share in zip(parts, shares, strict=True)
+            ]
+            for job in jobs:
+                job.result()
+        merge_feature_databases(parts, database_path)
+    finally:
+        for part in parts:
+            part.unlink(missing_ok=True)
+
+
+def _usable_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _extract_share(database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions) -> None:
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = options.max_num_features
     extraction.max_image_size = options.max_image_size_px
@@ -49,6 +89,47 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
+
+
+def merge_feature_databases(parts: list[Path], out: Path) -> None:
+    """Appends the images, frames and features of ``parts[1:]`` to a copy of ``parts[0]`` at ``out``, ids shifted
+    to follow on, as if one extraction had read every share in turn.
+
+    Each part must hold one extraction with a single camera and the default rig; they must agree on that camera
+    (the frames of one video do). Matches are not merged (there are none yet).
+    """
+    shutil.copyfile(parts[0], out)
+    con = sqlite3.connect(out)
+    try:
+        for part in parts[1:]:
+            con.execute("ATTACH DATABASE ? AS part", (str(part),))
+            for table in ("cameras", "rigs", "rig_sensors"):
+                if (
+                    con.execute(f"SELECT * FROM main.{table}").fetchall()
+                    != con.execute(f"SELECT * FROM part.{table}").fetchall()
+                ):
+                    raise ReconstructionError(f"feature shares disagree on {table}; extract with extraction_workers=1")
+            if con.execute("SELECT COUNT(*) FROM part.pose_priors").fetchone()[0]:
+                raise ReconstructionError("feature shares with pose priors cannot be merged; use extraction_workers=1")
+            image_shift = con.execute("SELECT MAX(image_id) FROM main.images").fetchone()[0]
+            frame_shift = con.execute("SELECT MAX(frame_id) FROM main.frames").fetchone()[0]
+            shifted = {
+                "images": ("image_id + :i, name, camera_id", "image_id"),
+                "frames": ("frame_id + :f, rig_id", "frame_id"),
+                # a camera's data id is its image's id
+                "frame_data": ("frame_id + :f, data_id + :i, sensor_id, sensor_type", "rowid"),
+                "keypoints": ("image_id + :i, rows, cols, data", "image_id"),
+                "descriptors": ("image_id + :i, type, rows, cols, data", "image_id"),
+            }
+            for table, (columns, order) in shifted.items():
+                con.execute(
+                    f"INSERT INTO main.{table} SELECT {columns} FROM part.{table} ORDER BY {order}",
+                    {"i": image_shift, "f": frame_shift},
+                )
+            con.commit()
+            con.execute("DETACH DATABASE part")
+    finally:
+        con.close()
 
 
 @contextlib.contextmanager

@@ -155,3 +155,34 @@ def test_check_source_names_what_is_wrong_before_any_work(tmp_path: Path, kind: 
     for reader in (check_source, read_frames):
         with pytest.raises(InputError, match=expected):
             reader(source)
+
+
+def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(tmp_path: Path) -> None:
+    """Seven frames of the sample, extracted by one thread and by three (2 + 2 + 3 frames, merged): the two COLMAP
+    databases are the same to the last byte of every table, so the speed-up cannot change any reconstruction."""
+    import sqlite3
+
+    import cv2
+
+    from reconstruction._sfm import extract_features
+    from reconstruction._types import SfmOptions
+
+    images = tmp_path / "images"
+    images.mkdir()
+    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
+    names = []
+    for index in range(0, 70, 10):
+        video.set(cv2.CAP_PROP_POS_FRAMES, index)
+        ok, frame = video.read()
+        assert ok
+        names.append(f"frame_{index:05d}.jpg")
+        cv2.imwrite(str(images / names[-1]), frame)
+    video.release()
+    dumps = []
+    for workers in (1, 3):
+        database = tmp_path / f"workers{workers}.db"
+        extract_features(database, images, names, SfmOptions(extraction_workers=workers))
+        dumps.append(list(sqlite3.connect(database).iterdump()))
+        assert sorted(p.name for p in tmp_path.glob("*.db")) == sorted(f"workers{w}.db" for w in (1, 3)[: len(dumps)])
+    assert any('INSERT INTO "keypoints"' in line for line in dumps[0])
+    assert dumps[0] == dumps[1]
