@@ -42,7 +42,7 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     With one extraction thread (reproducible) the frames are shared out among ``extraction_workers`` threads (0:
     one per usable core), each running pycolmap's single-threaded extraction on a contiguous share into a database
     of its own; the shares are then merged in frame order (`merge_feature_databases`), which gives the database one
-    thread would write, byte for byte.
+    thread would write, every table row for row and byte for byte (the SQLite file's page layout may differ).
     """
     workers = options.extraction_workers or _usable_cores()
     workers = min(workers, len(image_names)) if options.extraction_threads == 1 else 1

@@ -67,8 +67,8 @@ class SfmOptions:
             6 s more on the tabletop's 2 cores. -1: all, when speed matters more than the same scene every run.
         extraction_workers: with ``extraction_threads`` 1, the frames are split into this many contiguous shares,
             each extracted single-threaded in its own thread into its own database, and the databases merged in
-            frame order: the same database, byte for byte, as one thread writes, in about half the time on 2 cores
-            (`tests/test_reconstruct.py`). 0: one per CPU core this process may use.
+            frame order: every table row for row and byte for byte as one thread writes it, in about half the
+            time on 2 cores (`tests/test_reconstruct.py`). 0: one per CPU core this process may use.
         seed: random seed for RANSAC and the mapper (deterministic results).
     """
 
