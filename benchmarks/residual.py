@@ -44,6 +44,12 @@ residual's features (all in the cube's own frame) cannot see: all tosses are rol
 variants of ``--oracle``, and each validation toss gets the variant that scores best on its k nearest training
 tosses by where it lands (or starts, or, with hindsight, ends) on the board.
 
+``--published-protocol`` (with ``--calibrated DIR``) scores the validation tosses the way the published fits were
+scored: each rollout starts 3 frames before the first contact (a cube corner within 3 mm of the board), from a
+velocity refitted by free flight over the frames before it (the same fit as ``--noise-floor``), and is compared
+over the rest of the toss; beside it, from the recorded state at that frame, and this project's metric from the
+first recorded state, on the same tosses. Context only: the issues' targets are on this project's metric.
+
 ``--ablation`` also rolls the validation tosses out with only the pose outputs (position, rotation) or only the
 velocity outputs of the trained residual, at forced gains 0.25, 0.5 and 1, to show which part helps or hurts.
 """
@@ -412,9 +418,7 @@ MIN_FLIGHT_FRAMES = 8
 
 def _leading_flight_frames(toss: Trajectory, corners_body_m: np.ndarray) -> int:
     """How many frames from the first one the cube is in free flight (every corner above the clearance)."""
-    lowest_m = (toss.qpos[:, None, :3] + np.einsum("tij,cj->tci", quat_to_mat(toss.qpos[:, 3:]), corners_body_m))[
-        ..., 2
-    ].min(axis=1)
+    lowest_m = _lowest_corner_m(toss, corners_body_m)
     touching = np.flatnonzero(lowest_m < FLIGHT_CLEARANCE_M)
     return int(touching[0]) if len(touching) else len(lowest_m)
 
@@ -433,23 +437,22 @@ class _FlightStart:
     dvel: np.ndarray  # (6,) world linear m/s, body angular rad/s
 
 
-def _free_flight_start(toss: Trajectory, frames: int, gravity_m_s2: float) -> _FlightStart:
+def _free_flight_start(toss: Trajectory, frames: int, gravity_m_s2: float, at: int = 0) -> _FlightStart:
     """Fits the first ``frames`` frames by free flight: the position a parabola under gravity, the orientation
-    q(t) = q_mid exp(omega_body (t - t_mid)); the state at the first frame, against the recorded one."""
+    q(t) = q_mid exp(omega_body (t - t_mid)); the state at frame ``at`` (the first by default), against the
+    recorded one."""
     tau_s = toss.time_s[:frames] - toss.time_s[0]
-    # the calibration's flight fit (known gravity), given the frames last to first so that it is expressed at the
-    # first; the cube's origin is its centre of mass
-    last_first = np.arange(frames)[::-1]
-    flight = fit_flight(
-        0, last_first, toss.time_s[last_first], toss.qpos[last_first, :3], np.array([0.0, 0.0, -gravity_m_s2])
-    )
+    # the calibration's flight fit (known gravity), given the frames with ``at`` last so that it is expressed there
+    # (the rest last to first); the cube's origin is its centre of mass
+    order = np.r_[np.delete(np.arange(frames), at)[::-1], at]
+    flight = fit_flight(0, order, toss.time_s[order], toss.qpos[order, :3], np.array([0.0, 0.0, -gravity_m_s2]))
     mid = frames // 2
     quat_mid = toss.qpos[mid, 3:]
     rotvec_rad = quat_to_rotvec(quat_mul(quat_conj(quat_mid)[None], toss.qpos[:frames, 3:]))  # body frame at mid
     line_mid = np.c_[np.ones(frames), tau_s - tau_s[mid]]
     rot_coef, *_ = np.linalg.lstsq(line_mid, rotvec_rad, rcond=None)
     dof = max(frames - 2, 1)
-    quat0 = quat_mul(quat_mid, rotvec_to_quat(rot_coef[0] + rot_coef[1] * (tau_s[0] - tau_s[mid])))
+    quat0 = quat_mul(quat_mid, rotvec_to_quat(rot_coef[0] + rot_coef[1] * (tau_s[at] - tau_s[mid])))
     qpos0, qvel0 = np.r_[flight.com_ref_m, quat0], np.r_[flight.vel_ref_m_s, rot_coef[1]]
     return _FlightStart(
         frames=frames,
@@ -457,9 +460,9 @@ def _free_flight_start(toss: Trajectory, frames: int, gravity_m_s2: float) -> _F
         qvel0=qvel0,
         pos_rms_m=float(np.sqrt(np.sum(flight.residual_m**2) / dof)),
         rot_rms_rad=float(np.sqrt(np.sum((rotvec_rad - line_mid @ rot_coef) ** 2) / dof)),
-        dpos_world_m=toss.qpos[0, :3] - qpos0[:3],
-        drot_body_rad=quat_to_rotvec(quat_mul(quat_conj(quat0), toss.qpos[0, 3:])),
-        dvel=toss.qvel[0] - qvel0,
+        dpos_world_m=toss.qpos[at, :3] - qpos0[:3],
+        drot_body_rad=quat_to_rotvec(quat_mul(quat_conj(quat0), toss.qpos[at, 3:])),
+        dvel=toss.qvel[at] - qvel0,
     )
 
 
@@ -595,6 +598,50 @@ def start_noise_floor(scene: Path) -> None:
         print(f"  {label:68s} {fmt(*metric(_rollouts(model, perturbed), from_fitted))}")
 
 
+CONTACT_CLEARANCE_M = 0.003  # a corner this close to the board (with the scene's cube size): first contact
+PROTOCOL_FRAMES_BEFORE_CONTACT = 3
+
+
+def published_protocol(scene: Path) -> None:
+    """The validation tosses under the published protocol (see the module docstring), beside this project's."""
+    _, val = split(load_dair_pll_cube(DATA))
+    scenes = {"nominal MuJoCo (samples/cube_toss/cube.xml)": REPO / "samples" / "cube_toss" / "cube.xml"}
+    scenes["calibrated scene"] = scene
+    model = Simulator(scene, use_residual=False).model
+    corners_body_m = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * _cube_half_size_m(model)
+    lowest = {t.name: _lowest_corner_m(t, corners_body_m) for t in val}
+    recorded, refitted, whole = [], [], []
+    for toss in val:
+        touching = np.flatnonzero(lowest[toss.name] < CONTACT_CLEARANCE_M)
+        start = (int(touching[0]) if len(touching) else len(toss.time_s)) - PROTOCOL_FRAMES_BEFORE_CONTACT
+        if start + 1 < MIN_FLIGHT_FRAMES:
+            continue  # too few frames before contact to refit the velocity
+        tail = replace(toss, time_s=toss.time_s[start:], qpos=toss.qpos[start:], qvel=toss.qvel[start:])
+        fit = _free_flight_start(toss, start + 1, float(-model.opt.gravity[2]), at=start)
+        whole.append(toss)
+        recorded.append(tail)
+        refitted.append(_started_at(tail, fit.qpos0, fit.qvel0))
+    print(
+        f"\npublished protocol: {len(recorded)} of {len(val)} validation tosses with >= {MIN_FLIGHT_FRAMES} frames "
+        f"before the start, {PROTOCOL_FRAMES_BEFORE_CONTACT} frames before the first contact (a corner within "
+        f"{1000 * CONTACT_CLEARANCE_M:g} mm of the board)"
+    )
+    for label, path in scenes.items():
+        m = Simulator(path, use_residual=False).model
+        print(f"  {label}")
+        print(f"    {'from the first recorded state (this project)':62s} {fmt(*metric(_rollouts(m, whole), whole))}")
+        from_recorded = _rollouts(m, recorded)
+        print(f"    {'3 frames before contact, recorded state':62s} {fmt(*metric(from_recorded, recorded))}")
+        label = "3 frames before contact, velocity refitted (published)"
+        print(f"    {label:62s} {fmt(*metric(_rollouts(m, refitted), recorded))}")
+
+
+def _lowest_corner_m(toss: Trajectory, corners_body_m: np.ndarray) -> np.ndarray:
+    """(T,) height of the cube's lowest corner above the board."""
+    corners_world_m = toss.qpos[:, None, :3] + np.einsum("tij,cj->tci", quat_to_mat(toss.qpos[:, 3:]), corners_body_m)
+    return corners_world_m[..., 2].min(axis=1)
+
+
 def synthetic_drag(options: ResidualOptions) -> None:
     """Withheld effect: the recorded cube feels air drag the nominal model lacks (tests/test_residual.py's case)."""
     sys.path.insert(0, str(REPO / "tests"))
@@ -636,6 +683,11 @@ def main() -> None:
         help="with --calibrated: the error the recorded first state's own error sets",
     )
     parser.add_argument(
+        "--published-protocol",
+        action="store_true",
+        help="with --calibrated: also score 3 frames before the first contact with a refitted velocity",
+    )
+    parser.add_argument(
         "--board-position",
         action="store_true",
         help="with --calibrated: whether where a toss lands says which contact variant it wants",
@@ -662,6 +714,11 @@ def main() -> None:
         if args.calibrated is None or not DATA.is_dir():
             parser.error("--noise-floor needs --calibrated DIR and ../shared/data/cube_toss")
         start_noise_floor(args.calibrated)
+        return
+    if args.published_protocol:
+        if args.calibrated is None or not DATA.is_dir():
+            parser.error("--published-protocol needs --calibrated DIR and ../shared/data/cube_toss")
+        published_protocol(args.calibrated)
         return
     if args.board_position:
         if args.calibrated is None or not DATA.is_dir():
