@@ -44,7 +44,7 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     of its own; the shares are then merged in frame order (`merge_feature_databases`), which gives the database one
     thread would write, every table row for row and byte for byte (the SQLite file's page layout may differ).
     """
-    workers = options.extraction_workers or _usable_cores()
+    workers = options.extraction_workers if options.extraction_workers > 0 else _usable_cores()
     workers = min(workers, len(image_names)) if options.extraction_threads == 1 else 1
     if workers <= 1:
         _extract_share(database_path, image_dir, image_names, options)
@@ -60,7 +60,12 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
             ]
             for job in jobs:
                 job.result()
-        merge_feature_databases(parts, database_path)
+        try:
+            merge_feature_databases(parts, database_path)
+        except UnmergeableSharesError as exc:  # e.g. frames of different sizes: one thread decides as before
+            log.info("%s; extracting the features on one thread instead", exc)
+            database_path.unlink(missing_ok=True)
+            _extract_share(database_path, image_dir, image_names, options)
     finally:
         for part in parts:
             part.unlink(missing_ok=True)
@@ -91,12 +96,19 @@ def _extract_share(database_path: Path, image_dir: Path, image_names: list[str],
     )
 
 
+class UnmergeableSharesError(ReconstructionError):
+    """Feature databases extracted from shares of the frames that cannot be merged into one extraction's."""
+
+
 def merge_feature_databases(parts: list[Path], out: Path) -> None:
     """Appends the images, frames and features of ``parts[1:]`` to a copy of ``parts[0]`` at ``out``, ids shifted
     to follow on, as if one extraction had read every share in turn.
 
     Each part must hold one extraction with a single camera and the default rig; they must agree on that camera
     (the frames of one video do). Matches are not merged (there are none yet).
+
+    Raises:
+        UnmergeableSharesError: the parts disagree on the camera or rig, a part read no image, or holds pose priors.
     """
     shutil.copyfile(parts[0], out)
     con = sqlite3.connect(out)
@@ -108,11 +120,13 @@ def merge_feature_databases(parts: list[Path], out: Path) -> None:
                     con.execute(f"SELECT * FROM main.{table}").fetchall()
                     != con.execute(f"SELECT * FROM part.{table}").fetchall()
                 ):
-                    raise ReconstructionError(f"feature shares disagree on {table}; extract with extraction_workers=1")
+                    raise UnmergeableSharesError(f"the feature shares disagree on {table}")
             if con.execute("SELECT COUNT(*) FROM part.pose_priors").fetchone()[0]:
-                raise ReconstructionError("feature shares with pose priors cannot be merged; use extraction_workers=1")
+                raise UnmergeableSharesError("a feature share holds pose priors")
             image_shift = con.execute("SELECT MAX(image_id) FROM main.images").fetchone()[0]
             frame_shift = con.execute("SELECT MAX(frame_id) FROM main.frames").fetchone()[0]
+            if image_shift is None or frame_shift is None or not con.execute("SELECT 1 FROM part.images").fetchone():
+                raise UnmergeableSharesError("a feature share read no image")
             shifted = {
                 "images": ("image_id + :i, name, camera_id", "image_id"),
                 "frames": ("frame_id + :f, rig_id", "frame_id"),

@@ -68,7 +68,8 @@ class SfmOptions:
         extraction_workers: with ``extraction_threads`` 1, the frames are split into this many contiguous shares,
             each extracted single-threaded in its own thread into its own database, and the databases merged in
             frame order: every table row for row and byte for byte as one thread writes it, in about half the
-            time on 2 cores (`tests/test_reconstruct.py`). 0: one per CPU core this process may use.
+            time on 2 cores (`tests/test_reconstruct.py`). 0: one per CPU core this process may use. Shares that
+            cannot be merged (frames of different sizes) are extracted again on one thread.
         seed: random seed for RANSAC and the mapper (deterministic results).
     """
 

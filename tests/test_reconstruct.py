@@ -186,3 +186,37 @@ def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(
         assert sorted(p.name for p in tmp_path.glob("*.db")) == sorted(f"workers{w}.db" for w in (1, 3)[: len(dumps)])
     assert any('INSERT INTO "keypoints"' in line for line in dumps[0])
     assert dumps[0] == dumps[1]
+
+
+def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path) -> None:
+    """Frames of two sizes (the shares' cameras disagree): the shares are not merged; one thread extracts them, and
+    the database is the one thread's."""
+    import sqlite3
+
+    import cv2
+
+    from reconstruction._sfm import UnmergeableSharesError, extract_features, merge_feature_databases
+    from reconstruction._types import SfmOptions
+
+    images = tmp_path / "images"
+    images.mkdir()
+    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
+    names = []
+    for k, index in enumerate((0, 10, 20, 30)):
+        video.set(cv2.CAP_PROP_POS_FRAMES, index)
+        ok, frame = video.read()
+        assert ok
+        names.append(f"frame_{index:05d}.jpg")
+        cv2.imwrite(str(images / names[-1]), frame if k < 2 else cv2.resize(frame, (480, 360)))
+    video.release()
+    for name, share in (("a.db", names[:2]), ("b.db", names[2:])):
+        extract_features(tmp_path / name, images, share, SfmOptions(extraction_workers=1))
+    with pytest.raises(UnmergeableSharesError, match="cameras"):
+        merge_feature_databases([tmp_path / "a.db", tmp_path / "b.db"], tmp_path / "merged.db")
+    dumps = []
+    for workers in (1, 2):
+        database = tmp_path / f"workers{workers}.db"
+        extract_features(database, images, names, SfmOptions(extraction_workers=workers))
+        dumps.append(list(sqlite3.connect(database).iterdump()))
+    assert dumps[0] == dumps[1]
+    assert not list(tmp_path.glob("*.share*"))
