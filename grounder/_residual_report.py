@@ -116,7 +116,12 @@ def write_residual_report(path: Path, rep: ResidualReport) -> Path:
 
     free = rep.space == "free"
     period_s = rep.period_steps * float(rep.model.opt.timestep)
-    if rep.gain == 0.0:
+    if not rep.preds_by_gain:
+        verdict = (
+            f"No gain check: too few trajectories to hold any out, so the residual is saved at gain {rep.gain:g} "
+            "without a check on multi-step rollouts. Train on at least 5 trajectories for one."
+        )
+    elif rep.gain == 0.0:
         verdict = (
             "The gain check chose gain 0: at no gain did the residual improve multi-step rollouts of the held-out "
             "trajectories, so this scene steps as MuJoCo alone. The sections below show what the residual would do."
@@ -129,8 +134,12 @@ def write_residual_report(path: Path, rep: ResidualReport) -> Path:
             text=(
                 f"{verdict}\n\nA state correction after each period of {rep.period_steps} model steps "
                 f"({period_s * 1000:.2f} ms), {'per free body' if free else 'in joint space'}. Fitted on "
-                f"{rep.num_fit} trajectories ({rep.num_samples} samples in the last round) in {rep.seconds:.1f} s; "
-                f"the gain chosen on {len(rep.held_out)} held-out trajectories, never fitted."
+                f"{rep.num_fit} trajectories ({rep.num_samples} samples in the last round) in {rep.seconds:.1f} s"
+                + (
+                    f"; the gain chosen on {len(rep.held_out)} held-out trajectories, never fitted."
+                    if rep.held_out
+                    else "."
+                )
             ),
         )
     ]

@@ -309,6 +309,8 @@ def test_cli_train(nominal_scene: Path, tmp_path: Path) -> None:
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert has_residual(out) and (out / ONNX_FILE).is_file()
+    report = (out / "report.html").read_text()  # 4 trajectories: none held out, so no gain check to show
+    assert "No gain check: too few trajectories" in report and "Gain on held-out" not in report
     result = runner.invoke(app, ["residual", "train", str(tmp_path / "none"), str(traj_dir), "-o", str(tmp_path / "x")])
     assert result.exit_code == 2
     assert "scene.xml" in result.output
