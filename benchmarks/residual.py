@@ -700,31 +700,19 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=ResidualOptions().dagger_rounds)
     args = parser.parse_args()
     options = ResidualOptions(steps=args.steps, dagger_rounds=args.rounds, smooth_window=args.smooth)
-    if args.oracle:
-        if args.calibrated is None or not DATA.is_dir():
-            parser.error("--oracle needs --calibrated DIR and ../shared/data/cube_toss")
-        hindsight_oracle(args.calibrated)
-        return
-    if args.predictability:
-        if args.calibrated is None or not DATA.is_dir():
-            parser.error("--predictability needs --calibrated DIR and ../shared/data/cube_toss")
-        error_predictability(args.calibrated)
-        return
-    if args.noise_floor:
-        if args.calibrated is None or not DATA.is_dir():
-            parser.error("--noise-floor needs --calibrated DIR and ../shared/data/cube_toss")
-        start_noise_floor(args.calibrated)
-        return
-    if args.published_protocol:
-        if args.calibrated is None or not DATA.is_dir():
-            parser.error("--published-protocol needs --calibrated DIR and ../shared/data/cube_toss")
-        published_protocol(args.calibrated)
-        return
-    if args.board_position:
-        if args.calibrated is None or not DATA.is_dir():
-            parser.error("--board-position needs --calibrated DIR and ../shared/data/cube_toss")
-        board_position(args.calibrated)
-        return
+    analyses = {  # each a measurement on a calibrated scene alone, no residual trained
+        "oracle": hindsight_oracle,
+        "predictability": error_predictability,
+        "noise_floor": start_noise_floor,
+        "published_protocol": published_protocol,
+        "board_position": board_position,
+    }
+    for flag, analyse in analyses.items():
+        if getattr(args, flag):
+            if args.calibrated is None or not DATA.is_dir():
+                parser.error(f"--{flag.replace('_', '-')} needs --calibrated DIR and ../shared/data/cube_toss")
+            analyse(args.calibrated)
+            return
     if not DATA.is_dir():
         print(f"{DATA} is absent: skipping the cube tosses")
     else:
