@@ -296,12 +296,15 @@ def main() -> None:
     for i, name in enumerate(result.object_names):
         true_name, offset = offsets[name]
         qa, da = adr[true_name]
-        pos_err, rot_err = [], []
+        pos_err, rot_err, tilt_err = [], [], []
         for f in np.nonzero(result.valid[:, i])[0]:
             implied = result.world_from_objects[f, i] @ np.linalg.inv(offset)
             error_m = implied[:3, 3] - truth_qpos[f, qa : qa + 3]
             pos_err.append(np.linalg.norm(error_m))
             rot_err.append(quat_angle_rad(quat_from_matrix(implied[:3, :3]), truth_qpos[f, qa + 3 : qa + 7]))
+            # the part of it that tilts the object's up axis (a bowl's or a can's symmetry axis), not the turn about it
+            true_up = matrix_from_quat(truth_qpos[f, qa + 3 : qa + 7])[:, 2]
+            tilt_err.append(np.arccos(np.clip(implied[:3, 2] @ true_up, -1.0, 1.0)))
             if np.linalg.norm(truth_qvel[f, da : da + 3]) > 0.05:
                 ray = implied[:3, 3] - cams[f, :3, 3]
                 along_moving.append(float(error_m @ ray / np.linalg.norm(ray)))
@@ -315,7 +318,8 @@ def main() -> None:
         print(
             f"{name} ({true_name}): tracked {result.valid[:, i].sum()}/{len(result.valid)} frames; position error "
             f"median {np.median(pe):.2f} mm, p90 {np.percentile(pe, 90):.2f}, max {pe.max():.2f}; rotation error "
-            f"median {np.median(re):.2f} deg, p90 {np.percentile(re, 90):.2f}, max {re.max():.2f}; lost frames {lost}"
+            f"median {np.median(re):.2f} deg, p90 {np.percentile(re, 90):.2f}, max {re.max():.2f} (of which tilt of "
+            f"its up axis median {np.median(np.rad2deg(tilt_err)):.2f} deg); lost frames {lost}"
         )
     print(
         f"ALL: median position error {np.median(all_pos):.2f} mm (target <= 5), median rotation error "
