@@ -17,7 +17,7 @@ import numpy as np
 from grounder._report import Section, write_html_report
 from grounder._residual import free_bodies
 from grounder._residual_joint import joint_error, joint_space
-from grounder._simulate import free_joints, quat_angle_rad
+from grounder._simulate import free_body_errors, free_joints, quat_angle_rad
 from grounder._trajectory import Trajectory
 
 _MAX_PLOTTED = 4
@@ -55,16 +55,13 @@ def rollout_errors(model: mujoco.MjModel, preds: Sequence[Trajectory], real: Seq
         space = joint_space(model)
         errors = [float(np.mean(np.abs(joint_error(p.qpos, r.qpos, space)))) for p, r in pairs]
         return RolloutErrors(position_pct=np.empty(0), rotation_deg=np.empty(0), joint_error=np.array(errors))
-    bodies = free_bodies(model)
-    pos_pct = np.zeros((len(pairs), len(bodies)))
-    rot_deg = np.zeros((len(pairs), len(bodies)))
+    size_m = {b.name: 2.0 * b.radius_m / np.sqrt(3.0) for b in free_bodies(model)}
+    pos_pct = np.zeros((len(pairs), len(size_m)))
+    rot_deg = np.zeros((len(pairs), len(size_m)))
     for i, (pred, rec) in enumerate(pairs):
-        for b, body in enumerate(bodies):
-            p = body.qpos_adr
-            size_m = 2.0 * body.radius_m / np.sqrt(3.0)
-            dist_m = np.linalg.norm(pred.qpos[:, p : p + 3] - rec.qpos[:, p : p + 3], axis=1)
-            pos_pct[i, b] = 100.0 * np.mean(dist_m) / size_m
-            rot_deg[i, b] = np.degrees(np.mean(quat_angle_rad(pred.qpos[:, p + 3 : p + 7], rec.qpos[:, p + 3 : p + 7])))
+        for b, (body, (dist_m, angle_rad)) in enumerate(free_body_errors(model, pred, rec).items()):
+            pos_pct[i, b] = 100.0 * np.mean(dist_m) / size_m[body]
+            rot_deg[i, b] = np.degrees(np.mean(angle_rad))
     return RolloutErrors(position_pct=pos_pct.mean(axis=1), rotation_deg=rot_deg.mean(axis=1), joint_error=np.empty(0))
 
 
@@ -82,6 +79,7 @@ class ResidualReport:
         period_steps: Model steps per residual period.
         gain: The chosen output gain.
         preds_by_gain: Held-out rollouts per candidate gain (gain 0 = MuJoCo alone).
+        errors_by_gain: Their errors, as the gain check scored them.
         one_step_rms: Rows of (label, train before, train after, held-out before, held-out after) at gain 1.
         output_names: Names of the correction's components.
         output_bound: (B, O) caps of each component (99.5% quantile of the training corrections by default).
@@ -97,6 +95,7 @@ class ResidualReport:
     period_steps: int
     gain: float
     preds_by_gain: Mapping[float, Sequence[Trajectory]]
+    errors_by_gain: Mapping[float, RolloutErrors]
     one_step_rms: Sequence[tuple[str, float, float, float, float]]
     output_names: Sequence[str]
     output_bound: np.ndarray
@@ -159,8 +158,8 @@ def write_residual_report(path: Path, rep: ResidualReport) -> Path:
         )
     )
 
-    gains = sorted(rep.preds_by_gain)
-    errors = {g: rollout_errors(rep.model, rep.preds_by_gain[g], rep.held_out) for g in gains}
+    gains = sorted(rep.errors_by_gain)
+    errors = rep.errors_by_gain
     if gains:
         scores = {g: float(errors[g].scores().mean()) for g in gains}
         fig, ax = plt.subplots(figsize=(5, 3))

@@ -50,7 +50,7 @@ from grounder._residual_joint import (
     joint_space,
     joint_targets,
 )
-from grounder._residual_report import ResidualReport, rollout_errors, write_residual_report
+from grounder._residual_report import ResidualReport, RolloutErrors, rollout_errors, write_residual_report
 from grounder._simulate import free_joints, quat_angle_rad, step_indices
 from grounder._simulator import SCENE_XML, Simulator, scene_xml_path
 from grounder._trajectory import Trajectory, validate_against_model
@@ -553,7 +553,7 @@ def train_residual(
         after = _group_rms(base.targets - residual(base.feats), joint=space is not None)  # gain 1, before choosing
         held_rms, held_gate = _held_out_one_step(scene_xml, select_trajs, options, residual, joint=space is not None)
         report("residual: gain on held-out rollouts", 0, 1)
-        gain, scores, preds_by_gain = _select_gain(trainer.sim, residual, select_trajs, options.gains)
+        gain, scores, preds_by_gain, errors_by_gain = _select_gain(trainer.sim, residual, select_trajs, options.gains)
         report("residual: gain on held-out rollouts", 1, 1)
         with torch.no_grad():
             torch_model.out_gain.fill_(gain)
@@ -604,6 +604,7 @@ def train_residual(
                     period_steps=trainer.period,
                     gain=gain,
                     preds_by_gain=preds_by_gain,
+                    errors_by_gain=errors_by_gain,
                     one_step_rms=[
                         (label, before[g], after[g], held_rms[0][g], held_rms[1][g])
                         for label, g in zip(labels, groups, strict=True)
@@ -680,21 +681,22 @@ def rollout_score(model: mujoco.MjModel, preds: Sequence[Trajectory], real: Sequ
 
 def _select_gain(
     sim: Simulator, residual: NumpyResidual | NumpyJointResidual, trajs: Sequence[Trajectory], gains: Sequence[float]
-) -> tuple[float, dict[float, float], dict[float, list[Trajectory]]]:
-    """The gain whose held-out rollouts score lowest (ties to the smaller), every gain's score and rollouts."""
+) -> tuple[float, dict[float, float], dict[float, list[Trajectory]], dict[float, RolloutErrors]]:
+    """The gain whose held-out rollouts score lowest (ties to the smaller); every gain's score, rollouts and errors."""
     if not trajs:
-        return 1.0, {}, {}
-    scores: dict[float, float] = {}
+        return 1.0, {}, {}, {}
     preds: dict[float, list[Trajectory]] = {}
+    errors: dict[float, RolloutErrors] = {}
     for gain in sorted(set(gains)):
         residual.out_gain[:] = gain
         sim._set_residual(residual)
         preds[gain] = sim.rollout(trajs)
-        scores[gain] = rollout_score(sim.model, preds[gain], trajs)
+        errors[gain] = rollout_errors(sim.model, preds[gain], trajs)
     sim._set_residual(None)
+    scores = {gain: float(np.mean(e.scores())) for gain, e in errors.items()}  # as rollout_score
     best = min(scores, key=lambda g: (scores[g], g))
     log.info("held-out rollout score per gain: %s", scores)
-    return best, scores, preds
+    return best, scores, preds, errors
 
 
 def _options_json(options: ResidualOptions) -> dict[str, Any]:
