@@ -482,6 +482,11 @@ def _cube_half_size_m(model: mujoco.MjModel) -> np.ndarray:
     return model.geom_size[boxes[0]].copy()
 
 
+def _cube_corners_body_m(model: mujoco.MjModel) -> np.ndarray:
+    """(8, 3) the scene's cube's corners in its body frame."""
+    return np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * _cube_half_size_m(model)
+
+
 def _p50_p90(values: list[float], scale: float = 1.0) -> str:
     p50, p90 = np.percentile(np.array(values) * scale, [50, 90])
     return f"{p50:.3g} / {p90:.3g}"
@@ -528,7 +533,7 @@ def start_noise_floor(scene: Path) -> None:
     """What the recorded first state's own error costs a rollout (see the module docstring)."""
     train, val = split(load_dair_pll_cube(DATA))
     model = Simulator(scene, use_residual=False).model
-    corners_body_m = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * _cube_half_size_m(model)
+    corners_body_m = _cube_corners_body_m(model)
     gravity_m_s2 = float(-model.opt.gravity[2])
     starts: dict[str, _FlightStart] = {}
     for toss in train + val:
@@ -608,11 +613,10 @@ def published_protocol(scene: Path) -> None:
     scenes = {"nominal MuJoCo (samples/cube_toss/cube.xml)": REPO / "samples" / "cube_toss" / "cube.xml"}
     scenes["calibrated scene"] = scene
     model = Simulator(scene, use_residual=False).model
-    corners_body_m = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * _cube_half_size_m(model)
-    lowest = {t.name: _lowest_corner_m(t, corners_body_m) for t in val}
+    corners_body_m = _cube_corners_body_m(model)
     recorded, refitted, whole = [], [], []
     for toss in val:
-        touching = np.flatnonzero(lowest[toss.name] < CONTACT_CLEARANCE_M)
+        touching = np.flatnonzero(_lowest_corner_m(toss, corners_body_m) < CONTACT_CLEARANCE_M)
         start = (int(touching[0]) if len(touching) else len(toss.time_s)) - PROTOCOL_FRAMES_BEFORE_CONTACT
         if start + 1 < MIN_FLIGHT_FRAMES:
             continue  # too few frames before contact to refit the velocity
