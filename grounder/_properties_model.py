@@ -51,12 +51,12 @@ class TrainOptions:
         num_threads: torch CPU threads.
     """
 
-    num_train: int = 7000
+    num_train: int = 14000
     num_val: int = 1000
     train_seed: int = 1
     val_seed: int = 2
     embed_dim: int = 16
-    epochs: int = 20
+    epochs: int = 30
     batch_size: int = 128
     learning_rate: float = 3e-3
     weight_decay: float = 1e-3

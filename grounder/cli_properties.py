@@ -26,8 +26,8 @@ def register(app: typer.Typer) -> None:
             Path | None,
             typer.Option("-o", "--out", help="Weights folder (default: the one shipped with the package)."),
         ] = None,
-        num_train: Annotated[int | None, typer.Option(help="Rendered training objects (default 7000).")] = None,
-        epochs: Annotated[int | None, typer.Option(help="Training epochs (default 20).")] = None,
+        num_train: Annotated[int | None, typer.Option(help="Rendered training objects (default 14000).")] = None,
+        epochs: Annotated[int | None, typer.Option(help="Training epochs (default 30).")] = None,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each epoch.")] = False,
     ) -> None:
         """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (10-25 min, 2 cores)."""
