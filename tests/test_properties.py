@@ -117,6 +117,12 @@ def test_shipped_weights_are_small_and_carry_their_recipe() -> None:
         meta["recipe"]["options"]["train_seed"],
         meta["recipe"]["options"]["val_seed"],
     )
+    # `image2sim properties train` with its defaults is the recipe that made the shipped weights.
+    from dataclasses import asdict
+
+    from grounder._properties_model import TrainOptions
+
+    assert meta["recipe"]["options"] == asdict(TrainOptions())
 
 
 def test_decode_embedding_is_smooth_and_physical() -> None:
@@ -176,6 +182,14 @@ def test_properties_help() -> None:
     assert proc.returncode == 0, proc.stderr
     for command in ("train", "evaluate", "sample"):
         assert command in proc.stdout
+    from grounder._properties_model import TrainOptions
+
+    proc = run_cli("properties", "train", "--help", timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    text = " ".join(proc.stdout.replace("│", " ").split())  # rich wraps the help in a box
+    defaults = TrainOptions()
+    assert f"Rendered training objects (default {defaults.num_train})." in text, text
+    assert f"Training epochs (default {defaults.epochs})." in text, text
 
 
 # ---------------------------------------------------------------- integration with `ground`
