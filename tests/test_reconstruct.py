@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -157,27 +158,35 @@ def test_check_source_names_what_is_wrong_before_any_work(tmp_path: Path, kind: 
             reader(source)
 
 
+def _sample_frames(images: Path, indices: Sequence[int], smaller_from: int | None = None) -> list[str]:
+    """Writes frames ``indices`` of the tabletop sample into ``images`` as JPEGs and returns their names; from the
+    ``smaller_from``-th on they are shrunk to 480 x 360 (frames of two sizes)."""
+    import cv2
+
+    images.mkdir()
+    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
+    names = []
+    for k, index in enumerate(indices):
+        video.set(cv2.CAP_PROP_POS_FRAMES, index)
+        ok, frame = video.read()
+        assert ok
+        names.append(f"frame_{index:05d}.jpg")
+        small = smaller_from is not None and k >= smaller_from
+        cv2.imwrite(str(images / names[-1]), cv2.resize(frame, (480, 360)) if small else frame)
+    video.release()
+    return names
+
+
 def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(tmp_path: Path) -> None:
     """Seven frames of the sample, extracted by one thread and by three (2 + 2 + 3 frames, merged): the two COLMAP
     databases are the same to the last byte of every table, so the speed-up cannot change any reconstruction."""
     import sqlite3
 
-    import cv2
-
     from reconstruction._sfm import extract_features
     from reconstruction._types import SfmOptions
 
     images = tmp_path / "images"
-    images.mkdir()
-    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
-    names = []
-    for index in range(0, 70, 10):
-        video.set(cv2.CAP_PROP_POS_FRAMES, index)
-        ok, frame = video.read()
-        assert ok
-        names.append(f"frame_{index:05d}.jpg")
-        cv2.imwrite(str(images / names[-1]), frame)
-    video.release()
+    names = _sample_frames(images, range(0, 70, 10))
     dumps = []
     for workers in (1, 3):
         database = tmp_path / f"workers{workers}.db"
@@ -193,22 +202,11 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
     the database is the one thread's."""
     import sqlite3
 
-    import cv2
-
     from reconstruction._sfm import UnmergeableSharesError, extract_features, merge_feature_databases
     from reconstruction._types import SfmOptions
 
     images = tmp_path / "images"
-    images.mkdir()
-    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
-    names = []
-    for k, index in enumerate((0, 10, 20, 30)):
-        video.set(cv2.CAP_PROP_POS_FRAMES, index)
-        ok, frame = video.read()
-        assert ok
-        names.append(f"frame_{index:05d}.jpg")
-        cv2.imwrite(str(images / names[-1]), frame if k < 2 else cv2.resize(frame, (480, 360)))
-    video.release()
+    names = _sample_frames(images, (0, 10, 20, 30), smaller_from=2)
     for name, share in (("a.db", names[:2]), ("b.db", names[2:])):
         extract_features(tmp_path / name, images, share, SfmOptions(extraction_workers=1))
     with pytest.raises(UnmergeableSharesError, match="cameras"):
