@@ -136,8 +136,7 @@ def grid_calibrate(train: list[Trajectory], out_dir: Path) -> tuple[Path, str]:
         for dampratio in (0.5, 1.0, 2.0):
             for timeconst in (0.01, 0.02):
                 xml = _with_contact(nominal, friction, dampratio, timeconst)
-                preds = simulate(mujoco.MjModel.from_xml_string(xml), train)
-                pos, rot = metric(preds, train)  # type: ignore[arg-type]
+                pos, rot = metric(_rollouts(mujoco.MjModel.from_xml_string(xml), train), train)
                 score = float(pos.mean() + rot.mean() / 90.0)  # position (widths) + rotation (quarter turns)
                 if best is None or score < best[0]:
                     best = (score, xml, f"friction {friction}, solref ({timeconst}, {dampratio})")
@@ -286,7 +285,7 @@ def board_position(scene: Path) -> None:
         pos = np.empty((len(models), len(tosses)))
         rot = np.empty_like(pos)
         for i, model in enumerate(models):
-            pos[i], rot[i] = metric(simulate(model, tosses), tosses)  # type: ignore[arg-type]
+            pos[i], rot[i] = metric(_rollouts(model, tosses), tosses)
         scores[name] = (pos, rot)
     (pos_tr, rot_tr), (pos_va, rot_va) = scores["train"], scores["val"]
     cols = np.arange(len(val))
@@ -332,10 +331,9 @@ def hindsight_oracle(scene: Path) -> None:
     mean_pos = [np.zeros((len(t.time_s), 3)) for t in val]  # ensemble sums, per toss
     mean_quat = [np.zeros((len(t.time_s), 4)) for t in val]
     for i, model in enumerate(models):
-        preds = simulate(model, val)
-        pos[i], rot[i] = metric(preds, val)  # type: ignore[arg-type]
+        preds = _rollouts(model, val)
+        pos[i], rot[i] = metric(preds, val)
         for b, pred in enumerate(preds):
-            assert isinstance(pred, Trajectory)
             quat = pred.qpos[:, 3:]
             mean_pos[b] += pred.qpos[:, :3] / len(models)
             # chordal mean: each quaternion's sign matched to the recorded one, then summed and normalised
