@@ -281,31 +281,18 @@ class CalibrationResult:
 # Scene loading and trajectory split
 
 
-def scene_xml_path(scene: Path) -> Path:
-    """The MJCF of a scene given as a file or as a scene folder (``scene.xml`` inside)."""
-    scene = Path(scene)
-    if scene.is_dir():
-        xml = scene / "scene.xml"
-        if not xml.is_file():
-            raise GrounderError(f"{scene}: scene folder has no scene.xml; pass an MJCF file or a grounded scene folder")
-        return xml
-    if not scene.is_file():
-        raise GrounderError(f"{scene}: scene does not exist; pass an MJCF file or a grounded scene folder")
-    return scene
-
-
 def load_scene(scene: Path) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
     """The scene's `MjSpec` and compiled model.
 
     Raises:
         GrounderError: missing or unreadable MJCF.
     """
-    xml = scene_xml_path(scene)
+    xml = sim.scene_xml_path(scene)
     try:
         spec = mujoco.MjSpec.from_file(str(xml))
         model = spec.compile()
     except Exception as exc:  # mujoco raises ValueError for parse and compile errors
-        raise GrounderError(f"{xml}: MuJoCo cannot load it ({exc})".replace("\n", " ")) from exc
+        raise GrounderError(f"{xml}: MuJoCo cannot load it ({' '.join(str(exc).split())})") from exc
     return spec, model
 
 

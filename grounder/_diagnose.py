@@ -52,7 +52,7 @@ from grounder._gap import (
     rms,
     score,
 )
-from grounder._simulate import default_nthread
+from grounder._simulate import default_nthread, load_scene_model
 from grounder._trajectory import Trajectory, load_trajectories, validate_against_model
 from grounder.errors import GrounderError
 
@@ -920,17 +920,6 @@ def _json_default(obj: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
-def load_model(scene_xml: Path) -> mujoco.MjModel:
-    """Loads the nominal MJCF, with a one-line error for a missing or invalid file."""
-    scene_xml = Path(scene_xml)
-    if not scene_xml.is_file():
-        raise GrounderError(f"{scene_xml}: scene file does not exist; pass the nominal MJCF (scene.xml)")
-    try:
-        return mujoco.MjModel.from_xml_path(str(scene_xml))
-    except ValueError as exc:
-        raise GrounderError(f"{scene_xml}: MuJoCo could not load it ({str(exc).splitlines()[0]})") from exc
-
-
 def diagnose_files(
     scene_xml: Path,
     traj_dir: Path,
@@ -941,7 +930,7 @@ def diagnose_files(
     progress: Progress | None = None,
 ) -> Diagnosis:
     """Loads the scene and trajectories, diagnoses, and writes ``out_dir`` (the CLI's ``diagnose``)."""
-    model = load_model(scene_xml)
+    scene_xml, model = load_scene_model(scene_xml)
     trajs = load_trajectories(traj_dir, model)
     options = options or DiagnoseOptions()
     out_dir = Path(out_dir)

@@ -51,8 +51,8 @@ from grounder._residual_joint import (
     joint_targets,
 )
 from grounder._residual_report import ResidualReport, RolloutErrors, rollout_errors, write_residual_report
-from grounder._simulate import free_joints, quat_angle_rad, step_indices
-from grounder._simulator import SCENE_XML, Simulator, scene_xml_path
+from grounder._simulate import SCENE_XML, free_joints, quat_angle_rad, scene_xml_path, step_indices
+from grounder._simulator import Simulator
 from grounder._trajectory import Trajectory, validate_against_model
 from grounder.errors import GrounderError
 

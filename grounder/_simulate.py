@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -21,6 +22,41 @@ from grounder._trajectory import Trajectory
 from grounder.errors import GrounderError
 
 FULLPHYSICS = int(mujoco.mjtState.mjSTATE_FULLPHYSICS)
+SCENE_XML = "scene.xml"
+
+
+def scene_xml_path(scene: Path) -> Path:
+    """The MJCF of a scene given as a file or as a scene folder (``scene.xml`` inside).
+
+    Raises:
+        GrounderError: neither exists.
+    """
+    scene = Path(scene)
+    if scene.is_dir():
+        xml = scene / SCENE_XML
+        if not xml.is_file():
+            raise GrounderError(
+                f"{scene}: scene folder has no {SCENE_XML}; pass an MJCF file or a scene folder (`image2sim ground`)"
+            )
+        return xml
+    if not scene.is_file():
+        raise GrounderError(
+            f"{scene}: scene does not exist; pass an MJCF file or a scene folder with {SCENE_XML} (`image2sim ground`)"
+        )
+    return scene
+
+
+def load_scene_model(scene: Path) -> tuple[Path, mujoco.MjModel]:
+    """The scene's MJCF path and compiled model; `scene` is an MJCF file or a scene folder.
+
+    Raises:
+        GrounderError: missing file, or one MuJoCo cannot parse or compile (its message on one line).
+    """
+    xml = scene_xml_path(scene)
+    try:
+        return xml, mujoco.MjModel.from_xml_path(str(xml))
+    except ValueError as exc:  # mujoco raises ValueError for parse and compile errors
+        raise GrounderError(f"{xml}: MuJoCo cannot load it ({' '.join(str(exc).split())})") from exc
 
 
 def default_nthread() -> int:

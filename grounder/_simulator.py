@@ -22,30 +22,14 @@ from grounder._residual import (
     load_residual,
 )
 from grounder._residual_joint import NumpyJointResidual
-from grounder._simulate import FULLPHYSICS, _offsets, default_nthread, prepare, simulate
+from grounder._simulate import FULLPHYSICS, _offsets, default_nthread, load_scene_model, prepare, simulate
 from grounder._trajectory import Trajectory
 from grounder.errors import GrounderError
-
-SCENE_XML = "scene.xml"
 
 
 def has_residual(scene_dir: Path) -> bool:
     """True when a scene folder holds a trained residual (``residual.json`` and ``residual.pt``)."""
     return has_residual_files(Path(scene_dir))
-
-
-def scene_xml_path(scene: Path) -> Path:
-    """The MJCF of a scene: ``scene`` itself if it is an .xml file, else ``scene/scene.xml``.
-
-    Raises:
-        GrounderError: neither exists.
-    """
-    scene = Path(scene)
-    if scene.is_file() and scene.suffix == ".xml":
-        return scene
-    if (scene / SCENE_XML).is_file():
-        return scene / SCENE_XML
-    raise GrounderError(f"{scene}: expected a scene folder with {SCENE_XML} (or an .xml file); found neither")
 
 
 class Simulator:
@@ -64,11 +48,7 @@ class Simulator:
     """
 
     def __init__(self, scene: Path, *, use_residual: bool = True, nthread: int | None = None):
-        xml = scene_xml_path(Path(scene))
-        try:
-            self.model = mujoco.MjModel.from_xml_path(str(xml))
-        except ValueError as exc:
-            raise GrounderError(f"{xml}: MuJoCo could not load it ({exc})") from exc
+        xml, self.model = load_scene_model(Path(scene))
         self.nthread = nthread or default_nthread()
         scene_dir = xml.parent
         residual = load_residual(scene_dir, self.model) if has_residual(scene_dir) else None

@@ -303,14 +303,6 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
     return frames, fps
 
 
-def scene_xml_path(scene: Path) -> Path:
-    scene = Path(scene)
-    path = scene / "scene.xml" if scene.is_dir() else scene
-    if not path.is_file():
-        raise TrackError(f"no scene at {scene}: pass a folder written by `image2sim ground` (with scene.xml)")
-    return path
-
-
 def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[PinholeCamera, np.ndarray]:
     """The scan's intrinsics, scaled to the clip's size, and OpenCV distortion (k1, k2, 0, 0)."""
     rec_json = scene_xml.parent / "reconstruction" / "reconstruct.json"
@@ -1202,10 +1194,11 @@ def track(
 
     Raises:
         TrackError: unreadable clip or scene, no marker, or no object tracked for `min_segment_frames` frames.
+        GrounderError: no scene at `scene` (neither an MJCF file nor a folder with scene.xml).
     """
     import mujoco
 
-    from grounder._simulate import free_joints
+    from grounder._simulate import free_joints, scene_xml_path
 
     options = options or TrackOptions()
     seconds: dict[str, float] = {}

@@ -20,7 +20,9 @@ def register(app: typer.Typer) -> None:
 
     @app.command("diagnose")
     def diagnose(
-        scene: Annotated[Path, typer.Argument(help="The nominal MJCF (scene.xml) you believe.")],
+        scene: Annotated[
+            Path, typer.Argument(help="The nominal scene you believe: its MJCF, or a scene folder with scene.xml.")
+        ],
         traj_dir: Annotated[Path, typer.Argument(help="Folder of recorded trajectories (.npz, project format).")],
         out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (created; must be new or empty).")],
         effects: Annotated[

@@ -46,16 +46,10 @@ def register(app: typer.Typer) -> None:
             fail("--steps and --hidden must be >= 1 and --rounds >= 0")
         with user_errors_exit_2():
             from grounder._residual_train import REPORT_FILE, ResidualOptions, train_residual
-            from grounder._simulator import scene_xml_path
+            from grounder._simulate import load_scene_model
             from grounder._trajectory import load_trajectories
 
-            xml = scene_xml_path(scene)
-            import mujoco
-
-            try:
-                model = mujoco.MjModel.from_xml_path(str(xml))
-            except ValueError as exc:
-                fail(f"{xml}: MuJoCo could not load it ({exc})")
+            _xml, model = load_scene_model(scene)
             trajs = load_trajectories(traj_dir, model)
             options = ResidualOptions(
                 steps=steps, dagger_rounds=rounds, hidden=hidden, seed=seed, ctrl_history_s=ctrl_history

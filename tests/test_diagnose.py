@@ -158,7 +158,7 @@ def _write_traj(folder: Path, name: str, **arrays: np.ndarray) -> None:
     np.savez(folder / f"{name}.npz", **arrays)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("problem", ["nq", "nan", "time", "few", "effect"])
+@pytest.mark.parametrize("problem", ["nq", "nan", "time", "few", "effect", "scene"])
 def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], tmp_path: Path) -> None:
     scene, trajs = pendulum_case
     extra: list[str] = []
@@ -180,6 +180,10 @@ def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], t
         few = [Trajectory(time_s=t, qpos=np.zeros((11, 1)), qvel=np.zeros((11, 1)), name=f"t{i}") for i in range(3)]
         save_trajectories(few, tmp_path / "t")
         trajs, needle = tmp_path / "t", "at least 2"
+    elif problem == "scene":  # a scene folder whose MJCF MuJoCo rejects: its multi-line parse error on one line
+        (tmp_path / "s").mkdir()
+        (tmp_path / "s" / "scene.xml").write_text("<mujoco")
+        scene, needle = tmp_path / "s", "scene.xml: MuJoCo cannot load it (XML parse error"
     else:
         extra, needle = ["--effects", "warp_drive"], "unknown effect 'warp_drive'"
     out = tmp_path / "out"

@@ -314,6 +314,12 @@ def test_cli_train(nominal_scene: Path, tmp_path: Path) -> None:
     result = runner.invoke(app, ["residual", "train", str(tmp_path / "none"), str(traj_dir), "-o", str(tmp_path / "x")])
     assert result.exit_code == 2
     assert "scene.xml" in result.output
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "scene.xml").write_text("<mujoco")  # MuJoCo's parse error spans lines; the user gets one
+    result = runner.invoke(app, ["residual", "train", str(broken), str(traj_dir), "-o", str(tmp_path / "y")])
+    assert result.exit_code == 2 and "MuJoCo cannot load it (XML parse error" in result.output
+    assert len(result.output.strip().splitlines()) == 1 and not (tmp_path / "y").exists()
 
 
 def test_fast_single_state_path_equals_reference(trained: Path) -> None:
