@@ -45,6 +45,7 @@ from residual import DATA, fmt, metric, split  # noqa: E402  (benchmarks/residua
 from grounder._import import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
 from grounder._residual import quat_to_mat, quat_to_rotvec  # noqa: E402
 from grounder._simulate import _offsets, load_scene_model  # noqa: E402
+from grounder._track_smooth import quat_from_matrix  # noqa: E402
 from grounder._trajectory import Trajectory  # noqa: E402
 
 CUBE_HALF_WIDTH_M = 0.0524
@@ -60,12 +61,6 @@ def corners_world_m(qpos: np.ndarray) -> np.ndarray:
     """Poses (T, 7: position, quaternion wxyz) -> corner positions (T, 8, 3) in the world frame."""
     rot = np.stack([quat_to_mat(q) for q in qpos[:, 3:]])
     return qpos[:, None, :3] + np.einsum("tij,kj->tki", rot, CORNERS_BODY_M)
-
-
-def mat_to_quat(rot: np.ndarray) -> np.ndarray:
-    quat = np.empty(4)
-    mujoco.mju_mat2Quat(quat, rot.reshape(-1).astype(np.float64))
-    return quat
 
 
 def kabsch(corners: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -152,9 +147,9 @@ class MujocoNextFrame:
         states = np.tile(self.template, (len(now_c), 1))
         p, v = self.qpos_at, self.qvel_at
         states[:, p : p + 3] = now_c
-        states[:, p + 3 : p + 7] = np.stack([mat_to_quat(r) for r in now_r])
+        states[:, p + 3 : p + 7] = np.stack([quat_from_matrix(r) for r in now_r])
         states[:, v : v + 3] = (now_c - before_c) / FRAME_S + self.model.opt.gravity * FRAME_S / 2
-        states[:, v + 3 : v + 6] = np.stack([quat_to_rotvec(mat_to_quat(r)) for r in turn]) / FRAME_S
+        states[:, v + 3 : v + 6] = np.stack([quat_to_rotvec(quat_from_matrix(r)) for r in turn]) / FRAME_S
         out, _ = self._rollout(self.model, self.datas, states, nstep=self.period_steps)
         qpos = out[:, -1, p : p + 7]
         rot = np.stack([quat_to_mat(q) for q in qpos[:, 3:]])
@@ -223,7 +218,7 @@ def roll_out(sim: LearnedSimulator, tosses: list[Trajectory]) -> list[Trajectory
     for i, toss in enumerate(tosses):
         n = len(toss.time_s)
         centre, rot = kabsch(corners[i, :n])
-        qpos = np.concatenate([centre.numpy(), np.stack([mat_to_quat(r) for r in rot.numpy()])], 1)
+        qpos = np.concatenate([centre.numpy(), np.stack([quat_from_matrix(r) for r in rot.numpy()])], 1)
         preds.append(Trajectory(time_s=toss.time_s, qpos=qpos, qvel=np.zeros((n, 6)), name=toss.name))
     return preds
 
