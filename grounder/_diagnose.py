@@ -55,6 +55,7 @@ from grounder._gap import (
 from grounder._simulate import default_nthread, load_scene_model
 from grounder._trajectory import Trajectory, load_trajectories, validate_against_model
 from grounder.errors import GrounderError
+from reconstruction import check_output_dir
 
 log = logging.getLogger(__name__)
 
@@ -886,8 +887,7 @@ def write_outputs(
     from grounder._diagnose_report import render_report
 
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
-        raise GrounderError(f"{out_dir}: exists and is not empty; choose a new folder or pass --overwrite")
+    check_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml,))
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = out_dir.with_name(f".{out_dir.name}.{secrets.token_hex(6)}.tmp")
     staging.mkdir()
@@ -934,8 +934,7 @@ def diagnose_files(
     trajs = load_trajectories(traj_dir, model)
     options = options or DiagnoseOptions()
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())) and not overwrite:
-        raise GrounderError(f"{out_dir}: exists and is not empty; choose a new folder or pass --overwrite")
+    check_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml, traj_dir))
     diag = diagnose(model, trajs, options, progress)
     write_outputs(diag, scene_xml, model, out_dir, overwrite=overwrite)
     return diag

@@ -139,7 +139,7 @@ def ground(
     report = progress or (lambda stage, done, total: None)
     seconds: dict[str, float] = {}
     warnings: list[str] = []
-    with staged_output_dir(Path(out_dir), overwrite=overwrite) as stage:
+    with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,)) as stage:
         tick = time.perf_counter()
         rec = reconstruct(source, stage / "reconstruction", options.reconstruct, progress=report)
         seconds["reconstruct"] = time.perf_counter() - tick

@@ -1240,6 +1240,7 @@ def ground_with_interaction(
         GrounderError, ReconstructionError, SceneExportError: bad input, nothing grounded or nothing tracked.
     """
     from reconstruction import staged_output_dir
+    from reconstruction._frames import check_source
 
     options = options or InteractionOptions()
     report = progress or (lambda stage, done, total: None)
@@ -1247,7 +1248,9 @@ def ground_with_interaction(
     if track_options.aruco_size_m is None:
         track_options = replace(track_options, aruco_size_m=options.ground.reconstruct.aruco_size_m)
     seconds: dict[str, float] = {}
-    with staged_output_dir(Path(out), overwrite=overwrite) as stage:
+    check_source(Path(scan))  # unreadable videos fail now, not after the grounding
+    check_source(Path(clip))
+    with staged_output_dir(Path(out), overwrite=overwrite, inputs=(scan, clip, grounded_scene)) as stage:
         tick = time.perf_counter()
         grounded = stage / "grounded"
         if grounded_scene is not None:

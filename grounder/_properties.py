@@ -424,7 +424,7 @@ def write_scene_variants(
     variants = sample_variant_specs(scene_dir, n, seed)
     paths = []
     record = []
-    with staged_output_dir(out_dir, overwrite=overwrite) as stage:
+    with staged_output_dir(out_dir, overwrite=overwrite, inputs=(scene_dir,)) as stage:
         for i, (spec, sampled) in enumerate(variants):
             spec.compile()  # with the scene's own asset folder
             spec.meshdir = os.path.relpath(scene_dir / "assets", out_dir)

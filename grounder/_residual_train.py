@@ -55,6 +55,7 @@ from grounder._simulate import SCENE_XML, free_joints, quat_angle_rad, scene_xml
 from grounder._simulator import Simulator
 from grounder._trajectory import Trajectory, validate_against_model
 from grounder.errors import GrounderError
+from reconstruction import check_output_dir
 
 log = logging.getLogger(__name__)
 
@@ -475,8 +476,7 @@ def train_residual(
     options = options or ResidualOptions()
     started = time.perf_counter()
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
-        raise GrounderError(f"{out}: exists and is not empty; choose a new folder or pass --overwrite")
+    check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene,))
     if not trajs:
         raise GrounderError("no trajectories to train on; pass a folder of .npz trajectories")
     scene_xml = scene_xml_path(Path(scene))

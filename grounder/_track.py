@@ -1204,10 +1204,19 @@ def track(
     seconds: dict[str, float] = {}
     tick = time.perf_counter()
     scene_xml = scene_xml_path(Path(scene))
+    if out_dir is not None:  # before the long work, not only when writing
+        from reconstruction import check_output_dir
+
+        check_output_dir(out_dir, overwrite=overwrite, inputs=(clip, scene_xml.parent))
     frames, fps = read_clip(Path(clip), options.max_frames, options.start_frame)
     height_px, width_px = frames[0].shape[:2]
     if options.intrinsics_colmap is not None:
         fx, fy, cx, cy = options.intrinsics_colmap
+        if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0 and 0 < cx < width_px and 0 < cy < height_px):
+            raise TrackError(
+                f"intrinsics fx {fx:g}, fy {fy:g}, cx {cx:g}, cy {cy:g} do not fit the {width_px}x{height_px} clip;"
+                " pass positive focal lengths and a principal point inside the image, in pixels (COLMAP's PINHOLE)"
+            )
         camera = PinholeCamera.from_colmap(width_px, height_px, fx, fy, cx, cy)
         dist = np.zeros(4)
     else:

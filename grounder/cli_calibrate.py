@@ -15,13 +15,16 @@ def _split_params(params: list[str] | None) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _check_new_dir(path: Path, overwrite: bool) -> None:
+def _check_new_dir(path: Path, *, inputs: tuple[Path, ...] = ()) -> None:
+    """For the commands without --overwrite: `path` must be a new or empty folder, outside the inputs."""
     from grounder.errors import GrounderError
+    from reconstruction import check_outside_inputs
 
+    check_outside_inputs(path, inputs, error=GrounderError)
     if path.exists() and not path.is_dir():
         raise GrounderError(f"{path}: exists and is not a folder; choose a new output folder")
-    if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise GrounderError(f"{path}: output folder is not empty; choose a new folder or pass --overwrite")
+    if path.is_dir() and any(path.iterdir()):
+        raise GrounderError(f"{path}: output folder is not empty; choose a new or empty folder")
 
 
 def register(app: typer.Typer) -> None:
@@ -67,7 +70,7 @@ def register(app: typer.Typer) -> None:
 
             if mode not in ("raw", "embedding"):
                 fail(f"--mode must be raw or embedding, got {mode!r}")
-            _check_new_dir(out, overwrite=False)
+            _check_new_dir(out, inputs=(scene, traj_dir))
             options = CalibrateOptions(
                 params=_split_params(params),
                 mode=mode,  # type: ignore[arg-type]
@@ -130,7 +133,7 @@ def register(app: typer.Typer) -> None:
             from grounder._import import import_trajectories
             from grounder._trajectory import save_trajectories
 
-            _check_new_dir(out, overwrite=False)
+            _check_new_dir(out, inputs=(src,))
             trajs = import_trajectories(fmt, src)
             if out.is_dir():
                 out.rmdir()  # empty: let save_trajectories build it atomically
@@ -188,8 +191,10 @@ def run_rollout(
     from grounder._calibrate import load_scene
     from grounder._simulate import simulate
     from grounder._trajectory import load_trajectories, save_trajectories
+    from grounder.errors import GrounderError
+    from reconstruction import check_output_dir
 
-    _check_new_dir(out, overwrite=overwrite)
+    check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))
     _, model = load_scene(scene)
     trajs = load_trajectories(traj_dir, model)
     used = False

@@ -70,6 +70,11 @@ def register(app: typer.Typer) -> None:
         json_out: Annotated[Path | None, typer.Option("--json", help="Also write the results here.")] = None,
     ) -> None:
         """Withheld-effect benchmark: generate cases with hidden effects, diagnose them blind, print the table."""
+        if json_out is not None:  # before the benchmark's minutes, not after
+            if json_out.exists():
+                fail(f"--json {json_out} already exists; remove it or choose another file")
+            if not json_out.parent.is_dir():
+                fail(f"--json {json_out}: folder {json_out.parent} does not exist; create it or choose another file")
         with user_errors_exit_2():
             from grounder._diagnose_bench import format_table, run_benchmark
 
@@ -80,4 +85,6 @@ def register(app: typer.Typer) -> None:
         if json_out is not None:
             import json
 
-            json_out.write_text(json.dumps([r.to_json() for r in results], indent=2))
+            partial = json_out.with_name(f".{json_out.name}.partial")
+            partial.write_text(json.dumps([r.to_json() for r in results], indent=2))
+            partial.replace(json_out)

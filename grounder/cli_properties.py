@@ -28,6 +28,9 @@ def register(app: typer.Typer) -> None:
         ] = None,
         num_train: Annotated[int | None, typer.Option(help="Rendered training objects (default 14000).")] = None,
         epochs: Annotated[int | None, typer.Option(help="Training epochs (default 30).")] = None,
+        overwrite: Annotated[
+            bool, typer.Option(help="Replace the weights in a non-empty -o folder (without -o they are replaced).")
+        ] = False,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each epoch.")] = False,
     ) -> None:
         """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (10-25 min, 2 cores)."""
@@ -38,7 +41,10 @@ def register(app: typer.Typer) -> None:
             from grounder._properties import WEIGHTS_DIR
             from grounder._properties_model import TrainOptions
             from grounder._properties_model import train as run_train
+            from reconstruction import check_output_dir
 
+            if out is not None:  # without -o: regenerate the shipped weights in place, the command's purpose
+                check_output_dir(out, overwrite=overwrite)
             target = out or WEIGHTS_DIR
             with stage_progress() as progress:
                 defaults = TrainOptions()

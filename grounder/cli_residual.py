@@ -48,7 +48,10 @@ def register(app: typer.Typer) -> None:
             from grounder._residual_train import REPORT_FILE, ResidualOptions, train_residual
             from grounder._simulate import load_scene_model
             from grounder._trajectory import load_trajectories
+            from grounder.errors import GrounderError
+            from reconstruction import check_output_dir
 
+            check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))
             _xml, model = load_scene_model(scene)
             trajs = load_trajectories(traj_dir, model)
             options = ResidualOptions(

@@ -1,7 +1,7 @@
 """Pixels -> cameras -> geometry: structure from motion in a metric, gravity-aligned world frame."""
 
 from reconstruction._frames import Frame, FrameSelection, read_frames, select_frames
-from reconstruction._outdir import staged_output_dir
+from reconstruction._outdir import check_output_dir, check_outside_inputs, staged_output_dir
 from reconstruction._reconstruct import reconstruct
 from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
 from reconstruction._texture import TextureOptions, TextureView, bake_texture, bake_texture_report, texture_coverage
@@ -42,6 +42,8 @@ __all__ = [
     "WorldFrameError",
     "bake_texture",
     "bake_texture_report",
+    "check_output_dir",
+    "check_outside_inputs",
     "find_objects",
     "read_frames",
     "reconstruct",

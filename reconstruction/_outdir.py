@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -13,17 +13,41 @@ from reconstruction.errors import InputError
 MARKER_FILES = ("reconstruct.json", "scene.json", "diagnosis.json", "calibration.json")
 
 
-@contextmanager
-def staged_output_dir(out_dir: Path, *, overwrite: bool = False, error: type[Exception] = InputError) -> Iterator[Path]:
-    """Yields a temporary folder next to `out_dir`, moved into place only if the block succeeds.
-
-    An existing non-empty `out_dir` is replaced only with `overwrite=True`, and then only once the new result is
-    complete: a failure leaves the user's previous folder untouched and no partial output behind.
+def check_outside_inputs(
+    out_dir: str | Path, inputs: Iterable[str | Path | None], *, error: type[Exception] = InputError
+) -> None:
+    """Refuses an output folder that is one of the inputs or holds one: replacing it would delete that input.
 
     Raises:
-        `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; or it is a file.
+        `error` (InputError unless given): `out_dir` is an input (file or folder) or a folder above one.
+    """
+    out = Path(out_dir).resolve()
+    for given in inputs:
+        if given is None:
+            continue
+        src = Path(given).resolve()
+        if src == out or out in src.parents:
+            relation = "is" if src == out else "holds"
+            raise error(
+                f"output folder {out_dir} {relation} the input {given}; choose an output folder outside the inputs"
+            )
+
+
+def check_output_dir(
+    out_dir: str | Path,
+    *,
+    overwrite: bool = False,
+    error: type[Exception] = InputError,
+    inputs: Iterable[str | Path | None] = (),
+) -> None:
+    """What `staged_output_dir` checks before any work, for callers that want to fail before long work.
+
+    Raises:
+        `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; it is a file; or
+        it is or holds one of `inputs`.
     """
     out_dir = Path(out_dir)
+    check_outside_inputs(out_dir, inputs, error=error)
     if out_dir.exists() and not out_dir.is_dir():
         raise error(f"output {out_dir} is a file; pass a folder path (-o)")
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
@@ -31,6 +55,28 @@ def staged_output_dir(out_dir: Path, *, overwrite: bool = False, error: type[Exc
             f"output folder {out_dir} already exists and is not empty; pass --overwrite (Python: overwrite=True) or"
             " another output folder"
         )
+
+
+@contextmanager
+def staged_output_dir(
+    out_dir: Path,
+    *,
+    overwrite: bool = False,
+    error: type[Exception] = InputError,
+    inputs: Iterable[str | Path | None] = (),
+) -> Iterator[Path]:
+    """Yields a temporary folder next to `out_dir`, moved into place only if the block succeeds.
+
+    An existing non-empty `out_dir` is replaced only with `overwrite=True`, and then only once the new result is
+    complete: a failure leaves the user's previous folder untouched and no partial output behind. `out_dir` may not
+    be one of `inputs` nor hold one (`check_outside_inputs`), overwrite or not.
+
+    Raises:
+        `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; it is a file; or
+        it is or holds one of `inputs`.
+    """
+    out_dir = Path(out_dir)
+    check_output_dir(out_dir, overwrite=overwrite, error=error, inputs=inputs)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
     try:

@@ -109,7 +109,7 @@ def reconstruct(
     _sfm._quiet_colmap()
     _frames.check_source(source)
 
-    with staged_output_dir(Path(out_dir), overwrite=overwrite) as stage_dir:
+    with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,)) as stage_dir:
         tick = time.perf_counter()
         report("reading frames", 0, 1)
         frames = _frames.read_frames(source)

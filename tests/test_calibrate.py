@@ -381,3 +381,27 @@ def test_cli_rollout_uses_the_residual_when_the_scene_has_one(
 def test_cli_help(command: str) -> None:
     result = _cli(command, "--help")
     assert result.exit_code == 0 and "Usage" in result.output, result.output
+
+
+@pytest.mark.parametrize(
+    ("command", "flags"),
+    [
+        (["rollout"], []),
+        (["rollout"], ["--overwrite"]),
+        (["diagnose"], ["--overwrite"]),
+        (["residual", "train"], ["--overwrite"]),
+    ],
+)
+def test_cli_output_over_the_trajectories_is_refused(
+    command: list[str], flags: list[str], traj_dir: Path, tmp_path: Path
+) -> None:
+    """-o naming the trajectory folder (or a folder above it) would replace the recording: refused, nothing touched."""
+    import shutil
+
+    mine = shutil.copytree(traj_dir, tmp_path / "rec" / "trajs")
+    before = {p.name: p.read_bytes() for p in mine.iterdir()}
+    for out in (mine, mine.parent):
+        _assert_exit_2(
+            _cli(*command, str(CUBE_XML), str(mine), "-o", str(out), *flags), "choose an output folder outside"
+        )
+        assert {p.name: p.read_bytes() for p in mine.iterdir()} == before

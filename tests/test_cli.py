@@ -177,3 +177,45 @@ def test_failed_overwrite_keeps_previous_output(tmp_path: Path) -> None:
     proc = run_cli("reconstruct", str(folder), "-o", str(out), "--overwrite")
     assert_one_line_error(proc, "featureless")
     assert (out / "reconstruct.json").read_text() == "{}"
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "ground"])
+def test_output_over_the_source_is_refused(tmp_path: Path, tabletop_dir: Path, command: str) -> None:
+    """-o naming the image folder, or a folder that holds it, would replace the user's images even with --overwrite."""
+    folder = _write_images(tmp_path / "shoot" / "imgs", _tabletop_frames(tabletop_dir, [5, 10, 15, 20]))
+    (tmp_path / "shoot" / "notes.txt").write_text("mine")
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    for out in (folder, folder.parent):
+        proc = run_cli(command, str(folder), "-o", str(out), "--overwrite", "--aruco-size", "0.12", timeout=60)
+        assert_one_line_error(proc, "choose an output folder outside", alone=True)
+        assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+        assert (tmp_path / "shoot" / "notes.txt").read_text() == "mine"
+
+
+def test_unreadable_interaction_clip_fails_before_grounding(tmp_path: Path, tabletop_dir: Path) -> None:
+    clip = tmp_path / "toss.mp4"
+    clip.write_text("this is not a video")
+    proc = run_cli(
+        "ground", str(tabletop_dir / "video.mp4"), "--interaction", str(clip), "-o", str(tmp_path / "out"), timeout=60
+    )
+    assert_one_line_error(proc, "toss.mp4", "not a readable video", alone=True)
+    assert not (tmp_path / "out").exists()
+
+
+def test_properties_train_keeps_a_non_empty_output(tmp_path: Path) -> None:
+    out = tmp_path / "weights"
+    out.mkdir()
+    (out / "property_net.json").write_text("mine")
+    proc = run_cli("properties", "train", "-o", str(out), "--num-train", "100", "--epochs", "1", timeout=60)
+    assert_one_line_error(proc, "not empty", "--overwrite", alone=True)
+    assert (out / "property_net.json").read_text() == "mine"
+
+
+def test_diagnose_benchmark_checks_its_json_path_first(tmp_path: Path) -> None:
+    mine = tmp_path / "results.json"
+    mine.write_text("mine")
+    proc = run_cli("diagnose-benchmark", "--json", str(mine), timeout=60)
+    assert_one_line_error(proc, "already exists", alone=True)
+    assert mine.read_text() == "mine"
+    proc = run_cli("diagnose-benchmark", "--json", str(tmp_path / "nowhere" / "r.json"), timeout=60)
+    assert_one_line_error(proc, "does not exist", alone=True)

@@ -211,6 +211,25 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
     result = runner.invoke(app, ["track", str(TOSS / "video.mp4"), "--scene", str(tmp_path), "-o", str(tmp_path / "o")])
     assert result.exit_code == 2
     assert "image2sim: error:" in result.output and "scene.xml" in result.output
+    clip, scene = str(TOSS / "video.mp4"), str(TOSS / "truth")
+    for intrinsics in (["0", "0", "0", "0"], ["-500", "500", "320", "240"], ["500", "500", "9999", "240"]):
+        result = runner.invoke(
+            app, ["track", clip, "--scene", scene, "-o", str(tmp_path / "o"), "--intrinsics", *intrinsics]
+        )
+        assert result.exit_code == 2 and "do not fit the" in result.output and "Traceback" not in result.output, (
+            result.output
+        )
+    assert not (tmp_path / "o").exists()
+    # A non-empty output folder is refused before the clip is read, not after the tracking (the clip here is not even
+    # a video: the output is what the one line names).
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "mine.txt").write_text("mine")
+    (tmp_path / "garbage.mp4").write_text("not a video")
+    result = runner.invoke(
+        app, ["track", str(tmp_path / "garbage.mp4"), "--scene", scene, "-o", str(tmp_path / "taken")]
+    )
+    assert result.exit_code == 2 and "not empty" in result.output, result.output
+    assert (tmp_path / "taken" / "mine.txt").read_text() == "mine"
 
 
 def test_options_reject_bad_values() -> None:
