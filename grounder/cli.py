@@ -268,12 +268,29 @@ _register_subcommands()
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point."""
+    """Console-script entry point.
+
+    Usage errors (unknown option or command, a value of the wrong type, a missing argument) get the same one line
+    as every other bad input, `image2sim: error: ...`, and exit code 2, instead of click's boxed usage message.
+    """
+    # typer 0.29 carries its own click (`constraints.txt` pins it); its exceptions are not re-exported by `typer`.
+    from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
+
     try:
-        app(args=argv, prog_name="image2sim", standalone_mode=True)
-    except SystemExit as exc:
-        # click reports usage errors with exit code 2 already; keep every other code as it is.
-        sys.exit(exc.code)
+        code = app(args=argv, prog_name="image2sim", standalone_mode=False)
+    except NoArgsIsHelpError as exc:  # `image2sim` or a group alone: typer has printed its help already
+        sys.exit(exc.exit_code)
+    except UsageError as exc:
+        command = exc.ctx.command_path if exc.ctx is not None else "image2sim"
+        message = " ".join(exc.format_message().split()).rstrip(".")
+        typer.echo(f"image2sim: error: {message}; see `{command} --help`", err=True)
+        sys.exit(2)
+    except ClickException as exc:
+        typer.echo(f"image2sim: error: {' '.join(exc.format_message().split())}", err=True)
+        sys.exit(exc.exit_code)
+    except typer.Abort:  # Ctrl-C outside a command's own handling
+        sys.exit(130)
+    sys.exit(code if isinstance(code, int) else 0)
 
 
 if __name__ == "__main__":

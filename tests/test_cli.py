@@ -179,6 +179,21 @@ def test_failed_overwrite_keeps_previous_output(tmp_path: Path) -> None:
     assert (out / "reconstruct.json").read_text() == "{}"
 
 
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["ground", "--bogus"], "No such option: --bogus"),
+        (["ground", "x.mp4", "-o", "out/x", "--aruco-size", "abc"], "'--aruco-size'"),
+        (["ground", "x.mp4"], "Missing option '-o'"),
+        (["nosuch"], "No such command 'nosuch'"),
+    ],
+)
+def test_usage_errors_are_one_line(args: list[str], needle: str) -> None:
+    """Option parsing errors get the same one line as any bad input, not click's boxed usage message."""
+    proc = run_cli(*args, timeout=60)
+    assert_one_line_error(proc, needle, "--help", alone=True)
+
+
 @pytest.mark.parametrize("command", ["reconstruct", "ground"])
 def test_output_over_the_source_is_refused(tmp_path: Path, tabletop_dir: Path, command: str) -> None:
     """-o naming the image folder, or a folder that holds it, would replace the user's images even with --overwrite."""
