@@ -74,7 +74,11 @@ def load_dair_pll_cube(src_dir: Path) -> list[Trajectory]:
         try:
             tensor = torch.load(path, weights_only=True, map_location="cpu")
         except Exception as exc:  # torch raises many types for corrupt or unsafe files
-            raise GrounderError(f"{path}: could not be read as a torch tensor ({type(exc).__name__}: {exc})") from exc
+            # Not torch's own text: it runs over several lines and suggests weights_only=False, unsafe here.
+            raise GrounderError(
+                f"{path}: not a tensor file torch loads safely ({type(exc).__name__}); pass the data's tosses/N.pt"
+                " files as saved, float64 tensors of shape (T, 13)"
+            ) from exc
         if not isinstance(tensor, torch.Tensor):
             raise GrounderError(f"{path}: expected a torch tensor of shape (T, 13), got {type(tensor).__name__}")
         rows = tensor.detach().to(torch.float64).numpy()

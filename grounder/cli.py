@@ -56,8 +56,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 
 def fail(message: str) -> None:
-    """Prints one line and exits with code 2 (bad input)."""
-    typer.echo(f"image2sim: error: {message}", err=True)
+    """Prints one line (a message over several lines is joined into one) and exits with code 2 (bad input)."""
+    typer.echo(f"image2sim: error: {' '.join(message.split())}", err=True)
     raise typer.Exit(EXIT_BAD_INPUT)
 
 

@@ -234,3 +234,14 @@ def test_diagnose_benchmark_checks_its_json_path_first(tmp_path: Path) -> None:
     assert mine.read_text() == "mine"
     proc = run_cli("diagnose-benchmark", "--json", str(tmp_path / "nowhere" / "r.json"), timeout=60)
     assert_one_line_error(proc, "does not exist", alone=True)
+
+
+def test_fail_joins_a_message_over_several_lines(capsys: pytest.CaptureFixture[str]) -> None:
+    import typer
+
+    from grounder.cli import fail
+
+    with pytest.raises(typer.Exit) as caught:
+        fail("what was wrong\n  (a library's own text over lines)\nwhat to do")
+    assert caught.value.exit_code == 2
+    assert capsys.readouterr().err == "image2sim: error: what was wrong (a library's own text over lines) what to do\n"

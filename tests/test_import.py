@@ -66,6 +66,10 @@ def test_bad_input(tmp_path: Path) -> None:
     torch.save(torch.ones(5, 13, dtype=torch.float64), bad / "1.pt")
     with pytest.raises(GrounderError, match="quaternion"):
         load_dair_pll_cube(bad)
+    (bad / "1.pt").write_text("not a tensor")  # torch's own message runs over lines and suggests an unsafe load
+    with pytest.raises(GrounderError, match="not a tensor file torch loads safely") as caught:
+        load_dair_pll_cube(bad)
+    assert "\n" not in str(caught.value) and "weights_only" not in str(caught.value)
 
 
 def test_cli_import(fake_tosses: Path, tmp_path: Path) -> None:
