@@ -167,8 +167,13 @@ def _stderr_to_devnull() -> Iterator[None]:
         os.close(devnull)
 
 
-def build_vocab_tree(database_path: Path, out_path: Path, num_threads: int) -> Path:
-    """A small visual-word index from this database's own descriptors, written where COLMAP can load it."""
+def build_vocab_tree(database_path: Path, out_path: Path, num_threads: int, seed: int = 0) -> Path:
+    """A small visual-word index from this database's own descriptors, written where COLMAP can load it.
+
+    The index's k-means draws from COLMAP's process-wide random generator, which has no option of its own: it is
+    seeded here, or a second reconstruction in the same process (or after other COLMAP calls) builds another index,
+    closes other loops and gives another model.
+    """
     with pycolmap.Database.open(database_path) as db:
         descriptors = [db.read_descriptors(image.image_id).to_float().data for image in db.read_all_images()]
     stacked = np.concatenate([d for d in descriptors if len(d)]).astype(np.float32)
@@ -182,6 +187,7 @@ def build_vocab_tree(database_path: Path, out_path: Path, num_threads: int) -> P
     build.num_iterations = 20
     build.num_rounds = 1
     build.num_threads = num_threads
+    pycolmap.set_random_seed(seed)
     with _stderr_to_devnull():
         index.build(build, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT, stacked))
     index.write(out_path)
@@ -210,7 +216,9 @@ def match_features(
     pairing.num_threads = options.num_threads
     if options.loop_detection and num_images > 2 * options.sequential_overlap:
         pairing.loop_detection = True
-        pairing.vocab_tree_path = build_vocab_tree(database_path, work_dir / "vocab_tree.bin", options.num_threads)
+        pairing.vocab_tree_path = build_vocab_tree(
+            database_path, work_dir / "vocab_tree.bin", options.num_threads, options.seed
+        )
         # Every 5th frame asks the index for 5 look-alikes at least 2 overlaps away: enough to close an orbit's
         # loop, at a tenth of the cost of querying every frame.
         pairing.loop_detection_period = 5

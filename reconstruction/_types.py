@@ -70,7 +70,7 @@ class SfmOptions:
             frame order: every table row for row and byte for byte as one thread writes it, in about half the
             time on 2 cores (`tests/test_reconstruct.py`). 0: one per CPU core this process may use. Shares that
             cannot be merged (frames of different sizes) are extracted again on one thread.
-        seed: random seed for RANSAC and the mapper (deterministic results).
+        seed: random seed for RANSAC, the mapper and the loop-detection index (deterministic results).
     """
 
     camera_model: str = "SIMPLE_RADIAL"
