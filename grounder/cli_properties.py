@@ -33,7 +33,7 @@ def register(app: typer.Typer) -> None:
         ] = False,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each epoch.")] = False,
     ) -> None:
-        """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (10-25 min, 2 cores)."""
+        """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (about 11 min on 2 cores)."""
         _setup_logging(verbose)
         if (num_train is not None and num_train < 100) or (epochs is not None and epochs < 1):
             fail("--num-train must be >= 100 and --epochs >= 1")
