@@ -61,6 +61,13 @@ def fail(message: str) -> None:
     raise typer.Exit(EXIT_BAD_INPUT)
 
 
+def require(*rules: tuple[str, object, bool, str]) -> None:
+    """Fails (one line, exit 2) naming each option whose value breaks its rule; rules are (flag, value, ok, rule)."""
+    broken = [f"{flag} {value} must be {rule}" for flag, value, ok, rule in rules if not ok]
+    if broken:
+        fail("; ".join(broken))
+
+
 @contextmanager
 def user_errors_exit_2() -> Iterator[None]:
     try:
@@ -195,8 +202,11 @@ def ground(
     With --interaction CLIP: also track the objects in the clip and calibrate their friction and contact to it.
     """
     _setup_logging(verbose)
-    if density <= 0 or face_budget < 100 or max_hulls < 1:
-        fail("--density must be > 0, --face-budget >= 100 and --max-hulls >= 1")
+    require(
+        ("--density", density, density > 0, "> 0"),
+        ("--face-budget", face_budget, face_budget >= 100, ">= 100"),
+        ("--max-hulls", max_hulls, max_hulls >= 1, ">= 1"),
+    )
     with user_errors_exit_2():
         from grounder._ground import GroundOptions
         from grounder._ground import ground as run_ground

@@ -29,7 +29,7 @@ def _check_new_dir(path: Path, *, inputs: tuple[Path, ...] = ()) -> None:
 
 def register(app: typer.Typer) -> None:
     """Adds the calibration commands to the ``image2sim`` app."""
-    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+    from grounder.cli import _setup_logging, fail, require, stage_progress, user_errors_exit_2
 
     @app.command()
     def calibrate(
@@ -159,6 +159,7 @@ def register(app: typer.Typer) -> None:
         Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file.
         """
         _setup_logging(verbose)
+        require(("--num-cpus", num_cpus, num_cpus is None or num_cpus >= 1, ">= 1"))
         with user_errors_exit_2():
             from grounder._batch import load_jobs, run_batch
 

@@ -12,7 +12,7 @@ import typer
 
 def register(app: typer.Typer) -> None:
     """Adds the `properties` command group to the `image2sim` app."""
-    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+    from grounder.cli import _setup_logging, fail, require, stage_progress, user_errors_exit_2
 
     group = typer.Typer(
         name="properties",
@@ -33,10 +33,12 @@ def register(app: typer.Typer) -> None:
         ] = False,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each epoch.")] = False,
     ) -> None:
-        """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (about 11 min on 2 cores)."""
+        """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (~11 min, 2 cores)."""
         _setup_logging(verbose)
-        if (num_train is not None and num_train < 100) or (epochs is not None and epochs < 1):
-            fail("--num-train must be >= 100 and --epochs >= 1")
+        require(
+            ("--num-train", num_train, num_train is None or num_train >= 100, ">= 100"),
+            ("--epochs", epochs, epochs is None or epochs >= 1, ">= 1"),
+        )
         with user_errors_exit_2():
             from grounder._properties import WEIGHTS_DIR
             from grounder._properties_model import TrainOptions

@@ -10,7 +10,7 @@ import typer
 
 def register(app: typer.Typer) -> None:
     """Adds the ``residual`` command group to the ``image2sim`` app."""
-    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+    from grounder.cli import _setup_logging, require, stage_progress, user_errors_exit_2
 
     group = typer.Typer(
         name="residual",
@@ -42,8 +42,11 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Train a bounded, gated residual on recorded trajectories; write a residual scene folder."""
         _setup_logging(verbose)
-        if steps < 1 or rounds < 0 or hidden < 1:
-            fail("--steps and --hidden must be >= 1 and --rounds >= 0")
+        require(
+            ("--steps", steps, steps >= 1, ">= 1"),
+            ("--rounds", rounds, rounds >= 0, ">= 0"),
+            ("--hidden", hidden, hidden >= 1, ">= 1"),
+        )
         with user_errors_exit_2():
             from grounder._residual_train import REPORT_FILE, ResidualOptions, train_residual
             from grounder._simulate import load_scene_model

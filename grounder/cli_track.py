@@ -11,7 +11,7 @@ import typer
 
 def register(app: typer.Typer) -> None:
     """Adds the `track` command to the image2sim CLI."""
-    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+    from grounder.cli import _setup_logging, fail, require, stage_progress, user_errors_exit_2
 
     @app.command()
     def track(
@@ -58,8 +58,11 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """6-DoF pose of every grounded object in every frame; lost frames flagged; trajectories per tracked run."""
         _setup_logging(verbose)
-        if not aruco_size > 0 or min_segment_frames < 3 or (max_frames is not None and max_frames < 2):
-            fail("--aruco-size must be > 0, --min-segment-frames >= 3 and --max-frames >= 2")
+        require(
+            ("--aruco-size", aruco_size, aruco_size > 0, "> 0"),
+            ("--min-segment-frames", min_segment_frames, min_segment_frames >= 3, ">= 3"),
+            ("--max-frames", max_frames, max_frames is None or max_frames >= 2, ">= 2"),
+        )
         if marker_use not in ("pose", "rotation"):
             fail(f"--marker-use {marker_use}: expected pose or rotation")
         with user_errors_exit_2():

@@ -245,3 +245,16 @@ def test_fail_joins_a_message_over_several_lines(capsys: pytest.CaptureFixture[s
         fail("what was wrong\n  (a library's own text over lines)\nwhat to do")
     assert caught.value.exit_code == 2
     assert capsys.readouterr().err == "image2sim: error: what was wrong (a library's own text over lines) what to do\n"
+
+
+def test_value_checks_name_each_value_that_is_wrong(capsys: pytest.CaptureFixture[str]) -> None:
+    import typer
+
+    from grounder.cli import require
+
+    require(("--density", 600.0, True, "> 0"))  # all fine: nothing printed, no exit
+    with pytest.raises(typer.Exit):
+        require(
+            ("--density", 0.0, False, "> 0"), ("--face-budget", 4000, True, ">= 100"), ("--max-hulls", 0, False, ">= 1")
+        )
+    assert capsys.readouterr().err == "image2sim: error: --density 0.0 must be > 0; --max-hulls 0 must be >= 1\n"
