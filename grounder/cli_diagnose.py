@@ -16,7 +16,7 @@ def _effect_names(values: list[str] | None) -> tuple[str, ...] | None:
 
 
 def register(app: typer.Typer) -> None:
-    from grounder.cli import _setup_logging, fail, stage_progress, user_errors_exit_2
+    from grounder.cli import _setup_logging, fail, require, stage_progress, user_errors_exit_2
 
     @app.command("diagnose")
     def diagnose(
@@ -70,6 +70,10 @@ def register(app: typer.Typer) -> None:
         json_out: Annotated[Path | None, typer.Option("--json", help="Also write the results here.")] = None,
     ) -> None:
         """Withheld-effect benchmark: generate cases with hidden effects, diagnose them blind, print the table."""
+        require(
+            ("--trajectories", trajectories, trajectories >= 8, ">= 8 (each case holds 30% out for the check)"),
+            ("--threads", threads, threads >= 1, ">= 1"),
+        )
         if json_out is not None:  # before the benchmark's minutes, not after
             if json_out.exists():
                 fail(f"--json {json_out} already exists; remove it or choose another file")

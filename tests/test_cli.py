@@ -234,6 +234,8 @@ def test_diagnose_benchmark_checks_its_json_path_first(tmp_path: Path) -> None:
     assert mine.read_text() == "mine"
     proc = run_cli("diagnose-benchmark", "--json", str(tmp_path / "nowhere" / "r.json"), timeout=60)
     assert_one_line_error(proc, "does not exist", alone=True)
+    proc = run_cli("diagnose-benchmark", "--trajectories", "0", timeout=60)  # named as the flag it is, not --holdout
+    assert_one_line_error(proc, "--trajectories 0 must be >= 8", alone=True)
 
 
 def test_fail_joins_a_message_over_several_lines(capsys: pytest.CaptureFixture[str]) -> None:
