@@ -21,9 +21,6 @@ import copy
 import itertools
 import json
 import logging
-import os
-import secrets
-import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -55,7 +52,7 @@ from grounder._gap import (
 from grounder._simulate import default_nthread, load_scene_model
 from grounder._trajectory import Trajectory, load_trajectories, validate_against_model
 from grounder.errors import GrounderError
-from reconstruction import check_output_dir
+from reconstruction import check_output_dir, staged_output_dir
 
 log = logging.getLogger(__name__)
 
@@ -887,11 +884,7 @@ def write_outputs(
     from grounder._diagnose_report import render_report
 
     out_dir = Path(out_dir)
-    check_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml,))
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = out_dir.with_name(f".{out_dir.name}.{secrets.token_hex(6)}.tmp")
-    staging.mkdir()
-    try:
+    with staged_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml,)) as staging:
         content = diag.to_json()
         content["mjcf"] = {
             "file": "diagnosed.xml",
@@ -901,12 +894,6 @@ def write_outputs(
         (staging / "diagnosis.json").write_text(json.dumps(content, indent=2, default=_json_default))
         (staging / "diagnosed.xml").write_text(diagnosed_spec_xml(scene_xml, model, diag.applied))
         (staging / "report.html").write_text(render_report(diag))
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(staging, out_dir)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return out_dir
 
 

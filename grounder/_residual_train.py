@@ -14,8 +14,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import secrets
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -55,7 +53,7 @@ from grounder._simulate import SCENE_XML, free_joints, quat_angle_rad, scene_xml
 from grounder._simulator import Simulator
 from grounder._trajectory import Trajectory, validate_against_model
 from grounder.errors import GrounderError
-from reconstruction import check_output_dir
+from reconstruction import check_output_dir, staged_output_dir
 
 log = logging.getLogger(__name__)
 
@@ -439,7 +437,12 @@ def _numpy_residual(torch_model: Any, meta: ResidualMeta, trainer: _Trainer) -> 
 def _copy_scene(scene_xml: Path, staging: Path) -> None:
     """Copies the scene folder (without any old residual) into ``staging``, the MJCF as ``scene.xml``."""
     skip = {WEIGHTS_FILE, META_FILE, ONNX_FILE}
-    shutil.copytree(scene_xml.parent, staging, ignore=lambda _d, names: [n for n in names if n in skip])
+    staging_resolved = staging.resolve()  # an output inside the scene folder stages there too: not copied into itself
+
+    def ignore(folder: str, names: list[str]) -> list[str]:
+        return [n for n in names if n in skip or (Path(folder) / n).resolve() == staging_resolved]
+
+    shutil.copytree(scene_xml.parent, staging, ignore=ignore, dirs_exist_ok=True)
     if scene_xml.name != SCENE_XML:
         shutil.copy2(scene_xml, staging / SCENE_XML)
 
@@ -583,9 +586,7 @@ def train_residual(
                 "mujoco_version": mujoco.__version__,
             },
         )
-        staging = out.parent / f".{out.name}.{secrets.token_hex(6)}.tmp"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        try:
+        with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene,)) as staging:
             _copy_scene(scene_xml, staging)
             torch.save({k: v.detach().clone() for k, v in torch_model.state_dict().items()}, staging / WEIGHTS_FILE)
             (staging / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
@@ -614,12 +615,6 @@ def train_residual(
                     held_out_gate=held_gate,
                 ),
             )
-            if out.exists():
-                shutil.rmtree(out)
-            os.replace(staging, out)
-        except BaseException:
-            shutil.rmtree(staging, ignore_errors=True)
-            raise
     finally:
         torch.set_num_threads(prev_threads)
     return ResidualTrainResult(

@@ -5,6 +5,7 @@ forms, batched stepping, and the CLI."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -407,3 +408,19 @@ def test_report_shows_the_gain_check_and_the_gate(trained: Path) -> None:
     assert sum(float(v) for v in shares.groups()) == pytest.approx(100.0, abs=0.2)
     assert float(shares.group(2)) > 50.0  # tosses in flight: the gate is open most of the time
     assert text.count("<img") >= 4  # gain curve, held-out scatter, trajectories, gate histogram
+
+
+def test_output_inside_the_scene_folder(tmp_path: Path) -> None:
+    """The output is staged beside itself; inside the scene folder that is inside the folder being copied: the copy
+    must not take the staging folder along (a nested copy of itself), nor anything half-written."""
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(_cube_xml())
+    (scene / "notes.txt").write_text("mine")
+    options = replace(TINY, steps=50)
+    out = train_residual(scene, _tosses(6, seed=3, fluid_density=0.0, num_samples=20), scene / "res", options).out
+    assert out == scene / "res"
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["scene.xml", "notes.txt", WEIGHTS_FILE, META_FILE, ONNX_FILE, "report.html"]
+    )
+    assert sorted(p.name for p in scene.iterdir()) == ["notes.txt", "res", "scene.xml"]
