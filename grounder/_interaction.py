@@ -1248,7 +1248,8 @@ def ground_with_interaction(
     if track_options.aruco_size_m is None:
         track_options = replace(track_options, aruco_size_m=options.ground.reconstruct.aruco_size_m)
     seconds: dict[str, float] = {}
-    check_source(Path(scan))  # unreadable videos fail now, not after the grounding
+    if grounded_scene is None:  # the videos that will be read fail now, not after the grounding
+        check_source(Path(scan))
     check_source(Path(clip))
     with staged_output_dir(Path(out), overwrite=overwrite, inputs=(scan, clip, grounded_scene)) as stage:
         tick = time.perf_counter()

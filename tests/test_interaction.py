@@ -616,3 +616,20 @@ def test_a_slow_interaction_clip_gets_the_advice_to_film_faster() -> None:
     advice = frame_rate_advice(30.0)
     assert advice is not None and "30 frames per second" in advice and "60 fps" in advice
     assert frame_rate_advice(59.94) is None and frame_rate_advice(None) is None
+
+
+def test_videos_are_checked_before_any_work_and_only_those_read(tmp_path: Path) -> None:
+    """An unreadable clip fails at once, before the grounding; the scan is checked only when it will be read (not
+    when a grounded scene is reused)."""
+    from grounder._interaction import ground_with_interaction
+    from reconstruction.errors import InputError
+
+    clip = tmp_path / "toss.mp4"
+    clip.write_text("not a video")
+    scene = tmp_path / "grounded"
+    scene.mkdir()
+    with pytest.raises(InputError, match=r"missing_scan\.mp4"):
+        ground_with_interaction(tmp_path / "missing_scan.mp4", clip, tmp_path / "a")
+    with pytest.raises(InputError, match=r"toss\.mp4 is not a readable video"):
+        ground_with_interaction(tmp_path / "missing_scan.mp4", clip, tmp_path / "b", grounded_scene=scene)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["grounded", "toss.mp4"]
