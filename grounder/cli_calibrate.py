@@ -18,13 +18,9 @@ def _split_params(params: list[str] | None) -> tuple[str, ...]:
 def _check_new_dir(path: Path, *, inputs: tuple[Path, ...] = ()) -> None:
     """For the commands without --overwrite: `path` must be a new or empty folder, outside the inputs."""
     from grounder.errors import GrounderError
-    from reconstruction import check_outside_inputs
+    from reconstruction import check_output_dir
 
-    check_outside_inputs(path, inputs, error=GrounderError)
-    if path.exists() and not path.is_dir():
-        raise GrounderError(f"{path}: exists and is not a folder; choose a new output folder")
-    if path.is_dir() and any(path.iterdir()):
-        raise GrounderError(f"{path}: output folder is not empty; choose a new or empty folder")
+    check_output_dir(path, error=GrounderError, inputs=inputs, offers_overwrite=False)
 
 
 def register(app: typer.Typer) -> None:

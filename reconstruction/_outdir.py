@@ -39,8 +39,11 @@ def check_output_dir(
     overwrite: bool = False,
     error: type[Exception] = InputError,
     inputs: Iterable[str | Path | None] = (),
+    offers_overwrite: bool = True,
 ) -> None:
     """What `staged_output_dir` checks before any work, for callers that want to fail before long work.
+
+    `offers_overwrite=False`: the command has no --overwrite, so the error does not suggest one.
 
     Raises:
         `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; it is a file; or
@@ -51,10 +54,12 @@ def check_output_dir(
     if out_dir.exists() and not out_dir.is_dir():
         raise error(f"output {out_dir} is a file; pass a folder path (-o)")
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        raise error(
-            f"output folder {out_dir} already exists and is not empty; pass --overwrite (Python: overwrite=True) or"
-            " another output folder"
+        what_to_do = (
+            "pass --overwrite (Python: overwrite=True) or another output folder"
+            if offers_overwrite
+            else "choose a new or empty output folder"
         )
+        raise error(f"output folder {out_dir} already exists and is not empty; {what_to_do}")
 
 
 @contextmanager

@@ -405,3 +405,15 @@ def test_cli_output_over_the_trajectories_is_refused(
             _cli(*command, str(CUBE_XML), str(mine), "-o", str(out), *flags), "choose an output folder outside"
         )
         assert {p.name: p.read_bytes() for p in mine.iterdir()} == before
+
+
+@pytest.mark.parametrize("command", ["calibrate", "import-trajectories"])
+def test_cli_non_empty_output_suggests_no_missing_flag(command: str, traj_dir: Path, tmp_path: Path) -> None:
+    """These commands have no --overwrite, so their error must not suggest one."""
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "mine.txt").write_text("mine")
+    args = [str(CUBE_XML), str(traj_dir)] if command == "calibrate" else [str(traj_dir)]
+    result = _cli(command, *args, "-o", str(tmp_path / "taken"))
+    _assert_exit_2(result, "not empty")
+    assert "--overwrite" not in result.output
+    assert (tmp_path / "taken" / "mine.txt").read_text() == "mine"
