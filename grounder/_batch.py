@@ -46,6 +46,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from grounder._report import write_text_atomic
 from grounder.errors import GrounderError
 
 log = logging.getLogger(__name__)
@@ -226,16 +227,6 @@ def _write_json_atomic(path: Path, payload: object) -> None:
         raise
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
 def result_path(out_dir: Path, job_id: str) -> Path:
     return Path(out_dir) / RESULTS_DIR / f"{job_id}.json"
 
@@ -353,7 +344,7 @@ def write_table(out_dir: Path, jobs: Sequence[Job]) -> list[dict[str, Any]]:
     writer = csv.DictWriter(buf, fieldnames=list(_TABLE_COLUMNS))
     writer.writeheader()
     writer.writerows(rows)
-    _write_text_atomic(out_dir / "results.csv", buf.getvalue())
+    write_text_atomic(out_dir / "results.csv", buf.getvalue())
     _write_json_atomic(out_dir / "results.json", rows)
     return rows
 

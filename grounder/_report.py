@@ -97,11 +97,9 @@ def render_html(title: str, sections: Sequence[Section | Mapping[str, Any]]) -> 
     return "\n".join(parts) + "\n"
 
 
-def write_html_report(path: Path, title: str, sections: Sequence[Section | Mapping[str, Any]]) -> Path:
-    """Writes one self-contained HTML file atomically (temporary file, then renamed). Returns ``path``."""
+def write_text_atomic(path: Path, text: str) -> Path:
+    """Writes ``text`` (UTF-8) to a temporary file beside ``path``, then renames it: whole or not at all."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    text = render_html(title, sections)
     tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
     try:
         tmp.write_text(text, encoding="utf-8")
@@ -110,3 +108,10 @@ def write_html_report(path: Path, title: str, sections: Sequence[Section | Mappi
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def write_html_report(path: Path, title: str, sections: Sequence[Section | Mapping[str, Any]]) -> Path:
+    """Writes one self-contained HTML file atomically (temporary file, then renamed). Returns ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return write_text_atomic(path, render_html(title, sections))

@@ -89,6 +89,6 @@ def register(app: typer.Typer) -> None:
         if json_out is not None:
             import json
 
-            partial = json_out.with_name(f".{json_out.name}.partial")
-            partial.write_text(json.dumps([r.to_json() for r in results], indent=2))
-            partial.replace(json_out)
+            from grounder._report import write_text_atomic
+
+            write_text_atomic(json_out, json.dumps([r.to_json() for r in results], indent=2))
