@@ -123,8 +123,34 @@ def test_segments_are_runs_where_every_object_is_tracked() -> None:
     assert tracked_segments(valid, min_frames=4) == [(0, 4), (8, 14), (16, 19)]
 
 
+def _assert_each_object_tracked(
+    world_from_objects: np.ndarray, true_qpos: np.ndarray, *, max_pos_m: float, max_rot_deg: float
+) -> None:
+    """Each object on its own against the truth: median within 3 mm / 1 deg, and no frame beyond the given bound.
+
+    Pooling all objects' frames into one median would hide one object that is off in every frame."""
+    frames, objects = world_from_objects.shape[:2]
+    for i in range(objects):
+        pos_err_m = np.array(
+            [np.linalg.norm(world_from_objects[f, i, :3, 3] - true_qpos[f, 7 * i : 7 * i + 3]) for f in range(frames)]
+        )
+        rot_err_deg = np.array(
+            [
+                np.rad2deg(
+                    quat_angle_rad(
+                        quat_from_matrix(world_from_objects[f, i, :3, :3]), true_qpos[f, 7 * i + 3 : 7 * i + 7]
+                    )
+                )
+                for f in range(frames)
+            ]
+        )
+        assert np.median(pos_err_m) < 3e-3 and np.median(rot_err_deg) < 1.0, (i, pos_err_m, rot_err_deg)
+        assert pos_err_m.max() < max_pos_m and rot_err_deg.max() < max_rot_deg, (i, pos_err_m, rot_err_deg)
+
+
 def test_track_first_frames_of_toss(tmp_path: Path, toss_truth: dict[str, np.ndarray]) -> None:
-    """Toss frames 0-7 (objects in flight): detection then tracking, every object found, errors within 3 mm, 1 deg."""
+    """Toss frames 0-7 (objects in flight): detection then tracking, every object found, each within 3 mm, 1 deg
+    (median; every frame within 4 mm, 1 deg)."""
     out = tmp_path / "traj"
     result = track(TOSS / "video.mp4", TOSS / "truth", out, _options(max_frames=8, detect_views=20))
     assert result.static_camera
@@ -132,13 +158,7 @@ def test_track_first_frames_of_toss(tmp_path: Path, toss_truth: dict[str, np.nda
     assert np.linalg.norm(result.world_from_cam[0][:3, 3] - world_from_cam[:3, 3]) < 4e-3
     assert result.valid.all(), [[s.reason for s in row] for row in result.scores]
     qpos = toss_truth["qpos"]
-    pos_err, rot_err = [], []
-    for i in range(3):
-        for f in range(8):
-            pose = result.world_from_objects[f, i]
-            pos_err.append(np.linalg.norm(pose[:3, 3] - qpos[f, 7 * i : 7 * i + 3]))
-            rot_err.append(np.rad2deg(quat_angle_rad(quat_from_matrix(pose[:3, :3]), qpos[f, 7 * i + 3 : 7 * i + 7])))
-    assert np.median(pos_err) < 3e-3 and np.median(rot_err) < 1.0, (np.median(pos_err), np.median(rot_err))
+    _assert_each_object_tracked(result.world_from_objects, qpos[:8], max_pos_m=4e-3, max_rot_deg=1.0)
     # Written: one trajectory over all 8 frames, loadable against the scene, with track.json beside it.
     model = mujoco.MjModel.from_xml_path(str(TOSS / "truth" / "scene.xml"))
     trajs = load_trajectories(out, model)
@@ -599,7 +619,7 @@ def test_moving_camera_is_placed_per_frame_and_the_objects_tracked_in_the_world(
     """`samples/toss_moving` (the toss filmed by a camera swaying 10 deg and bobbing 2 cm about the table), frames
     24-33, where the camera moves fastest (10-12 mm a frame): the tracker finds the camera moving, places it in
     every frame from the table's marker within 5 mm and 0.5 deg of the truth, and the objects stay where they
-    truly are in the world frame (within 3 mm, 1 deg median)."""
+    truly are in the world frame (each within 3 mm, 1 deg median; every frame within 4 mm, 1 deg)."""
     if not (MOVING / "video.mp4").exists():
         pytest.skip("samples/toss_moving is missing: run `make samples`")
     first, count = 24, 10
@@ -615,13 +635,7 @@ def test_moving_camera_is_placed_per_frame_and_the_objects_tracked_in_the_world(
     assert centre_m.max() < 5e-3 and view_deg.max() < 0.5, (centre_m, view_deg)
     assert result.valid.all(), [[s.reason for s in row] for row in result.scores]
     qpos = toss_truth["qpos"][first : first + count]
-    pos_err, rot_err = [], []
-    for i in range(3):
-        for f in range(count):
-            pose = result.world_from_objects[f, i]
-            pos_err.append(np.linalg.norm(pose[:3, 3] - qpos[f, 7 * i : 7 * i + 3]))
-            rot_err.append(np.rad2deg(quat_angle_rad(quat_from_matrix(pose[:3, :3]), qpos[f, 7 * i + 3 : 7 * i + 7])))
-    assert np.median(pos_err) < 3e-3 and np.median(rot_err) < 1.0, (np.median(pos_err), np.median(rot_err))
+    _assert_each_object_tracked(result.world_from_objects, qpos, max_pos_m=4e-3, max_rot_deg=1.0)
 
 
 def test_saved_camera_poses_keep_the_frames_without_a_camera_unknown() -> None:
