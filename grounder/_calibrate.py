@@ -62,6 +62,7 @@ from grounder._calibrate_params import (
     body_size_m,
     resolve_parameters,
 )
+from grounder._residual import RESIDUAL_FILES
 from grounder._trajectory import Trajectory, _natural_key, validate_against_model
 from grounder.errors import GrounderError
 
@@ -932,40 +933,9 @@ def calibrate(
 # Output
 
 
-_NOT_COPIED = ("scene.xml", "calibration.json", "report.html", "reconstruction")
-
-
-def _copy_scene_files(scene: Path, spec: mujoco.MjSpec, stage: Path) -> None:
-    """Copies what the calibrated scene.xml refers to: the scene folder's files, or the mesh/texture/hfield files
-    of a lone MJCF, at the same relative paths. Left out: ``reconstruction/`` (large, unchanged) and a learned
-    residual (``residual.*``), which was trained against the uncalibrated model and no longer applies."""
-    if scene.is_dir():
-        for child in scene.iterdir():
-            if child.name in _NOT_COPIED or child.name.startswith("residual."):
-                continue
-            if child.is_dir():
-                shutil.copytree(child, stage / child.name)
-            else:
-                shutil.copy2(child, stage / child.name)
-        return
-    src_dir = scene.parent
-    groups = (
-        (spec.meshes, spec.meshdir),
-        (spec.textures, spec.texturedir),
-        (spec.hfields, spec.meshdir),
-        (spec.skins, spec.meshdir),
-    )
-    for elements, base_dir in groups:
-        for element in elements:
-            rel = getattr(element, "file", "")
-            if not rel:
-                continue
-            rel_path = Path(base_dir or "") / rel
-            src = (src_dir / rel_path).resolve()
-            if src.is_file() and not rel_path.is_absolute():
-                dst = stage / rel_path
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy2(src, dst)
+# Not copied from the scene folder: what calibrate writes anew, the large unchanged reconstruction, and a learned
+# residual, which was trained against the uncalibrated model and no longer applies.
+NOT_COPIED = ("scene.xml", "calibration.json", "report.html", "reconstruction", *RESIDUAL_FILES)
 
 
 def _note_in_manifest(manifest: Path, result: CalibrationResult) -> None:
@@ -1000,7 +970,7 @@ def write_calibrated_scene(
     stage = out.with_name(f".{out.name}.{secrets.token_hex(6)}.tmp")
     stage.mkdir()
     try:
-        _copy_scene_files(scene, result.spec, stage)
+        sim.copy_scene_files(scene, stage, skip=NOT_COPIED)
         (stage / "scene.xml").write_text(result.spec.to_xml())
         _note_in_manifest(stage / "scene.json", result)
         # The written MJCF must reproduce the calibrated model: a drifted writer would silently lose the fit.

@@ -872,15 +872,16 @@ def write_values(scene_xml: Path, values: Mapping[str, float], out: Path) -> Pat
     evaluate them on (`calibrate` writes the scene otherwise)."""
     import mujoco
 
-    from grounder._calibrate import _copy_scene_files
+    from grounder._calibrate import NOT_COPIED
     from grounder._calibrate_params import apply_to_spec, resolve_parameters
+    from grounder._simulate import copy_scene_files
 
     base = mujoco.MjModel.from_xml_path(str(scene_xml))
     spec = mujoco.MjSpec.from_file(str(scene_xml))
     resolved = resolve_parameters(base, list(values))
     apply_to_spec(spec, base, resolved, [values[p.name] for p in resolved])
     out.mkdir(parents=True)
-    _copy_scene_files(scene_xml.parent, spec, out)
+    copy_scene_files(scene_xml.parent, out, skip=NOT_COPIED)
     (out / "scene.xml").write_text(spec.to_xml())
     reloaded = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
     if reloaded.nq != base.nq or reloaded.nv != base.nv:

@@ -372,12 +372,15 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
     """As `sample_scene_variants`, but uncompiled specs, each with the values drawn per object (body name)."""
     import mujoco
 
+    from grounder._simulate import scene_files
+
     scene_dir = Path(scene_dir)
     manifest_path, xml_path = scene_dir / "scene.json", scene_dir / "scene.xml"
     if not manifest_path.is_file() or not xml_path.is_file():
         raise GrounderError(f"{scene_dir} has no scene.json/scene.xml; pass a folder written by `image2sim ground`")
     if n < 1:
         raise GrounderError(f"{n=} but expected at least 1 variant")
+    scene_files(xml_path)  # nothing outside the scene folder
     objects = json.loads(manifest_path.read_text()).get("objects", {})
     rng = np.random.default_rng(seed)
     out: list[tuple[mujoco.MjSpec, dict[str, Any]]] = []
@@ -410,14 +413,14 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
 def write_scene_variants(
     scene_dir: str | Path, out_dir: str | Path, n: int, seed: int = 0, *, overwrite: bool = False
 ) -> list[Path]:
-    """Writes `sample_scene_variants` as `out_dir/variant_NNN.xml` (meshes read from the scene's `assets/`)
-    and `out_dir/variants.json` (the values drawn per variant and object).
+    """Writes `sample_scene_variants` as `out_dir/variant_NNN.xml`, `out_dir/variants.json` (the values drawn per
+    variant and object) and one copy of the files the scene's MJCF loads (its meshes and textures), so that the
+    folder is self-contained like every scene folder (`grounder._simulate.scene_files`).
 
     Returns:
         The written MJCF paths; each loads with `mujoco.MjModel.from_xml_path`.
     """
-    import os
-
+    from grounder._simulate import copy_scene_files
     from reconstruction import staged_output_dir
 
     scene_dir, out_dir = Path(scene_dir).resolve(), Path(out_dir).resolve()
@@ -425,10 +428,9 @@ def write_scene_variants(
     paths = []
     record = []
     with staged_output_dir(out_dir, overwrite=overwrite, inputs=(scene_dir,)) as stage:
+        copy_scene_files(scene_dir / "scene.xml", stage)  # one copy of the meshes and textures, shared by all variants
         for i, (spec, sampled) in enumerate(variants):
             spec.compile()  # with the scene's own asset folder
-            spec.meshdir = os.path.relpath(scene_dir / "assets", out_dir)
-            spec.texturedir = spec.meshdir
             name = f"variant_{i:03d}.xml"
             (stage / name).write_text(spec.to_xml())
             paths.append(out_dir / name)

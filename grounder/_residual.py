@@ -62,6 +62,7 @@ RESIDUAL_VERSION = 1
 WEIGHTS_FILE = "residual.pt"
 META_FILE = "residual.json"
 ONNX_FILE = "residual.onnx"
+RESIDUAL_FILES = (WEIGHTS_FILE, META_FILE, ONNX_FILE)  # what makes a scene folder a residual scene
 
 FEATURE_NAMES = (
     "clearance_m",

@@ -29,6 +29,7 @@ from grounder._residual import (
     NUM_OUTPUTS,
     ONNX_FILE,
     OUTPUT_NAMES,
+    RESIDUAL_FILES,
     WEIGHTS_FILE,
     FreeBody,
     GateOptions,
@@ -49,7 +50,7 @@ from grounder._residual_joint import (
     joint_targets,
 )
 from grounder._residual_report import ResidualReport, RolloutErrors, rollout_errors, write_residual_report
-from grounder._simulate import SCENE_XML, free_joints, quat_angle_rad, scene_xml_path, step_indices
+from grounder._simulate import SCENE_XML, copy_scene_files, free_joints, quat_angle_rad, scene_xml_path, step_indices
 from grounder._simulator import Simulator
 from grounder._trajectory import Trajectory, validate_against_model
 from grounder.errors import GrounderError
@@ -434,19 +435,6 @@ def _numpy_residual(torch_model: Any, meta: ResidualMeta, trainer: _Trainer) -> 
     return NumpyResidual(state, meta, trainer.bodies, trainer.model.opt.gravity)
 
 
-def _copy_scene(scene_xml: Path, staging: Path) -> None:
-    """Copies the scene folder (without any old residual) into ``staging``, the MJCF as ``scene.xml``."""
-    skip = {WEIGHTS_FILE, META_FILE, ONNX_FILE}
-    staging_resolved = staging.resolve()  # an output inside the scene folder stages there too: not copied into itself
-
-    def ignore(folder: str, names: list[str]) -> list[str]:
-        return [n for n in names if n in skip or (Path(folder) / n).resolve() == staging_resolved]
-
-    shutil.copytree(scene_xml.parent, staging, ignore=ignore, dirs_exist_ok=True)
-    if scene_xml.name != SCENE_XML:
-        shutil.copy2(scene_xml, staging / SCENE_XML)
-
-
 def train_residual(
     scene: Path,
     trajs: Sequence[Trajectory],
@@ -587,7 +575,9 @@ def train_residual(
             },
         )
         with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene,)) as staging:
-            _copy_scene(scene_xml, staging)
+            # the scene's files without any old residual; the MJCF as scene.xml
+            copy_scene_files(Path(scene), staging, skip=(*RESIDUAL_FILES, SCENE_XML))
+            shutil.copy2(scene_xml, staging / SCENE_XML)
             torch.save({k: v.detach().clone() for k, v in torch_model.state_dict().items()}, staging / WEIGHTS_FILE)
             (staging / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
             export_onnx(torch_model, staging / ONNX_FILE)

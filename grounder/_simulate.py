@@ -10,6 +10,7 @@ rate may be coarser than the model timestep; sample times are rounded to whole m
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,10 +27,11 @@ SCENE_XML = "scene.xml"
 
 
 def scene_xml_path(scene: Path) -> Path:
-    """The MJCF of a scene given as a file or as a scene folder (``scene.xml`` inside).
+    """The MJCF of a scene given as a file or as a scene folder (``scene.xml`` inside), checked to keep every file
+    it includes or loads inside its own folder (`scene_files`).
 
     Raises:
-        GrounderError: neither exists.
+        GrounderError: neither exists, or the MJCF reaches outside its folder.
     """
     scene = Path(scene)
     if scene.is_dir():
@@ -38,12 +40,92 @@ def scene_xml_path(scene: Path) -> Path:
             raise GrounderError(
                 f"{scene}: scene folder has no {SCENE_XML}; pass an MJCF file or a scene folder (`image2sim ground`)"
             )
-        return xml
-    if not scene.is_file():
+    elif not scene.is_file():
         raise GrounderError(
             f"{scene}: scene does not exist; pass an MJCF file or a scene folder with {SCENE_XML} (`image2sim ground`)"
         )
-    return scene
+    else:
+        xml = scene
+    scene_files(xml)
+    return xml
+
+
+def scene_files(xml: Path) -> list[Path]:
+    """The files an MJCF includes or loads (meshes, textures, height fields, skins), each as a path relative to the
+    MJCF's folder, checked to lie inside that folder.
+
+    A scene is self-contained: it may be someone else's file, and what it names is read, and copied into the
+    outputs of `calibrate` and `residual train`. A path that leaves the folder (``../``, an absolute path, or a link
+    that resolves outside) is refused rather than followed. An MJCF that does not parse is left to the loader,
+    which reports MuJoCo's own message.
+
+    Raises:
+        GrounderError: a file named by the MJCF lies outside its folder.
+    """
+    import xml.etree.ElementTree as ET  # expat >= 2.4.1 refuses entity expansion attacks; no external entities
+
+    folder = xml.parent.resolve()
+
+    def inside(name: str, base: str = "") -> Path:
+        target = (xml.parent / base / name).resolve()  # MuJoCo: relative to the main MJCF's folder (or its *dir)
+        if not target.is_relative_to(folder):
+            raise GrounderError(
+                f"{xml}: it names {Path(base) / name} ({target}), outside the scene's folder {folder}; "
+                "put every file the scene uses inside its folder (scenes may not read or write elsewhere)"
+            )
+        return target.relative_to(folder)
+
+    files: list[Path] = []
+    pending, seen = [xml.resolve()], set()
+    while pending:  # <include> is resolved by MuJoCo before anything else: check each before it is read
+        current = pending.pop()
+        seen.add(current)
+        try:
+            tree = ET.parse(current)
+        except (ET.ParseError, OSError):
+            break  # the loader reports it
+        for element in tree.iter("include"):
+            rel = inside(element.get("file", ""))
+            files.append(rel)
+            if (folder / rel) not in seen and (folder / rel).is_file():
+                pending.append(folder / rel)
+    try:
+        spec = mujoco.MjSpec.from_file(str(xml))
+    except ValueError:
+        return files  # the loader reports it
+    groups = (
+        (spec.meshes, spec.meshdir),
+        (spec.textures, spec.texturedir),
+        (spec.hfields, spec.meshdir),
+        (spec.skins, spec.meshdir),
+    )
+    for elements, base in groups:
+        for element in elements:
+            names = [getattr(element, "file", "")] + [str(n) for n in getattr(element, "cubefiles", [])]
+            files.extend(inside(name, base or "") for name in names if name)
+    return files
+
+
+def copy_scene_files(scene: Path, stage: Path, *, skip: Sequence[str] = ()) -> None:
+    """Copies what a scene's MJCF needs into ``stage``, at the same relative paths: a scene folder's files (not
+    those named in ``skip``, not ``stage`` itself when it lies inside the folder; links are copied as links), or a
+    lone MJCF's included and loaded files (`scene_files`) and nothing else of its folder. The MJCF itself is left
+    to the caller, which writes its own ``scene.xml``.
+    """
+    stage_resolved = stage.resolve()
+    if scene.is_dir():
+
+        def ignore(folder: str, names: list[str]) -> list[str]:
+            return [n for n in names if n in skip or (Path(folder) / n).resolve() == stage_resolved]
+
+        shutil.copytree(scene, stage, symlinks=True, ignore=ignore, dirs_exist_ok=True)
+        return
+    for rel in scene_files(scene):
+        dst = stage / rel
+        if not dst.resolve().is_relative_to(stage_resolved):  # scene_files keeps rel inside; never write elsewhere
+            raise GrounderError(f"{scene}: {rel} would be copied outside the output folder {stage}")
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(scene.parent / rel, dst)
 
 
 def load_scene_model(scene: Path) -> tuple[Path, mujoco.MjModel]:

@@ -417,3 +417,89 @@ def test_cli_non_empty_output_suggests_no_missing_flag(command: str, traj_dir: P
     _assert_exit_2(result, "not empty")
     assert "--overwrite" not in result.output
     assert (tmp_path / "taken" / "mine.txt").read_text() == "mine"
+
+
+# ------------------------------------------------------------------------------------------------ self-contained scenes
+
+
+def _mesh_cube_xml(mesh_file: str, extra: str = "") -> str:
+    """The nominal cube with its box as a mesh read from `mesh_file` (and `extra` MJCF before the world body)."""
+    text = CUBE_XML.read_text()
+    text = text.replace(
+        '<geom name="cube" type="box" size="0.0524 0.0524 0.0524"', '<geom name="cube" type="mesh" mesh="cube_mesh"'
+    )
+    return text.replace("<worldbody>", f'{extra}<asset><mesh name="cube_mesh" file="{mesh_file}"/></asset><worldbody>')
+
+
+def _write_cube_obj(path: Path) -> Path:
+    import trimesh
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    trimesh.creation.box(extents=[0.1048] * 3).export(path)
+    return path
+
+
+@pytest.mark.parametrize("escape", ["mesh", "absolute mesh", "include", "linked mesh"])
+@pytest.mark.parametrize(
+    ("command", "flags"),
+    [
+        (["calibrate"], ["--generations", "0", "--local-iterations", "0"]),
+        (["rollout"], []),
+        (["residual", "train"], []),
+    ],
+)
+def test_cli_scene_reaching_outside_its_folder_is_refused(
+    escape: str, command: list[str], flags: list[str], traj_dir: Path, tmp_path: Path
+) -> None:
+    """A scene is someone else's file: what it names outside its folder is neither read nor written. Before, a lone
+    MJCF naming `../../cube.obj` was loaded, and calibrate copied that mesh to `../../cube.obj` of its output's
+    staging folder: over the user's own file of that name, beside the output."""
+    work = tmp_path / "work"
+    precious = work / "cube.obj"
+    precious.parent.mkdir(parents=True)
+    precious.write_text("the user's own file\n")
+    scene_dir = tmp_path / "downloads" / "a" / "b"
+    scene_dir.mkdir(parents=True)
+    _write_cube_obj(tmp_path / "downloads" / "cube.obj")
+    if escape == "mesh":
+        xml = _mesh_cube_xml("../../cube.obj")
+    elif escape == "absolute mesh":
+        xml = _mesh_cube_xml(str(tmp_path / "downloads" / "cube.obj"))
+    elif escape == "include":
+        (tmp_path / "downloads" / "a" / "inc.xml").write_text("<mujoco><option timestep='0.001'/></mujoco>")
+        xml = CUBE_XML.read_text().replace("<worldbody>", '<include file="../inc.xml"/><worldbody>')
+    else:  # a link inside the folder that resolves outside it
+        (scene_dir / "assets").symlink_to(tmp_path / "downloads")
+        xml = _mesh_cube_xml("assets/cube.obj")
+    (scene_dir / "scene.xml").write_text(xml)
+    out = work / "x" / "out"
+    result = _cli(*command, str(scene_dir / "scene.xml"), str(traj_dir), "-o", str(out), *flags)
+    _assert_exit_2(result, "outside the scene's folder")
+    assert precious.read_text() == "the user's own file\n"
+    assert sorted(p.name for p in work.iterdir()) == ["cube.obj"]
+
+
+def test_lone_mjcf_output_carries_what_it_loads_and_nothing_else(synthetic, tmp_path: Path) -> None:
+    """Calibrating a lone MJCF copies its mesh (at the same relative path) and not the rest of its folder; a scene
+    folder's links are copied as links, not as the files they point to; an output inside the scene folder does not
+    copy itself into itself."""
+    trajs, _ = synthetic
+    options = CalibrateOptions(params=("cube.friction.sliding",), generations=0, popsize=2, local_iterations=0)
+    lone = tmp_path / "desk"
+    _write_cube_obj(lone / "meshes" / "cube.obj")
+    (lone / "private.txt").write_text("not part of the scene")
+    (lone / "cube_mesh.xml").write_text(_mesh_cube_xml("meshes/cube.obj"))
+    calibrate(lone / "cube_mesh.xml", trajs[:2], options=options, out=tmp_path / "from_lone")
+    written = sorted(str(p.relative_to(tmp_path / "from_lone")) for p in (tmp_path / "from_lone").rglob("*"))
+    assert written == ["calibration.json", "meshes", "meshes/cube.obj", "report.html", "scene.xml"], written
+    assert mujoco.MjModel.from_xml_path(str(tmp_path / "from_lone" / "scene.xml")).nmesh == 1
+
+    folder = tmp_path / "scene"
+    _write_cube_obj(folder / "assets" / "cube.obj")
+    (folder / "scene.xml").write_text(_mesh_cube_xml("assets/cube.obj"))
+    (tmp_path / "secret.txt").write_text("outside")
+    (folder / "notes.txt").symlink_to(tmp_path / "secret.txt")
+    calibrate(folder, trajs[:2], options=options, out=folder / "calibrated")
+    out = folder / "calibrated"
+    assert (out / "notes.txt").is_symlink() and (out / "assets" / "cube.obj").is_file()
+    assert not any(p.name.endswith(".tmp") or p.name == "calibrated" for p in out.rglob("*")), list(out.rglob("*"))

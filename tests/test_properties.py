@@ -284,6 +284,8 @@ def test_sampled_variants_differ_and_load(grounded: Path, tmp_path: Path) -> Non
     assert proc.returncode == 0, proc.stderr[-2000:]
     record = json.loads((tmp_path / "variants" / "variants.json").read_text())
     assert len(record["variants"]) == 2
+    # Self-contained like every scene folder: it still loads when moved away from the scene it was drawn from.
+    moved = (tmp_path / "variants").rename(tmp_path / "elsewhere")
     for v in record["variants"]:
-        model = mujoco.MjModel.from_xml_path(str(tmp_path / "variants" / v["xml"]))
+        model = mujoco.MjModel.from_xml_path(str(moved / v["xml"]))
         assert model.nbody == len(models[0].body_mass)
