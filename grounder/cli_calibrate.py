@@ -189,7 +189,7 @@ def run_rollout(
     from grounder._simulate import simulate
     from grounder._trajectory import load_trajectories, save_trajectories
     from grounder.errors import GrounderError
-    from reconstruction import check_output_dir
+    from reconstruction import check_output_dir, staged_output_dir
 
     check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))
     _, model = load_scene(scene)
@@ -203,7 +203,6 @@ def run_rollout(
             used = True
     if not used:
         preds = simulate(model, trajs)
-    if out.is_dir() and not any(out.iterdir()):
-        out.rmdir()
-    save_trajectories(preds, out)
+    with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir)) as stage:
+        save_trajectories(preds, stage)  # the whole folder replaced at once, as every command does
     return list(preds), used

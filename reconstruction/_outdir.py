@@ -46,11 +46,13 @@ def check_output_dir(
     `offers_overwrite=False`: the command has no --overwrite, so the error does not suggest one.
 
     Raises:
-        `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; it is a file; or
-        it is or holds one of `inputs`.
+        `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; it is a file or a
+        symbolic link; or it is or holds one of `inputs`.
     """
     out_dir = Path(out_dir)
     check_outside_inputs(out_dir, inputs, error=error)
+    if out_dir.is_symlink():  # replacing the output would replace the link, or write through it into its target
+        raise error(f"output {out_dir} is a symbolic link; pass the folder's real path (-o), or a new folder")
     if out_dir.exists() and not out_dir.is_dir():
         raise error(f"output {out_dir} is a file; pass a folder path (-o)")
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
@@ -90,9 +92,15 @@ def staged_output_dir(
         shutil.rmtree(staging, ignore_errors=True)
         raise
     backup = None
-    if out_dir.exists():
-        backup = out_dir.with_name(f".{out_dir.name}.old-{staging.name.rsplit('-', 1)[-1]}")
-        out_dir.rename(backup)
-    staging.rename(out_dir)
+    try:
+        if out_dir.exists():
+            backup = out_dir.with_name(f".{out_dir.name}.old-{staging.name.rsplit('-', 1)[-1]}")
+            out_dir.rename(backup)
+        staging.rename(out_dir)
+    except BaseException:  # e.g. the path changed under us: put the user's folder back, leave nothing half-made
+        if backup is not None and not out_dir.exists():
+            backup.rename(out_dir)
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     if backup is not None:
         shutil.rmtree(backup, ignore_errors=True)

@@ -503,3 +503,49 @@ def test_lone_mjcf_output_carries_what_it_loads_and_nothing_else(synthetic, tmp_
     out = folder / "calibrated"
     assert (out / "notes.txt").is_symlink() and (out / "assets" / "cube.obj").is_file()
     assert not any(p.name.endswith(".tmp") or p.name == "calibrated" for p in out.rglob("*")), list(out.rglob("*"))
+
+
+@pytest.mark.parametrize("target", ["full folder", "empty folder", "nothing"])
+@pytest.mark.parametrize(
+    ("command", "flags"),
+    [
+        (["calibrate"], ["--generations", "0", "--local-iterations", "0"]),
+        (["rollout"], ["--overwrite"]),
+        (["import-trajectories"], []),
+        (["residual", "train"], ["--overwrite"]),
+    ],
+)
+def test_cli_output_that_is_a_link_is_refused(
+    target: str, command: list[str], flags: list[str], traj_dir: Path, tmp_path: Path
+) -> None:
+    """-o naming a symbolic link: replacing the output would replace the user's link (or write through it into the
+    folder it points to, file by file). Before: tracebacks (rmdir or rename on a link), a half-made hidden folder
+    beside a dangling link, or the link's folder rewritten. Now one line, exit 2, the link and
+    its folder as they were."""
+    pointed = tmp_path / "mine"
+    if target != "nothing":
+        pointed.mkdir()
+    if target == "full folder":
+        (pointed / "0.npz").write_text("the user's file")
+    link = tmp_path / "link"
+    link.symlink_to(pointed)
+    args = [str(traj_dir)] if command == ["import-trajectories"] else [str(CUBE_XML), str(traj_dir)]
+    _assert_exit_2(_cli(*command, *args, "-o", str(link), *flags), "is a symbolic link")
+    assert link.is_symlink() and link.readlink() == pointed
+    if target == "full folder":
+        assert [p.name for p in pointed.iterdir()] == ["0.npz"] and (pointed / "0.npz").read_text() == "the user's file"
+    elif target == "empty folder":
+        assert not any(pointed.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["link", *(["mine"] if target != "nothing" else [])])
+
+
+def test_cli_rollout_overwrite_replaces_the_whole_folder(traj_dir: Path, tmp_path: Path) -> None:
+    """--overwrite replaces the output folder as one, like every command: no stale file of an earlier run is left
+    among the new predictions."""
+    out = tmp_path / "pred"
+    out.mkdir()
+    (out / "stale.npz").write_text("from an earlier run")
+    result = _cli("rollout", str(CUBE_XML), str(traj_dir), "-o", str(out), "--overwrite", "--no-residual")
+    assert result.exit_code == 0, result.output
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in traj_dir.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pred"]
