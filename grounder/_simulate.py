@@ -212,6 +212,15 @@ class RolloutBatch:
     nstep: int
 
 
+def _rollout_memory_limit() -> int:
+    """Bytes of states one rollout batch may hold: half the machine's memory (a bigger batch is a wrong time column,
+    not a run that could finish)."""
+    try:
+        return max(1 << 30, os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") // 2)
+    except (AttributeError, ValueError, OSError):  # pragma: no cover - not POSIX
+        return 8 << 30
+
+
 def prepare(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> RolloutBatch:
     """Initial states, per-step controls and sample steps of trajectories, for any model of this size signature."""
     if not trajs:
@@ -219,6 +228,16 @@ def prepare(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> RolloutBatch:
     data = mujoco.MjData(model)
     steps = [step_indices(t.time_s, model.opt.timestep) for t in trajs]
     nstep = max(1, max(int(s[-1]) for s in steps))
+    state_bytes = len(trajs) * (nstep + 1) * mujoco.mj_stateSize(model, FULLPHYSICS) * 8
+    if state_bytes > _rollout_memory_limit():
+        longest = max(range(len(trajs)), key=lambda i: int(steps[i][-1]))
+        span_s = float(trajs[longest].time_s[-1] - trajs[longest].time_s[0])
+        raise GrounderError(
+            f"trajectory {trajs[longest].name!r} spans {span_s:.4g} s, {nstep} model steps of "
+            f"{model.opt.timestep:.4g} s: rolling out the {len(trajs)} trajectories would hold "
+            f"{state_bytes / 1e9:.3g} GB of states, more than half this machine's memory; check its time column "
+            "(seconds), or split it into shorter trajectories"
+        )
     states0 = np.stack([initial_state(model, t.qpos[0], t.qvel[0], data) for t in trajs])
     controls = np.stack([_controls(t, s, model.nu, nstep) for t, s in zip(trajs, steps, strict=True)])
     return RolloutBatch(states0=states0, controls=controls, sample_steps=tuple(steps), nstep=nstep)

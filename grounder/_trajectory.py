@@ -16,11 +16,13 @@ untrusted input, and an object array in a required key is refused, never unpickl
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import secrets
 import shutil
 import zipfile
+import zlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +36,7 @@ from grounder.errors import TrajectoryError
 _REQUIRED_KEYS = ("time", "qpos", "qvel")
 _OPTIONAL_KEYS = ("ctrl",)
 _SUFFIX = ".npz"
+_MAX_ARRAY_BYTES = 1 << 30  # per array: hours of a many-body recording; a bigger claim is a bomb or a bad header
 # Integers are accepted (and converted to float64); bool, complex, strings, objects and records are not.
 _NUMERIC_KINDS = "iuf"
 QUAT_NORM_TOL = 1e-3
@@ -290,14 +293,18 @@ def load_trajectory(path: str | os.PathLike[str]) -> Trajectory:
             if key not in archive.files:
                 continue
             try:
+                _check_member_size(path, archive, key)
                 arrays[key] = archive[key]
             except ValueError as exc:
-                # numpy refuses object arrays when allow_pickle=False: nothing is unpickled.
+                if "allow_pickle" in str(exc):  # numpy refuses object arrays when allow_pickle=False
+                    raise TrajectoryError(
+                        f"{path}: '{key}' holds pickled objects, which are refused (nothing was unpickled); "
+                        "store plain float64 arrays"
+                    ) from exc
                 raise TrajectoryError(
-                    f"{path}: '{key}' could not be read safely ({exc}); pickled object arrays are refused, "
-                    f"store plain float64 arrays"
+                    f"{path}: '{key}' is not a readable array ({' '.join(str(exc).split())}); re-export the trajectory"
                 ) from exc
-            except (OSError, EOFError, zipfile.BadZipFile) as exc:
+            except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
                 raise TrajectoryError(
                     f"{path}: '{key}' is corrupt ({type(exc).__name__}: {exc}); re-export the trajectory"
                 ) from exc
@@ -305,6 +312,37 @@ def load_trajectory(path: str | os.PathLike[str]) -> Trajectory:
         str(path), arrays["time"], arrays["qpos"], arrays["qvel"], arrays.get("ctrl")
     )
     return Trajectory(time_s=time_s, qpos=qpos, qvel=qvel, ctrl=ctrl, name=path.stem)
+
+
+def _check_member_size(path: Path, archive: np.lib.npyio.NpzFile, key: str) -> None:
+    """Refuses, before numpy allocates anything, an array whose uncompressed size (from the zip directory) is too
+    large, or whose header claims more data than the member holds (a zip bomb, or a corrupt header).
+
+    Raises:
+        TrajectoryError: the array is too large or its header lies.
+        ValueError, OSError, zipfile.BadZipFile, zlib.error: an unreadable header (the caller words them).
+    """
+    member = archive.zip.NameToInfo.get(f"{key}.npy") if archive.zip is not None else None
+    if member is None:
+        return
+    if member.file_size > _MAX_ARRAY_BYTES:
+        raise TrajectoryError(
+            f"{path}: '{key}' is {member.file_size / 1e9:.1f} GB uncompressed, more than the "
+            f"{_MAX_ARRAY_BYTES / 1e9:.0f} GB a trajectory array may take; split the recording into shorter "
+            "trajectories"
+        )
+    with archive.zip.open(member) as stream:
+        version = np.lib.format.read_magic(stream)
+        read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, _, dtype = read_header(stream)
+    if dtype.hasobject:
+        raise ValueError("Object arrays cannot be loaded when allow_pickle=False")
+    claimed = math.prod(shape) * dtype.itemsize
+    if claimed > member.file_size:
+        raise TrajectoryError(
+            f"{path}: '{key}' claims shape {tuple(shape)} ({claimed / 1e9:.3g} GB) but holds {member.file_size} bytes; "
+            "the file is corrupt, re-export the trajectory"
+        )
 
 
 def _with_suffix(path: Path) -> Path:

@@ -84,3 +84,14 @@ def test_quaternion_double_cover_is_the_same_rotation() -> None:
 def test_data_faster_than_the_model_is_refused() -> None:
     with pytest.raises(GrounderError, match="timestep"):
         step_indices(np.array([0.0, 0.0001, 0.0002]), 0.001)
+
+
+def test_a_time_column_too_long_to_simulate_is_refused_before_allocating() -> None:
+    """A trajectory whose times span 1e9 s (milliseconds written as seconds, or a hostile file) used to reach
+    `mujoco.rollout` and fail allocating 121 TB; it is now one error naming the trajectory and its span."""
+    model = mujoco.MjModel.from_xml_string(FALLING_CUBE)
+    traj = _ballistic(np.array([0.0, 1e9]), z0=2.0, vz0=0.0)
+    with pytest.raises(
+        GrounderError, match=r"trajectory 'toss' spans 1e\+09 s, 2000000000000 model steps.*time column"
+    ):
+        simulate(model, [traj])

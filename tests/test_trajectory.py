@@ -309,12 +309,67 @@ def test_pickled_object_array_is_refused_without_executing(tmp_path: Path) -> No
     arrays["qpos"] = qpos
     path = tmp_path / "evil.npz"
     np.savez(path, allow_pickle=True, **arrays)
-    with pytest.raises(TrajectoryError, match=r"evil\.npz: 'qpos'.*pickled object arrays are refused"):
+    with pytest.raises(TrajectoryError, match=r"evil\.npz: 'qpos'.*holds pickled objects, which are refused"):
         load_trajectory(path)
     assert _CANARY_FIRED == []
     with pytest.raises(TrajectoryError, match=r"evil\.npz"):
         load_trajectories(tmp_path)
     assert _CANARY_FIRED == []
+
+
+def _npz_with_member(path: Path, name: str, payload: bytes, arrays: dict[str, np.ndarray]) -> Path:
+    """An .npz whose member `name` holds `payload` as written (the others saved normally)."""
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(path, "w") as archive:
+        for key, value in arrays.items():
+            if f"{key}.npy" != name:
+                buffer = io.BytesIO()
+                np.save(buffer, value)
+                archive.writestr(f"{key}.npy", buffer.getvalue())
+        archive.writestr(name, payload)
+    return path
+
+
+def test_corrupt_or_lying_members_are_one_error_without_allocating(tmp_path: Path) -> None:
+    """Untrusted archives: a corrupt compressed stream (was zlib.error), a header claiming 800 GB over 8 bytes (was
+    numpy trying to allocate it), a malformed header (was reported as pickled objects) and a member too large to be a
+    trajectory each give one TrajectoryError naming the file and the array."""
+    import io
+    import struct
+    import zipfile
+
+    arrays = raw_arrays()
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10**11,)})
+    lying = _npz_with_member(tmp_path / "lying.npz", "time.npy", header.getvalue() + b"\0" * 8, arrays)
+    with pytest.raises(TrajectoryError, match=r"lying\.npz: 'time' claims shape \(100000000000,\).*corrupt"):
+        load_trajectory(lying)
+    malformed = _npz_with_member(tmp_path / "malformed.npz", "qpos.npy", b"\x93NUMPY\x01\x00\x06\x00{}    ", arrays)
+    with pytest.raises(TrajectoryError, match=r"malformed\.npz: 'qpos' is not a readable array") as info:
+        load_trajectory(malformed)
+    assert "pickled" not in str(info.value)
+
+    # A deflate stream broken at its start (its first block header), with its CRC and sizes left as they were.
+    np.savez_compressed(tmp_path / "deflated.npz", **arrays)
+    with zipfile.ZipFile(tmp_path / "deflated.npz") as archive:
+        offset = archive.getinfo("time.npy").header_offset
+    raw = bytearray((tmp_path / "deflated.npz").read_bytes())
+    name_len, extra_len = struct.unpack("<HH", raw[offset + 26 : offset + 30])
+    data = offset + 30 + name_len + extra_len
+    raw[data : data + 4] = b"\xff\xff\xff\xff"
+    (tmp_path / "broken.npz").write_bytes(bytes(raw))
+    with pytest.raises(TrajectoryError, match=r"broken\.npz: 'time' is corrupt \((error|BadZipFile)"):
+        load_trajectory(tmp_path / "broken.npz")
+
+    import grounder._trajectory as trajectory
+
+    np.savez(tmp_path / "big.npz", **arrays)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(trajectory, "_MAX_ARRAY_BYTES", 64)
+        with pytest.raises(TrajectoryError, match=r"big\.npz: 'time' is .* GB uncompressed.*split the recording"):
+            load_trajectory(tmp_path / "big.npz")
 
 
 @pytest.mark.parametrize(
