@@ -16,17 +16,20 @@ A jobs file (YAML; relative paths are relative to the file)::
       trajectories: [data1/, {path: ../shared/data/cube_toss, format: dair-pll-cube}]
       settings: {fast: {generations: 2}, full: {}}
 
-Output folder::
+Output folder (new, empty, or the output of an earlier batch run, which its ``batch.json`` marks)::
 
+    batch.json          the marker, written before any job runs: ``{"format": "image2sim-batch/1", ...}``. A folder
+                        that is not empty and has no marker is refused, since a run replaces what it finds there
     results/<id>.json   one per finished job, written atomically (temporary file, then os.replace): the job's
                         status (ok or failed with the error), parameters, errors before/after, seconds
     scenes/<id>/        the calibrated scene folder of a successful job (written atomically by calibrate)
     results.csv, results.json   the table of all jobs of the file, rewritten after each finished job
 
 A job counts as finished when its ``results/<id>.json`` says ``ok``: a re-run (after a crash or Ctrl-C) skips it
-and runs the rest; failed jobs are run again. A failing job is recorded and does not stop the others. Jobs run as
-Ray tasks (one CPU each) on a local Ray started for the run, or on an existing cluster given by ``address``
-(``ray://host:10001`` or ``auto``); the cluster's nodes need image2sim installed and the paths visible.
+and runs the rest; failed jobs are run again, and so are jobs whose record is unreadable or invalid (with a
+warning). A failing job is recorded and does not stop the others. Jobs run as Ray tasks (one CPU each) on a local
+Ray started for the run, or on an existing cluster given by ``address`` (``ray://host:10001`` or ``auto``); the
+cluster's nodes need image2sim installed and the paths visible.
 """
 
 from __future__ import annotations
@@ -58,6 +61,9 @@ SCENES_DIR = "scenes"
 _ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _JOB_KEYS = {"id", "scene", "trajectories", "format", "settings"}
 _TOP_KEYS = {"defaults", "jobs", "matrix"}
+_MATRIX_KEYS = {"scenes", "trajectories", "settings"}
+MARKER = "batch.json"
+MARKER_FORMAT = "image2sim-batch/1"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -132,19 +138,50 @@ def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", text).strip("_.") or "x"
 
 
+def _list(where: str, value: object, what: str) -> list[Any]:
+    """``value`` as a list; a scalar or a mapping (``jobs: 5``, ``scenes: a.xml``) is refused."""
+    if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
+        return list(value)
+    raise GrounderError(f"{where} must be a list of {what}, got {type(value).__name__} {_short(value)}")
+
+
+def _short(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _path(where: str, value: object, root: Path) -> Path:
+    if not isinstance(value, str) or not value:
+        raise GrounderError(f"{where} must be a path (text), got {type(value).__name__} {_short(value)}")
+    return (root / value).resolve()
+
+
+def _check_format(where: str, fmt: object) -> str | None:
+    """An importer name known to `grounder._import.import_trajectories`, or None (the project's .npz folders)."""
+    from grounder._import import IMPORTERS
+
+    if fmt is None or (isinstance(fmt, str) and fmt in IMPORTERS):
+        return fmt
+    raise GrounderError(
+        f"{where}: unknown trajectory format {_short(fmt)}; known formats: {', '.join(sorted(IMPORTERS))} "
+        "(leave 'format' out for a folder of .npz trajectories)"
+    )
+
+
 def _dataset(where: str, entry: object, root: Path) -> tuple[Path, str | None]:
     if isinstance(entry, str):
-        return (root / entry).resolve(), None
+        return _path(f"{where}: trajectories", entry, root), None
     if isinstance(entry, Mapping) and "path" in entry and set(entry) <= {"path", "format"}:
-        return (root / str(entry["path"])).resolve(), entry.get("format")
-    raise GrounderError(f"{where}: a dataset is a path or {{path: ..., format: ...}}, got {entry!r}")
+        return _path(f"{where}: trajectories.path", entry["path"], root), _check_format(where, entry.get("format"))
+    raise GrounderError(f"{where}: a dataset is a path or {{path: ..., format: ...}}, got {_short(entry)}")
 
 
 def load_jobs(path: Path) -> list[Job]:
     """Reads and validates a jobs file (module docstring); relative paths are resolved against its folder.
 
     Raises:
-        GrounderError: the file is missing or not YAML, has unknown keys or settings, no job, or repeated ids.
+        GrounderError: the file is missing or not YAML text, has unknown keys, fields of the wrong type, unknown
+            settings or trajectory formats, no job, or repeated ids.
     """
     import yaml
 
@@ -152,28 +189,31 @@ def load_jobs(path: Path) -> list[Job]:
     if not path.is_file():
         raise GrounderError(f"{path}: jobs file does not exist")
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise GrounderError(f"{path}: not a YAML text file (not UTF-8: {exc}); pass a jobs file (YAML)") from exc
     except (OSError, yaml.YAMLError) as exc:
         raise GrounderError(f"{path}: not a readable YAML file ({exc})".replace("\n", " ")) from exc
     if not isinstance(data, Mapping):
         raise GrounderError(f"{path}: expected a mapping with 'jobs' and/or 'matrix', got {type(data).__name__}")
     unknown = set(data) - _TOP_KEYS
     if unknown:
-        raise GrounderError(f"{path}: unknown key(s) {sorted(unknown)}; expected {sorted(_TOP_KEYS)}")
+        raise GrounderError(f"{path}: unknown key(s) {sorted(map(str, unknown))}; expected {sorted(_TOP_KEYS)}")
     root = path.parent.resolve()
     defaults = _check_settings(f"{path}: defaults", data.get("defaults"))
     jobs: list[Job] = []
-    for i, entry in enumerate(data.get("jobs") or []):
+    raw_jobs = data.get("jobs")
+    for i, entry in enumerate(_list(f"{path}: 'jobs'", raw_jobs, "jobs") if raw_jobs is not None else []):
         where = f"{path}: jobs[{i}]"
         if not isinstance(entry, Mapping) or not {"scene", "trajectories"} <= set(entry):
             raise GrounderError(f"{where}: a job needs 'scene' and 'trajectories'")
         if set(entry) - _JOB_KEYS:
             raise GrounderError(
-                f"{where}: unknown key(s) {sorted(set(entry) - _JOB_KEYS)}; expected {sorted(_JOB_KEYS)}"
+                f"{where}: unknown key(s) {sorted(map(str, set(entry) - _JOB_KEYS))}; expected {sorted(_JOB_KEYS)}"
             )
-        scene = (root / str(entry["scene"])).resolve()
+        scene = _path(f"{where}: scene", entry["scene"], root)
         trajectories, fmt = _dataset(where, entry["trajectories"], root)
-        fmt = entry.get("format", fmt)
+        fmt = _check_format(where, entry.get("format", fmt))
         settings = {**defaults, **_check_settings(where, entry.get("settings"))}
         job_id = str(entry.get("id") or f"{_slug(scene.stem)}__{_slug(trajectories.name)}__{i}")
         jobs.append(Job(id=job_id, scene=scene, trajectories=trajectories, format=fmt, settings=settings))
@@ -181,20 +221,41 @@ def load_jobs(path: Path) -> list[Job]:
     if matrix is not None:
         if not isinstance(matrix, Mapping) or not {"scenes", "trajectories"} <= set(matrix):
             raise GrounderError(f"{path}: matrix needs 'scenes' and 'trajectories' lists (and optional 'settings')")
+        if set(matrix) - _MATRIX_KEYS:
+            raise GrounderError(
+                f"{path}: matrix: unknown key(s) {sorted(map(str, set(matrix) - _MATRIX_KEYS))}; "
+                f"expected {sorted(_MATRIX_KEYS)}"
+            )
+        scenes = [
+            _path(f"{path}: matrix.scenes[{k}]", s, root)
+            for k, s in enumerate(_list(f"{path}: matrix.scenes", matrix["scenes"], "scene paths"))
+        ]
+        datasets = [
+            _dataset(f"{path}: matrix.trajectories[{k}]", d, root)
+            for k, d in enumerate(_list(f"{path}: matrix.trajectories", matrix["trajectories"], "datasets"))
+        ]
         raw_settings = matrix.get("settings") or {"default": {}}
-        if isinstance(raw_settings, Sequence) and not isinstance(raw_settings, str):
-            named = {
-                str(s.get("name", f"s{k}")): {kk: v for kk, v in s.items() if kk != "name"}
-                for k, s in enumerate(raw_settings)
-            }
+        named: dict[str, Any] = {}
+        if isinstance(raw_settings, Sequence) and not isinstance(raw_settings, (str, bytes)):
+            for k, s in enumerate(raw_settings):
+                if not isinstance(s, Mapping):
+                    raise GrounderError(
+                        f"{path}: matrix.settings[{k}] must be a mapping of calibrate options (and an optional "
+                        f"'name'), got {type(s).__name__} {_short(s)}"
+                    )
+                name = str(s.get("name", f"s{k}"))
+                if name in named:
+                    raise GrounderError(f"{path}: matrix.settings name {name!r} appears twice; give distinct names")
+                named[name] = {kk: v for kk, v in s.items() if kk != "name"}
         elif isinstance(raw_settings, Mapping):
-            named = dict(raw_settings)
+            named = {str(k): v for k, v in raw_settings.items()}
         else:
-            raise GrounderError(f"{path}: matrix.settings must be a mapping name -> settings or a list")
-        for scene_entry in matrix["scenes"]:
-            scene = (root / str(scene_entry)).resolve()
-            for data_entry in matrix["trajectories"]:
-                trajectories, fmt = _dataset(f"{path}: matrix", data_entry, root)
+            raise GrounderError(
+                f"{path}: matrix.settings must be a mapping name -> settings or a list of settings, "
+                f"got {type(raw_settings).__name__} {_short(raw_settings)}"
+            )
+        for scene in scenes:
+            for trajectories, fmt in datasets:
                 for sname, sval in named.items():
                     settings = {**defaults, **_check_settings(f"{path}: matrix.settings.{sname}", sval)}
                     scene_label = _slug(scene.stem if scene.suffix else scene.name)
@@ -209,7 +270,10 @@ def load_jobs(path: Path) -> list[Job]:
         if job.id in seen:
             raise GrounderError(f"{path}: job id {job.id!r} appears twice; give the jobs distinct ids")
         seen.add(job.id)
-        options_from_settings(job.settings)  # fail before any work starts
+        try:
+            options_from_settings(job.settings)  # fail before any work starts
+        except GrounderError as exc:
+            raise GrounderError(f"{path}: job {job.id}: {exc}") from exc
     return jobs
 
 
@@ -231,19 +295,139 @@ def result_path(out_dir: Path, job_id: str) -> Path:
     return Path(out_dir) / RESULTS_DIR / f"{job_id}.json"
 
 
-def read_result(out_dir: Path, job_id: str) -> dict[str, Any] | None:
-    """A job's result record, or None if it has none (or an unreadable one)."""
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _record_problem(data: object, job_id: str) -> str | None:
+    """What makes ``data`` unusable as the result record of ``job_id`` (None: nothing); checks what the table reads."""
+    if not isinstance(data, dict):
+        return f"not a JSON object but {type(data).__name__}"
+    if data.get("id") != job_id:
+        return f"'id' is {_short(data.get('id'))}, not {job_id!r}"
+    if data.get("status") not in ("ok", "failed"):
+        return f"'status' is {_short(data.get('status'))}, not 'ok' or 'failed'"
+    if "seconds" in data and not _is_number(data["seconds"]):
+        return f"'seconds' is {_short(data['seconds'])}, not a number"
+    if not isinstance(data.get("error"), (str, type(None))):
+        return f"'error' is {_short(data['error'])}, not text"
+    parameters = data.get("parameters")
+    if parameters and not (
+        isinstance(parameters, dict) and all(isinstance(k, str) and _is_number(v) for k, v in parameters.items())
+    ):
+        return "'parameters' is not a mapping of names to numbers"
+    errors = data.get("errors") or {}
+    if not isinstance(errors, dict):
+        return "'errors' is not a mapping"
+    for when in ("before", "after"):
+        side = errors.get(when, {})
+        if not isinstance(side, dict):
+            return f"'errors.{when}' is not a mapping"
+        for split in ("train", "validation"):
+            if split in side and not (
+                isinstance(side[split], dict)
+                and _is_number(side[split].get("position_pct"))
+                and (split == "train" or _is_number(side[split].get("rotation_deg")))
+            ):
+                return f"'errors.{when}.{split}' lacks numeric position_pct / rotation_deg"
+    return None
+
+
+def _load_result(out_dir: Path, job_id: str) -> tuple[dict[str, Any] | None, str | None]:
+    """``(record, None)``; ``(None, None)`` when the job has no record; ``(None, why)`` for an unusable one."""
     path = result_path(out_dir, job_id)
+    if not path.exists() and not path.is_symlink():
+        return None, None
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        return None, f"cannot be read ({exc.strerror or exc})"
+    except ValueError as exc:  # not UTF-8
+        return None, f"not JSON ({exc})"
+    try:
+        data = json.loads(text)
+    except ValueError as exc:
+        return None, f"not JSON ({exc})"
+    problem = _record_problem(data, job_id)
+    return (None, problem) if problem else (data, None)
+
+
+def read_result(out_dir: Path, job_id: str) -> dict[str, Any] | None:
+    """A job's result record, or None if it has none (or an unreadable or invalid one: the job counts as pending)."""
+    return _load_result(out_dir, job_id)[0]
 
 
 def is_finished(out_dir: Path, job_id: str) -> bool:
     record = read_result(out_dir, job_id)
     return bool(record and record.get("status") == "ok" and (Path(out_dir) / SCENES_DIR / job_id).is_dir())
+
+
+def _is_marker(path: Path) -> bool:
+    if path.is_symlink() or not path.is_file():
+        return False
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and data.get("format") == MARKER_FORMAT
+
+
+def check_batch_output(out_dir: Path) -> None:
+    """Refuses an output folder that :func:`run_batch` must not write into; creates nothing.
+
+    A batch run deletes stale ``scenes/<id>`` folders and temporary files and rewrites the tables, so it writes only
+    into a new or empty folder, or into the output of an earlier batch run (marked by ``batch.json``) to resume it.
+
+    Raises:
+        GrounderError: ``out_dir`` is a symbolic link, a file, an unreadable folder, or a non-empty folder without
+            the marker; or the marked folder's ``results``/``scenes`` is not a real folder.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.is_symlink():
+        raise GrounderError(f"output {out_dir} is a symbolic link; pass the folder it points to, or a new folder (-o)")
+    if not out_dir.exists():
+        return
+    if not out_dir.is_dir():
+        raise GrounderError(f"output {out_dir} is a file; pass a folder path (-o)")
+    try:
+        empty = not any(out_dir.iterdir())
+    except OSError as exc:
+        raise GrounderError(f"output folder {out_dir} cannot be read ({exc.strerror}); choose another folder") from exc
+    if empty:
+        return
+    if not _is_marker(out_dir / MARKER):
+        raise GrounderError(
+            f"output folder {out_dir} is not empty and is not the output of an image2sim batch run (no valid "
+            f"{MARKER} in it), and a run would replace files there; choose a new or empty folder (-o)"
+        )
+    for name in (RESULTS_DIR, SCENES_DIR):
+        sub = out_dir / name
+        if sub.is_symlink() or (sub.exists() and not sub.is_dir()):
+            raise GrounderError(
+                f"{sub} is not a folder written by image2sim batch (a link or a file); choose a new output folder (-o)"
+            )
+
+
+def _prepare_output(out_dir: Path, jobs: Sequence[Job]) -> None:
+    """Checks ``out_dir`` (:func:`check_batch_output`), then creates it with its marker and subfolders."""
+    check_batch_output(out_dir)
+    for job in jobs:
+        record = result_path(out_dir, job.id)
+        if record.is_dir() and not record.is_symlink():
+            raise GrounderError(
+                f"{record} is a folder where batch writes job {job.id}'s result record; move it away and re-run"
+            )
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if not _is_marker(out_dir / MARKER):
+            _write_json_atomic(
+                out_dir / MARKER,
+                {"format": MARKER_FORMAT, "about": "written by image2sim batch; re-running batch here resumes it"},
+            )
+        (out_dir / RESULTS_DIR).mkdir(exist_ok=True)
+        (out_dir / SCENES_DIR).mkdir(exist_ok=True)
+    except OSError as exc:
+        raise GrounderError(f"cannot create output folder {out_dir} ({exc}); choose another folder (-o)") from exc
 
 
 def run_job(job_json: Mapping[str, Any], out_dir: str) -> dict[str, Any]:
@@ -395,7 +579,7 @@ def run_batch(
 
     Args:
         jobs: From :func:`load_jobs`.
-        out_dir: Output folder (module docstring); created if missing, reused to resume.
+        out_dir: Output folder (module docstring): created if missing; an earlier batch output is reused to resume.
         address: A Ray cluster address; None starts a local Ray for this run.
         num_cpus: CPUs of the local Ray (one job per CPU); ignored with ``address``.
         inline: Run in this process without Ray (debugging, tiny batches).
@@ -403,12 +587,18 @@ def run_batch(
 
     Returns:
         The summary; failed jobs are listed, not raised.
+
+    Raises:
+        GrounderError: ``out_dir`` is refused by :func:`check_batch_output` (before any job runs).
     """
     tick = time.time()
     out_dir = Path(out_dir)
-    (out_dir / RESULTS_DIR).mkdir(parents=True, exist_ok=True)
-    (out_dir / SCENES_DIR).mkdir(parents=True, exist_ok=True)
+    _prepare_output(out_dir, jobs)
     report: Progress = progress or (lambda _s, _d, _t: None)
+    for job in jobs:
+        _, problem = _load_result(out_dir, job.id)
+        if problem:  # e.g. edited by hand or truncated by a full disk: the job's result cannot be trusted
+            log.warning("%s: %s; running the job again", result_path(out_dir, job.id), problem)
     skipped = [j.id for j in jobs if is_finished(out_dir, j.id)]
     pending = [j for j in jobs if j.id not in set(skipped)]
     # Leftovers of a run that was killed while writing: temporary files and folders (never results).

@@ -141,7 +141,13 @@ def register(app: typer.Typer) -> None:
     def batch(
         jobs_file: Annotated[Path, typer.Argument(help="JOBS.yaml: scenes x datasets x settings.")],
         out: Annotated[
-            Path | None, typer.Option("-o", "--out", help="Output folder (default: JOBS_results next to the file).")
+            Path | None,
+            typer.Option(
+                "-o",
+                "--out",
+                help="Output folder: new, empty, or an earlier batch output to resume (default: JOBS_results next "
+                "to the file).",
+            ),
         ] = None,
         address: Annotated[
             str | None, typer.Option(help="Ray cluster address (ray://host:10001 or auto); default: a local Ray.")
@@ -152,15 +158,16 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run many calibrations on Ray; re-running skips finished jobs. Results in results.csv / results.json.
 
-        Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file.
+        Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file or output folder.
         """
         _setup_logging(verbose)
         require(("--num-cpus", num_cpus, num_cpus is None or num_cpus >= 1, ">= 1"))
         with user_errors_exit_2():
-            from grounder._batch import load_jobs, run_batch
+            from grounder._batch import check_batch_output, load_jobs, run_batch
 
             jobs = load_jobs(jobs_file)
             out_dir = out if out is not None else jobs_file.with_name(f"{jobs_file.stem}_results")
+            check_batch_output(out_dir)  # run_batch checks again; this fails before the progress bar appears
             with stage_progress() as progress:
                 summary = run_batch(jobs, out_dir, address=address, num_cpus=num_cpus, inline=inline, progress=progress)
         for row in summary.rows:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -224,3 +225,116 @@ def test_cli_batch_inline_reports_failures(tmp_path: Path, traj_dir: Path) -> No
     bad.write_text("jobs: [{scene: a.xml}]\n")
     result = CliRunner().invoke(app, ["batch", str(bad)])
     assert result.exit_code == 2 and "needs 'scene' and 'trajectories'" in result.output, result.output
+
+
+def _cli(args: list[str]):
+    from typer.testing import CliRunner
+
+    from grounder.cli import app
+
+    return CliRunner().invoke(app, args)
+
+
+def _one_error_line(result, *needles: str) -> None:
+    """Exit 2 with one `image2sim: error:` line naming `needles`, and no traceback."""
+    assert result.exit_code == 2, result.output
+    assert isinstance(result.exception, SystemExit), result.exception
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("image2sim: error:"), result.output
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+
+
+def test_output_folder_batch_did_not_write_is_refused(tmp_path: Path, traj_dir: Path) -> None:
+    """A non-empty folder without batch's marker, a file or a symlink as -o: one line, exit 2, nothing touched."""
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml", [{"id": "job", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}]
+    )
+    user = tmp_path / "user"
+    (user / "scenes" / "job").mkdir(parents=True)
+    (user / "scenes" / "job" / "important.txt").write_text("keep me")
+    (user / "results.csv").write_text("my table")
+    (user / "scenes" / ".notes.tmp").write_text("mine too")
+    before = {p: p.read_bytes() for p in user.rglob("*") if p.is_file()}
+    _one_error_line(_cli(["batch", str(jobs_file), "--inline", "-o", str(user)]), str(user), "batch.json")
+    assert {p: p.read_bytes() for p in user.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in user.rglob("*")) == [".notes.tmp", "important.txt", "job", "results.csv", "scenes"]
+
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    _one_error_line(_cli(["batch", str(jobs_file), "--inline", "-o", str(a_file)]), str(a_file), "is a file")
+    assert a_file.read_text() == "x"
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    link = tmp_path / "link"
+    link.symlink_to(empty, target_is_directory=True)
+    _one_error_line(_cli(["batch", str(jobs_file), "--inline", "-o", str(link)]), str(link), "symbolic link")
+    assert not any(empty.iterdir())
+
+    with pytest.raises(GrounderError, match=r"batch\.json"):  # the library refuses too, before any job
+        run_batch(load_jobs(jobs_file), user, inline=True)
+    assert not (user / "results").exists()
+
+
+@pytest.mark.parametrize(
+    ("content", "field"),
+    [
+        pytest.param(b"\x8a\x9f\x00\xff-<d(\x1b\xfe", "UTF-8", id="binary"),
+        pytest.param(b"jobs: 5\n", "'jobs'", id="jobs-int"),
+        pytest.param(b"matrix: {scenes: 5, trajectories: [d]}\n", "matrix.scenes", id="matrix-scenes-int"),
+        pytest.param(
+            b"matrix: {scenes: [a.xml], trajectories: [d], settings: [1, 2]}\n",
+            "matrix.settings[0]",
+            id="matrix-settings-ints",
+        ),
+        pytest.param(b"matrix: {scenes: [a.xml], trajectories: 7}\n", "matrix.trajectories", id="matrix-data-int"),
+        pytest.param(b"jobs: [{scene: [a.xml], trajectories: d}]\n", "jobs[0]: scene", id="scene-list"),
+        pytest.param(
+            b"jobs: [{scene: a.xml, trajectories: d, format: nosuch}]\n",
+            "jobs[0]: unknown trajectory format 'nosuch'",
+            id="format-unknown",
+        ),
+        pytest.param(
+            b"jobs: [{scene: a.xml, trajectories: {path: d, format: 3}}]\n",
+            "jobs[0]: unknown trajectory format 3",
+            id="format-int",
+        ),
+        pytest.param(
+            b"matrix: {scenes: [a.xml], trajectories: [{path: d, format: nosuch}]}\n",
+            "matrix.trajectories[0]: unknown trajectory format",
+            id="matrix-format-unknown",
+        ),
+        pytest.param(
+            b"jobs: [{scene: a.xml, trajectories: d, settings: {mode: bogus}}]\n", "mode must be", id="bad-mode"
+        ),
+    ],
+)
+def test_jobs_file_of_wrong_types_is_one_line(tmp_path: Path, content: bytes, field: str) -> None:
+    jobs_file = tmp_path / "jobs.yaml"
+    jobs_file.write_bytes(content)
+    with pytest.raises(GrounderError, match=re.escape(field)):
+        load_jobs(jobs_file)
+    _one_error_line(_cli(["batch", str(jobs_file), "--inline"]), str(jobs_file), field)
+    assert not (tmp_path / "jobs_results").exists()
+
+
+def test_corrupt_result_record_is_run_again(tmp_path: Path, traj_dir: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """An earlier run's record that the table cannot read (hand-edited, truncated) counts as not finished."""
+    jobs = load_jobs(
+        _write_jobs(tmp_path / "jobs.yaml", [{"id": "job", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}])
+    )
+    out = tmp_path / "out"
+    out.mkdir()  # an empty folder is accepted
+    assert run_batch(jobs, out, inline=True).ran == ("job",)
+    record_file = out / "results" / "job.json"
+    record = json.loads(record_file.read_text())
+    record_file.write_text(json.dumps({**record, "seconds": "abc"}))
+    with caplog.at_level("WARNING", logger="grounder._batch"):
+        again = run_batch(jobs, out, inline=True)
+    assert again.skipped == () and again.ran == ("job",) and again.failed == ()
+    assert any("job.json" in r.getMessage() and "'seconds'" in r.getMessage() for r in caplog.records)
+    assert isinstance((read_result(out, "job") or {})["seconds"], float)
+    record_file.write_text("{not json")
+    assert read_result(out, "job") is None
+    assert json.loads((out / "batch.json").read_text())["format"] == "image2sim-batch/1"  # the resumable output
