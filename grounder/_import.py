@@ -81,6 +81,16 @@ def load_dair_pll_cube(src_dir: Path) -> list[Trajectory]:
             ) from exc
         if not isinstance(tensor, torch.Tensor):
             raise GrounderError(f"{path}: expected a torch tensor of shape (T, 13), got {type(tensor).__name__}")
+        unusual = (
+            "sparse" if tensor.layout != torch.strided else
+            "nested" if tensor.is_nested else
+            "meta (no data)" if tensor.is_meta else
+            "quantized" if tensor.is_quantized else
+            "complex" if tensor.is_complex() else
+            None
+        )  # fmt: skip
+        if unusual is not None:  # each would fail in .numpy() below, or lose its imaginary part silently
+            raise GrounderError(f"{path}: a {unusual} tensor; expected a dense real tensor of shape (T, 13)")
         rows = tensor.detach().to(torch.float64).numpy()
         if rows.ndim != 2 or rows.shape[1] != _NUM_COLUMNS or rows.shape[0] < 2:
             raise GrounderError(f"{path}: expected shape (T >= 2, 13), got {tuple(rows.shape)}")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -70,6 +71,24 @@ def test_bad_input(tmp_path: Path) -> None:
     with pytest.raises(GrounderError, match="not a tensor file torch loads safely") as caught:
         load_dair_pll_cube(bad)
     assert "\n" not in str(caught.value) and "weights_only" not in str(caught.value)
+
+
+@pytest.mark.parametrize("kind", ["sparse", "nested", "meta (no data)", "quantized", "complex"])
+def test_unusual_tensors_are_one_error(kind: str, tmp_path: Path) -> None:
+    """Tensors torch loads safely but that are not plain data: before, a traceback from .numpy() (sparse, nested,
+    meta, quantized) or, for complex values, the imaginary part dropped with only a warning and exit 0."""
+    good = _toss(5, 0)
+    tensor = {
+        "sparse": lambda: good.to_sparse(),
+        "nested": lambda: torch.nested.nested_tensor([good, good[:3]]),
+        "meta (no data)": lambda: good.to("meta"),
+        "quantized": lambda: torch.quantize_per_tensor(good.float(), 0.1, 0, torch.qint8),
+        "complex": lambda: good.to(torch.complex128) * (1 + 1e-3j),
+    }[kind]()
+    (tmp_path / "tosses").mkdir()
+    torch.save(tensor, tmp_path / "tosses" / "1.pt")
+    with pytest.raises(GrounderError, match=rf"1\.pt: a {re.escape(kind)} tensor; expected a dense real tensor"):
+        load_dair_pll_cube(tmp_path)
 
 
 def test_cli_import(fake_tosses: Path, tmp_path: Path) -> None:
