@@ -73,6 +73,7 @@ def test_bad_input(tmp_path: Path) -> None:
     assert "\n" not in str(caught.value) and "weights_only" not in str(caught.value)
 
 
+@pytest.mark.filterwarnings("ignore::UserWarning")  # torch: nested and quantized tensors are prototype or deprecated
 @pytest.mark.parametrize("kind", ["sparse", "nested", "meta (no data)", "quantized", "complex"])
 def test_unusual_tensors_are_one_error(kind: str, tmp_path: Path) -> None:
     """Tensors torch loads safely but that are not plain data: before, a traceback from .numpy() (sparse, nested,
