@@ -917,20 +917,22 @@ def single_body_scene(scene_xml: Path, body: str) -> Iterator[Path]:
     """The scene with only `body` of its free bodies (and the table), as an MJCF file in a private temporary folder
     that is removed afterwards.
 
-    A private folder with the asset folders made absolute: written beside scene.xml under a fixed name, two
-    calibrations of one scene at once (batch jobs, two terminals) deleted each other's file mid-run, and a read-only
-    scene folder could not be calibrated at all.
+    A private folder with a copy of the scene's mesh and texture files: written beside scene.xml under a fixed name,
+    two calibrations of one scene at once (batch jobs, two terminals) deleted each other's file mid-run, and a
+    read-only scene folder could not be calibrated at all. A copy rather than absolute asset paths, because a scene
+    may not name files outside its folder (`grounder._simulate.scene_files`).
     """
     import mujoco
+
+    from grounder._simulate import copy_scene_files
 
     single = mujoco.MjSpec.from_file(str(scene_xml))
     for other in list(single.worldbody.bodies):  # a free joint can only sit on a child of the world
         if other.name != body and any(j.type == mujoco.mjtJoint.mjJNT_FREE for j in other.joints):
             single.delete(other)
-    for attr in ("meshdir", "texturedir"):
-        setattr(single, attr, str((scene_xml.parent / getattr(single, attr)).resolve()))
     tmp = Path(tempfile.mkdtemp(prefix="image2sim_calibrate_"))
     try:
+        copy_scene_files(scene_xml, tmp)
         sub_xml = tmp / f"{body}.xml"
         sub_xml.write_text(single.to_xml())
         yield sub_xml

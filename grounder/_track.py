@@ -311,7 +311,21 @@ def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[Pi
             f"{rec_json} not found: the scene does not say which camera filmed it; pass the clip's intrinsics "
             "(--intrinsics FX FY CX CY)"
         )
-    intr = json.loads(rec_json.read_text())["intrinsics"]
+    try:  # the scene may be someone else's: every value checked before use
+        intr = json.loads(rec_json.read_text(encoding="utf-8"))["intrinsics"]
+        keys = ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px")
+        values = [float(intr[k]) for k in keys] + [float(intr.get(k, 0.0)) for k in ("k1", "k2")]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise TrackError(
+            f"{rec_json}: no readable camera intrinsics ({type(exc).__name__}: {exc}); re-run `image2sim ground` for "
+            "this scene, or pass the clip's intrinsics (--intrinsics FX FY CX CY)"
+        ) from exc
+    if not (np.isfinite(values).all() and min(values[:4]) > 0):
+        raise TrackError(
+            f"{rec_json}: camera intrinsics {dict(zip(keys, values, strict=False))} are not positive finite numbers; "
+            "re-run `image2sim ground` for this scene, or pass the clip's intrinsics (--intrinsics FX FY CX CY)"
+        )
+    intr = dict(zip((*keys, "k1", "k2"), values, strict=True))
     sx, sy = width_px / intr["width_px"], height_px / intr["height_px"]
     if abs(sx - sy) > 1e-3:
         raise TrackError(
@@ -342,6 +356,8 @@ def load_scan(
         return None
     try:
         rows = json.loads(transforms.read_text())["frames"]
+        if not (isinstance(rows, list) and rows and all(isinstance(r, dict) for r in rows)):
+            raise ValueError(f"{transforms}: 'frames' is not a list of frames")
         objects = json.loads(manifest.read_text())["objects"]
         world_from_objects = [pose_matrix(objects[n]["pos_m"], objects[n]["quat_wxyz"]) for n in names]
     except (OSError, ValueError, KeyError, TypeError) as exc:
@@ -350,7 +366,11 @@ def load_scan(
     picks = np.unique(np.linspace(0, len(rows) - 1, min(len(rows), options.scan_feature_frames)).round().astype(int))
     frames = []
     for k in picks:
-        image = cv2.imread(str(rec_dir / rows[k]["file_path"]))
+        image_path = (rec_dir / str(rows[k].get("file_path", ""))).resolve()
+        if not image_path.is_relative_to(rec_dir.resolve()):  # an untrusted scene may name any image on disk
+            log.warning("scan frames not used for the feature models: %s lies outside %s", image_path, rec_dir)
+            return None
+        image = cv2.imread(str(image_path))
         if image is None:
             continue
         if image.shape[:2] != tuple(size_px):
@@ -358,7 +378,11 @@ def load_scan(
             return None
         gray = cv2.cvtColor(undistort(image), cv2.COLOR_BGR2GRAY)
         # transforms.json: nerfstudio's camera-to-world with OpenGL camera axes (y up, z back).
-        world_from_cam = np.asarray(rows[k]["transform_matrix"], float) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        try:
+            world_from_cam = np.asarray(rows[k]["transform_matrix"], float) @ np.diag([1.0, -1.0, -1.0, 1.0])
+        except (KeyError, ValueError, TypeError) as exc:
+            log.warning("scan frames not used for the feature models: %s frame %d: %s", transforms, k, exc)
+            return None
         frames.append(ScanFrame(gray=gray, world_from_cam=world_from_cam))
     if not frames:
         return None

@@ -252,6 +252,52 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
     assert (tmp_path / "taken" / "mine.txt").read_text() == "mine"
 
 
+@pytest.mark.parametrize(
+    "content",
+    ['{"intrinsics": {"width_px": 640}}', '{"intrinsics": {"width_px": "wide", "height_px": 480, "fx_px": 1, '
+     '"fy_px": 1, "cx_px": 1, "cy_px": 1}}', "[1, 2]", "not json", '{"intrinsics": {"width_px": 640, '
+     '"height_px": 480, "fx_px": -500, "fy_px": 500, "cx_px": 320, "cy_px": 240}}'],
+    ids=["missing", "text", "list", "garbage", "negative"],
+)  # fmt: skip
+def test_a_scene_with_unreadable_intrinsics_is_one_error(content: str, tmp_path: Path) -> None:
+    """The scene's reconstruct.json comes with the scene (maybe someone else's): a missing or malformed value was a
+    KeyError / TypeError traceback; now a TrackError naming the file and what to do."""
+    from grounder._track import scene_intrinsics
+
+    (tmp_path / "reconstruction").mkdir()
+    (tmp_path / "reconstruction" / "reconstruct.json").write_text(content)
+    with pytest.raises(TrackError, match=r"reconstruct\.json: .*(--intrinsics FX FY CX CY)"):
+        scene_intrinsics(tmp_path / "scene.xml", 640, 480)
+
+
+def test_scan_frames_outside_the_scene_are_not_read(tmp_path: Path) -> None:
+    """transforms.json names its images; one naming a file outside the scene's reconstruction/ folder is not read
+    (the scan frames are then left out, as when they are missing)."""
+    import cv2
+
+    from grounder._track import load_scan
+
+    cv2.imwrite(str(tmp_path / "private.png"), np.zeros((48, 64, 3), np.uint8))
+    rec = tmp_path / "scene" / "reconstruction"
+    rec.mkdir(parents=True)
+    frame = {"file_path": "../../private.png", "transform_matrix": np.eye(4).tolist()}
+    (rec / "transforms.json").write_text(json.dumps({"frames": [frame]}))
+    (tmp_path / "scene" / "scene.json").write_text(
+        json.dumps({"objects": {"box": {"pos_m": [0, 0, 0], "quat_wxyz": [1, 0, 0, 0]}}})
+    )
+    read: list[str] = []
+    original = cv2.imread
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(cv2, "imread", lambda path, *a: read.append(path) or original(path, *a))
+        assert load_scan(tmp_path / "scene" / "scene.xml", ["box"], TrackOptions(), lambda im: im, (48, 64)) is None
+        assert read == []
+        frame["file_path"] = "frame.png"  # the control: an image inside the folder is read
+        cv2.imwrite(str(rec / "frame.png"), np.zeros((48, 64, 3), np.uint8))
+        (rec / "transforms.json").write_text(json.dumps({"frames": [frame]}))
+        scan = load_scan(tmp_path / "scene" / "scene.xml", ["box"], TrackOptions(), lambda im: im, (48, 64))
+        assert scan is not None and len(scan[0]) == 1 and read == [str(rec / "frame.png")]
+
+
 def test_options_reject_bad_values() -> None:
     with pytest.raises(TrackError, match="aruco_size_m"):
         TrackOptions(aruco_size_m=-1.0)
