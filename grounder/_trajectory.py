@@ -322,8 +322,9 @@ def _check_member_size(path: Path, archive: np.lib.npyio.NpzFile, key: str) -> N
         TrajectoryError: the array is too large or its header lies.
         ValueError, OSError, zipfile.BadZipFile, zlib.error: an unreadable header (the caller words them).
     """
-    member = archive.zip.NameToInfo.get(f"{key}.npy") if archive.zip is not None else None
-    if member is None:
+    zip_file = archive.zip
+    member = zip_file.NameToInfo.get(f"{key}.npy") if zip_file is not None else None
+    if zip_file is None or member is None:
         return
     if member.file_size > _MAX_ARRAY_BYTES:
         raise TrajectoryError(
@@ -331,7 +332,7 @@ def _check_member_size(path: Path, archive: np.lib.npyio.NpzFile, key: str) -> N
             f"{_MAX_ARRAY_BYTES / 1e9:.0f} GB a trajectory array may take; split the recording into shorter "
             "trajectories"
         )
-    with archive.zip.open(member) as stream:
+    with zip_file.open(member) as stream:
         version = np.lib.format.read_magic(stream)
         read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
         shape, _, dtype = read_header(stream)
