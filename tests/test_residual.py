@@ -4,6 +4,7 @@ forms, batched stepping, and the CLI."""
 
 from __future__ import annotations
 
+import itertools
 import json
 from dataclasses import replace
 from pathlib import Path
@@ -18,6 +19,7 @@ from grounder._residual import (
     META_FILE,
     ONNX_FILE,
     WEIGHTS_FILE,
+    NumpyResidual,
     apply_correction,
     body_features,
     correction_targets,
@@ -100,9 +102,14 @@ def nominal_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def trained(nominal_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+def training_tosses() -> list[Trajectory]:
+    return _tosses(24, seed=1, fluid_density=DRAG_DENSITY)
+
+
+@pytest.fixture(scope="module")
+def trained(nominal_scene: Path, training_tosses: list[Trajectory], tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("trained") / "residual_scene"
-    train_residual(nominal_scene, _tosses(24, seed=1, fluid_density=DRAG_DENSITY), out, TINY)
+    train_residual(nominal_scene, training_tosses, out, TINY)
     return out
 
 
@@ -202,6 +209,183 @@ def test_bounded_and_fades_outside_training(trained: Path) -> None:
     v = np.concatenate([t.qvel[:20] for t in held_out])
     feats_in, _ = body_features(q, v, residual.bodies)
     assert np.mean(residual.gate(feats_in) > 0.5) > 0.8
+
+
+def _residual_at_gain_1(trained: Path, coverage_scale: float = 1.0) -> tuple[NumpyResidual, dict[str, np.ndarray]]:
+    """The trained residual and its ``state_dict`` (as numpy) at output gain 1, so that its correction shows the
+    gate whatever gain training chose, with its coverage distance scaled by ``coverage_scale``."""
+    import torch
+
+    loaded = Simulator(trained).residual
+    assert isinstance(loaded, NumpyResidual)
+    state = {k: v.numpy().copy() for k, v in torch.load(trained / WEIGHTS_FILE, weights_only=True).items()}
+    state["out_gain"] = np.ones_like(state["out_gain"])
+    state["coverage_dist"] = state["coverage_dist"] * coverage_scale
+    return NumpyResidual(state, loaded.meta, loaded.bodies, loaded.gravity), state
+
+
+def _gate_of_every_form(
+    residual: NumpyResidual, state: dict[str, np.ndarray], onnx_path: Path, qpos0: np.ndarray, qvel0: np.ndarray
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The gate (N,) of states (N, 7), (N, 6) of the cube as each form of the residual (at gain 1) applies it.
+
+    ``numpy``: ``NumpyResidual.gate``; ``fast``: read back from what ``correct_one`` adds to a MuJoCo prediction at
+    the origin (the energy cap scales velocities only, so the position it returns is the gate times the raw
+    position correction in the world frame); ``torch``: ``ResidualModel.gate``; ``onnx``: the exported graph's
+    correction (with the same statistics and gain) over the raw one. Also returns (N,) True where ``correct_one``
+    left the prediction exactly as it was.
+    """
+    import onnx
+    import torch
+    from onnx import numpy_helper
+    from onnx.reference import ReferenceEvaluator
+
+    from grounder._residual_torch import ResidualModel
+
+    feats, rots = body_features(qpos0, qvel0, residual.bodies)
+    raw = residual.raw(feats)[:, 0]
+    fast, untouched = np.empty(len(qpos0)), np.empty(len(qpos0), dtype=bool)
+    origin = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+    for i in range(len(qpos0)):
+        qpos, qvel = origin.copy(), qvel0[i].copy()
+        residual.correct_one(qpos0[i], qvel0[i], qpos, qvel)
+        untouched[i] = np.array_equal(qpos, origin) and np.array_equal(qvel, qvel0[i])
+        fast[i] = (rots[i, 0].T @ qpos[:3]) @ raw[i, :3] / (raw[i, :3] @ raw[i, :3])
+    model = ResidualModel(
+        num_bodies=1,
+        hidden=residual.meta.hidden,
+        layers=residual.meta.layers,
+        gate=residual.meta.gate,
+        radius_m=residual.radius_m,
+    )
+    model.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
+    with torch.no_grad():
+        gate_torch = model.gate(torch.as_tensor(feats))[:, 0].numpy()
+    graph = onnx.load(str(onnx_path))
+    for init in graph.graph.initializer:
+        if init.name in ("coverage_dist", "out_gain"):
+            init.CopyFrom(numpy_helper.from_array(state[init.name], init.name))
+    (corr,) = ReferenceEvaluator(graph).run(None, {"features": feats})
+    gate_onnx = np.sum(corr[:, 0] * raw, axis=1) / np.sum(raw * raw, axis=1)
+    gates = {"numpy": residual.gate(feats)[:, 0], "fast": fast, "torch": gate_torch, "onnx": gate_onnx}
+    return gates, untouched
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _nearest_centre_dist(residual: NumpyResidual, feats: np.ndarray) -> np.ndarray:
+    """(N, F) raw features -> (N,) standardised distance to the nearest coverage centre, computed directly."""
+    from scipy.spatial.distance import cdist
+
+    z = (feats - residual.feat_mean[0]) / residual.feat_std[0]
+    return np.min(cdist(z, residual.centres[0]), axis=1)
+
+
+@pytest.mark.parametrize(("coverage_scale", "multiples"), [(1.0, (0.5, 1.5)), (0.5, (0.5, 1.5, 2.5))])
+def test_gate_fades_with_distance_from_the_training_states(
+    trained: Path, training_tosses: list[Trajectory], coverage_scale: float, multiples: tuple[float, ...]
+) -> None:
+    """A training state in flight, moved (its body-frame velocity and angular velocity) away from the training
+    states while every feature stays inside its training range: the gate is 1 up to the coverage distance from the
+    nearest k-means centre, fades (1 - smoothstep(distance / coverage_dist - 1)) and is 0 from twice that, in every
+    form of the residual; where it is 0 the correction is exactly zero.
+
+    The tiny training set leaves a coverage distance (~3.7 standardised units in 11 features) whose double lies
+    outside the training ranges from every state inside them (the farthest in-range point is about 2x away), so the
+    distance fade alone cannot be followed to 0 with it: the full path uses the residual with that distance halved.
+    """
+    residual, state = _residual_at_gain_1(trained, coverage_scale)
+    lo, hi = residual.range_lo[0], residual.range_hi[0]
+    coverage_dist = float(residual.coverage_dist[0])
+    qpos = np.concatenate([t.qpos for t in training_tosses])
+    qvel = np.concatenate([t.qvel for t in training_tosses])
+    feats, rots = body_features(qpos, qvel, residual.bodies)
+    f = feats[:, 0]
+    dist = _nearest_centre_dist(residual, f) / coverage_dist
+    flying = f[:, 0] > residual.meta.gate.air_clearance_m[1]  # in flight the at-rest gate is 1 whatever the speed
+    starts = np.flatnonzero(np.all((f >= lo) & (f <= hi), axis=1) & flying & (dist < 0.25))
+    # towards a corner (2% inside) of the velocity ranges, the orientation and height kept: inside every range
+    corners = lo[5:] + np.array(list(itertools.product((0.02, 0.98), repeat=6))) * (hi - lo)[5:]
+    t = np.linspace(0.0, 1.0, 801)[:, None]
+    for i in starts:
+        targets = np.repeat(f[i][None], len(corners), axis=0)
+        targets[:, 5:] = corners
+        target = targets[np.argmax(_nearest_centre_dist(residual, targets))]
+        d = _nearest_centre_dist(residual, f[i] + t * (target - f[i])) / coverage_dist
+        if d.max() < multiples[-1] + 0.05:
+            continue
+        end = int(np.argmax(d > multiples[-1] + 0.05)) + 1
+        if np.all(np.diff(np.clip(d[:end] - 1.0, 0.0, 1.0)) >= 0.0):  # the distance grows where the gate fades
+            break
+    else:
+        pytest.fail(f"no path from a training state out to {multiples[-1]}x the coverage distance inside the ranges")
+    step = target - f[i]
+    path_q = np.repeat(qpos[i][None], end, axis=0)
+    path_v = qvel[i] + t[:end] * np.concatenate([rots[i, 0] @ step[5:8], step[8:11]])
+    path_f = body_features(path_q, path_v, residual.bodies)[0][:, 0]
+    np.testing.assert_allclose(path_f, f[i] + t[:end] * step, atol=1e-9)
+    assert np.all((path_f >= lo) & (path_f <= hi))
+    d = d[:end]
+    picks = [int(np.argmin(np.abs(d - m))) for m in multiples]
+    np.testing.assert_allclose(d[picks], multiples, atol=0.02)
+    gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
+    for form, gate in gates.items():
+        np.testing.assert_allclose(gate, 1.0 - _smoothstep(d - 1.0), atol=1e-9, err_msg=form)
+        assert gate[picks[0]] == pytest.approx(1.0, abs=1e-12), form
+        assert 0.05 < gate[picks[1]] < 0.95, form
+        assert np.all(np.diff(gate) <= 1e-12), form  # never opens again on the way out
+        if len(picks) > 2:
+            assert gate[picks[2]] == pytest.approx(0.0, abs=1e-12), form
+    if len(picks) > 2:
+        far = slice(picks[2], picks[2] + 1)
+        assert gates["numpy"][picks[2]] == 0.0
+        assert np.all(residual(body_features(path_q[far], path_v[far], residual.bodies)[0]) == 0.0)
+        assert untouched[picks[2]] and not untouched[picks[1]]
+    assert not untouched[picks[0]]
+
+
+@pytest.mark.parametrize("side", ["above", "below"])
+def test_gate_closes_outside_a_feature_range_near_the_training_states(
+    trained: Path, training_tosses: list[Trajectory], side: str
+) -> None:
+    """One feature (the body-frame x velocity) pushed past its training range, the state staying within the
+    coverage distance of a training centre: the gate is 1 just inside, 1 - smoothstep(x) at x margins beyond
+    (margin: ``range_margin`` of the range) and 0 past the margin, in every form; there the correction is zero."""
+    residual, state = _residual_at_gain_1(trained)
+    lo, hi = residual.range_lo[0], residual.range_hi[0]
+    k = FEATURE_NAMES.index("vel_body_x_m_s")
+    margin = residual.meta.gate.range_margin * (hi[k] - lo[k])
+    edge, outward = (hi[k], 1.0) if side == "above" else (lo[k], -1.0)
+    beyond = np.array([-0.01, 0.5, 1.05])  # in margins past the edge
+    qpos = np.concatenate([t.qpos for t in training_tosses])
+    qvel = np.concatenate([t.qvel for t in training_tosses])
+    feats, rots = body_features(qpos, qvel, residual.bodies)
+    f = feats[:, 0]
+    others = np.delete(np.arange(len(FEATURE_NAMES)), k)
+    ok = np.all((f[:, others] >= lo[others]) & (f[:, others] <= hi[others]), axis=1)
+    ok &= f[:, 0] > residual.meta.gate.air_clearance_m[1]
+    pushed = f.copy()
+    pushed[:, k] = edge + outward * beyond[-1] * margin
+    i = int(np.flatnonzero(ok)[np.argmin(_nearest_centre_dist(residual, pushed[ok]))])
+    new_k = edge + outward * beyond * margin
+    path_q = np.repeat(qpos[i][None], len(beyond), axis=0)
+    path_v = np.repeat(qvel[i][None], len(beyond), axis=0)
+    path_v[:, :3] += (new_k - f[i, k])[:, None] * rots[i, 0][:, 0]  # along the body's x axis
+    path_f = body_features(path_q, path_v, residual.bodies)[0][:, 0]
+    np.testing.assert_allclose(path_f[:, k], new_k, atol=1e-9)
+    np.testing.assert_allclose(path_f[:, others], np.repeat(f[i, others][None], len(beyond), 0), atol=1e-9)
+    # near the training states (no distance fade), so only the range check can close the gate
+    assert np.all(_nearest_centre_dist(residual, path_f) < residual.coverage_dist[0])
+    gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
+    for form, gate in gates.items():
+        np.testing.assert_allclose(gate, 1.0 - _smoothstep(beyond), atol=1e-6, err_msg=form)
+        assert gate[0] == pytest.approx(1.0, abs=1e-12) and gate[-1] == pytest.approx(0.0, abs=1e-12), form
+    assert gates["numpy"][-1] == 0.0
+    assert np.all(residual(body_features(path_q[2:], path_v[2:], residual.bodies)[0]) == 0.0)
+    assert list(untouched) == [False, False, True]
 
 
 def test_numpy_torch_onnx_agree(trained: Path) -> None:

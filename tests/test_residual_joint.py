@@ -29,9 +29,17 @@ def _case(name: str, count: int, seed: int) -> tuple[str, list[Trajectory]]:
 
 
 @pytest.fixture(scope="module")
-def pendulum(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+def pendulum_case() -> tuple[str, list[Trajectory]]:
+    """The damped pendulum's scene (without the damping) and the recordings the residual is trained on."""
+    return _case("pendulum/joint_damping", 24, seed=0)
+
+
+@pytest.fixture(scope="module")
+def pendulum(
+    pendulum_case: tuple[str, list[Trajectory]], tmp_path_factory: pytest.TempPathFactory
+) -> tuple[Path, Path]:
     """(nominal scene without damping, residual trained on the damped pendulum's recordings)."""
-    xml, trajs = _case("pendulum/joint_damping", 24, seed=0)
+    xml, trajs = pendulum_case
     nominal = tmp_path_factory.mktemp("pendulum")
     (nominal / "scene.xml").write_text(xml)
     out = tmp_path_factory.mktemp("trained") / "residual"
@@ -94,6 +102,176 @@ def test_bounded_and_fades_outside_training(pendulum: tuple[Path, Path]) -> None
     assert np.all(np.abs(residual(feats)) <= residual.out_bound[None] + 1e-12)
     far = np.array([[[0.0, 1.0, 200.0]]])  # 200 rad/s: never seen
     assert residual.gate(far)[0, 0] == 0.0
+
+
+def _residual_at_gain_1(trained: Path) -> tuple[NumpyJointResidual, dict[str, np.ndarray]]:
+    """The trained residual and its ``state_dict`` (as numpy) at output gain 1, so that its correction shows the
+    gate whatever gain training chose."""
+    import torch
+
+    loaded = Simulator(trained).residual
+    assert isinstance(loaded, NumpyJointResidual)
+    state = {k: v.numpy().copy() for k, v in torch.load(trained / WEIGHTS_FILE, weights_only=True).items()}
+    state["out_gain"] = np.ones_like(state["out_gain"])
+    return NumpyJointResidual(state, loaded.meta, loaded.space), state
+
+
+def _gate_of_every_form(
+    residual: NumpyJointResidual, state: dict[str, np.ndarray], onnx_path: Path, qpos0: np.ndarray, qvel0: np.ndarray
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The gate (N,) of pendulum states (N, 1), (N, 1) as each form of the residual (at gain 1) applies it.
+
+    ``numpy``: ``NumpyJointResidual.gate``; ``fast``: read back from what ``correct_one`` adds to a zero MuJoCo
+    prediction (the gated correction itself); ``torch``: ``JointResidualModel.gate``; ``onnx``: the exported graph's
+    correction (at gain 1) over the raw one. Also returns (N,) True where ``correct_one`` left the prediction as it was.
+    """
+    import onnx
+    import torch
+    from onnx import numpy_helper
+    from onnx.reference import ReferenceEvaluator
+
+    from grounder._residual_torch import JointResidualModel
+
+    space = residual.space
+    feats = joint_features(qpos0, qvel0, None, space)
+    raw = residual.raw(feats)[:, 0]
+    fast, untouched = np.empty(len(qpos0)), np.empty(len(qpos0), dtype=bool)
+    for i in range(len(qpos0)):
+        qpos, qvel = np.zeros(qpos0.shape[1]), np.zeros(qvel0.shape[1])
+        residual.correct_one(qpos0[i], qvel0[i], qpos, qvel, None)
+        untouched[i] = not (np.any(qpos) or np.any(qvel))
+        added = np.concatenate([qpos[space.qpos_adr], qvel[space.dof_adr]])
+        fast[i] = added @ raw[i] / (raw[i] @ raw[i])
+    model = JointResidualModel(
+        num_features=len(space.feature_names),
+        num_outputs=len(space.output_names),
+        hidden=residual.meta.hidden,
+        layers=residual.meta.layers,
+        gate=residual.meta.gate,
+        speed_columns=space.speed_columns,
+    )
+    model.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
+    with torch.no_grad():
+        gate_torch = model.gate(torch.as_tensor(feats))[:, 0].numpy()
+    graph = onnx.load(str(onnx_path))
+    for init in graph.graph.initializer:
+        if init.name == "out_gain":
+            init.CopyFrom(numpy_helper.from_array(state[init.name], init.name))
+    (corr,) = ReferenceEvaluator(graph).run(None, {"features": feats})
+    gate_onnx = np.sum(corr[:, 0] * raw, axis=1) / np.sum(raw * raw, axis=1)
+    gates = {"numpy": residual.gate(feats)[:, 0], "fast": fast, "torch": gate_torch, "onnx": gate_onnx}
+    return gates, untouched
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def _nearest_centre_dist(residual: NumpyJointResidual, feats: np.ndarray) -> np.ndarray:
+    """(N, F) raw features -> (N,) standardised distance to the nearest coverage centre, computed directly."""
+    from scipy.spatial.distance import cdist
+
+    z = (feats - residual.feat_mean[0]) / residual.feat_std[0]
+    return np.min(cdist(z, residual.centres[0]), axis=1)
+
+
+def test_gate_fades_with_distance_from_the_training_states(
+    pendulum: tuple[Path, Path], pendulum_case: tuple[str, list[Trajectory]]
+) -> None:
+    """A training state of the pendulum moved (angle and velocity) to 0.5, 1.5 and 2.5 times the coverage distance
+    from the nearest k-means centre, every feature inside its training range and the pendulum moving: the gate is
+    1, then 1 - smoothstep(distance / coverage_dist - 1) (strictly between), then 0 and never opens again on the
+    way, in every form of the residual; at 0 the correction is exactly zero."""
+    _, trained = pendulum
+    residual, state = _residual_at_gain_1(trained)
+    space = residual.space
+    assert space.feature_names == ("sin_hinge", "cos_hinge", "vel_hinge")
+    lo, hi = residual.range_lo[0], residual.range_hi[0]
+    coverage_dist = float(residual.coverage_dist[0])
+    moving = residual.meta.gate.rest_speed_m_s[1]  # faster than this the at-rest gate is 1
+    multiples = (0.5, 1.5, 2.5)
+    qpos = np.concatenate([t.qpos for t in pendulum_case[1]])
+    qvel = np.concatenate([t.qvel for t in pendulum_case[1]])
+    f = joint_features(qpos, qvel, None, space)[:, 0]
+    dist = _nearest_centre_dist(residual, f) / coverage_dist
+    starts = np.flatnonzero(np.all((f >= lo) & (f <= hi), axis=1) & (np.abs(qvel[:, 0]) > 10 * moving) & (dist < 0.25))
+    # far states: in range, moving, beyond the last multiple; tried nearest first from each start
+    angle, vel = (g.ravel() for g in np.meshgrid(np.linspace(-np.pi, np.pi, 361), np.linspace(lo[2], hi[2], 201)))
+    grid = joint_features(angle[:, None], vel[:, None], None, space)[:, 0]
+    far = np.all((grid >= lo) & (grid <= hi), axis=1) & (np.abs(vel) > 2 * moving)
+    far &= _nearest_centre_dist(residual, grid) / coverage_dist > multiples[-1] + 0.2
+    t = np.linspace(0.0, 1.0, 801)
+    for i in starts:
+        turn = np.angle(np.exp(1j * (angle[far] - qpos[i, 0])))  # the shorter way round
+        order = np.argsort(np.hypot(turn, (vel[far] - qvel[i, 0]) / residual.feat_std[0, 2]))[:5]
+        for turn_j, vel_j in zip(turn[order], vel[far][order], strict=True):
+            path_q = (qpos[i, 0] + t * turn_j)[:, None]
+            path_v = (qvel[i, 0] + t * (vel_j - qvel[i, 0]))[:, None]
+            path_f = joint_features(path_q, path_v, None, space)[:, 0]
+            d = _nearest_centre_dist(residual, path_f) / coverage_dist
+            end = int(np.argmax(d > multiples[-1] + 0.05)) + 1
+            inside = np.all((path_f[:end] >= lo) & (path_f[:end] <= hi)) and np.all(np.abs(path_v[:end]) >= moving)
+            if inside and np.all(np.diff(np.clip(d[:end] - 1.0, 0.0, 1.0)) >= 0.0):
+                break
+        else:
+            continue
+        break
+    else:
+        pytest.fail(f"no path from a training state out to {multiples[-1]}x the coverage distance inside the ranges")
+    path_q, path_v, d = path_q[:end], path_v[:end], d[:end]
+    picks = [int(np.argmin(np.abs(d - m))) for m in multiples]
+    np.testing.assert_allclose(d[picks], multiples, atol=0.02)
+    gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
+    for form, gate in gates.items():
+        np.testing.assert_allclose(gate, 1.0 - _smoothstep(d - 1.0), atol=1e-9, err_msg=form)
+        assert gate[picks[0]] == pytest.approx(1.0, abs=1e-12), form
+        assert 0.05 < gate[picks[1]] < 0.95, form
+        assert gate[picks[2]] == pytest.approx(0.0, abs=1e-12), form
+        assert np.all(np.diff(gate) <= 1e-12), form
+    assert gates["numpy"][picks[2]] == 0.0
+    far_feats = joint_features(path_q[picks[2] :], path_v[picks[2] :], None, space)
+    assert np.all(residual(far_feats) == 0.0)
+    assert not untouched[picks[0]] and not untouched[picks[1]] and untouched[picks[2]]
+
+
+@pytest.mark.parametrize("side", ["above", "below"])
+def test_gate_closes_outside_a_feature_range_near_the_training_states(
+    pendulum: tuple[Path, Path], pendulum_case: tuple[str, list[Trajectory]], side: str
+) -> None:
+    """The joint velocity pushed past its training range from a training state, staying near the training states
+    (the distance fade alone would leave at least half the gate): the gate is open just inside, fades by
+    1 - smoothstep(x) at x margins beyond (margin: ``range_margin`` of the range) and is 0 past the margin, in
+    every form; there the correction is zero."""
+    _, trained = pendulum
+    residual, state = _residual_at_gain_1(trained)
+    space = residual.space
+    lo, hi = residual.range_lo[0], residual.range_hi[0]
+    coverage_dist = float(residual.coverage_dist[0])
+    k = space.feature_names.index("vel_hinge")
+    margin = residual.meta.gate.range_margin * (hi[k] - lo[k])
+    edge, outward = (hi[k], 1.0) if side == "above" else (lo[k], -1.0)
+    beyond = np.array([-0.01, 0.5, 1.05])  # in margins past the edge
+    qpos = np.concatenate([t.qpos for t in pendulum_case[1]])
+    qvel = np.concatenate([t.qvel for t in pendulum_case[1]])
+    f = joint_features(qpos, qvel, None, space)[:, 0]
+    ok = np.all((f[:, :k] >= lo[:k]) & (f[:, :k] <= hi[:k]), axis=1)
+    pushed = f.copy()
+    pushed[:, k] = edge + outward * beyond[-1] * margin
+    i = int(np.flatnonzero(ok)[np.argmin(_nearest_centre_dist(residual, pushed[ok]))])
+    path_q = np.repeat(qpos[i][None], len(beyond), axis=0)
+    path_v = (edge + outward * beyond * margin)[:, None]
+    path_f = joint_features(path_q, path_v, None, space)[:, 0]
+    near = 1.0 - _smoothstep(_nearest_centre_dist(residual, path_f) / coverage_dist - 1.0)
+    assert np.all(near >= 0.5), near  # near the training states: only the range check can close the gate
+    assert np.all(np.abs(path_v) > residual.meta.gate.rest_speed_m_s[1])
+    gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
+    for form, gate in gates.items():
+        np.testing.assert_allclose(gate, near * (1.0 - _smoothstep(beyond)), atol=1e-6, err_msg=form)
+        assert gate[0] >= 0.5 and gate[-1] == pytest.approx(0.0, abs=1e-12), form
+    assert gates["numpy"][-1] == 0.0
+    assert np.all(residual(joint_features(path_q[2:], path_v[2:], None, space)) == 0.0)
+    assert list(untouched) == [False, False, True]
 
 
 def test_numpy_torch_onnx_agree(pendulum: tuple[Path, Path]) -> None:
