@@ -74,6 +74,7 @@ class PropertyModel:
 def load_property_model(weights_dir: Path | None = None) -> PropertyModel:
     """The property model from `weights_dir` (default: the weights shipped with the package), cached."""
     from grounder._properties_model import META_FILE, WEIGHTS_FILE, load
+    from grounder._residual import quiet_pickle_protocol_warning
 
     weights_dir = Path(weights_dir or WEIGHTS_DIR)
     if not (weights_dir / WEIGHTS_FILE).is_file() or not (weights_dir / META_FILE).is_file():
@@ -82,9 +83,17 @@ def load_property_model(weights_dir: Path | None = None) -> PropertyModel:
             "run `image2sim properties train` to make one"
         )
     try:
-        net, norm, meta = load(weights_dir)
+        with quiet_pickle_protocol_warning():
+            net, norm, meta = load(weights_dir)
     except Exception as exc:
-        raise PropertyModelError(f"cannot load the property model from {weights_dir}: {exc}; retrain it") from exc
+        # Not the exception's own text: torch's runs over several lines and suggests weights_only=False, unsafe for
+        # a file of unknown origin.
+        command = "image2sim properties train"
+        command += "" if weights_dir == WEIGHTS_DIR else f" -o {weights_dir} --overwrite"
+        raise PropertyModelError(
+            f"{weights_dir / WEIGHTS_FILE}: not a valid property-model weights file, or {META_FILE} beside it does not "
+            f"match it ({type(exc).__name__}); regenerate both with `{command}`"
+        ) from exc
     return PropertyModel(net=net, norm=norm, meta=meta, weights_dir=weights_dir)
 
 

@@ -42,8 +42,11 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import struct
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
@@ -438,42 +441,135 @@ class ResidualMeta:
         }
 
     @staticmethod
-    def from_json(raw: dict[str, Any], where: Path) -> ResidualMeta:
+    def from_json(raw: Any, where: Path) -> ResidualMeta:
+        """The metadata from ``residual.json``'s parsed content, an untrusted file: every field's type and range is
+        checked here, so that the residual and :class:`grounder.Simulator` can use them as they are.
+
+        Raises:
+            GrounderError: one line naming the field, its value and what it must be.
+        """
+        if not isinstance(raw, dict):
+            raise GrounderError(f"{where}: expected a JSON object, got a JSON {_json_type(raw)}; {_RETRAIN}")
         if raw.get("format") != RESIDUAL_FORMAT or raw.get("version") != RESIDUAL_VERSION:
             raise GrounderError(
-                f"{where}: not an {RESIDUAL_FORMAT} v{RESIDUAL_VERSION} file (format={raw.get('format')!r}, "
-                f"version={raw.get('version')!r}); retrain with `image2sim residual train`"
+                f"{where}: not an {RESIDUAL_FORMAT} v{RESIDUAL_VERSION} file (format={_shown(raw.get('format'))}, "
+                f"version={_shown(raw.get('version'))}); {_RETRAIN}"
             )
         space = raw.get("space", "free")
         if space not in ("free", "joint"):
-            raise GrounderError(f"{where}: unknown residual space {space!r}; retrain the residual")
-        features, outputs = list(raw.get("features", [])), list(raw.get("outputs", []))
-        if space == "free" and (features != list(FEATURE_NAMES) or outputs != list(OUTPUT_NAMES)):
-            raise GrounderError(f"{where}: features or outputs differ from this version's; retrain the residual")
-        try:
-            gate = raw["gate"]
-            return ResidualMeta(
-                period_steps=int(raw["period_steps"]),
-                timestep_s=float(raw["timestep_s"]),
-                bodies=tuple(str(b) for b in raw["bodies"]),
-                hidden=int(raw["hidden"]),
-                layers=int(raw["layers"]),
-                gate=GateOptions(
-                    rest_speed_m_s=(float(gate["rest_speed_m_s"][0]), float(gate["rest_speed_m_s"][1])),
-                    air_clearance_m=(float(gate["air_clearance_m"][0]), float(gate["air_clearance_m"][1])),
-                    range_margin=float(gate["range_margin"]),
-                    coverage_centres=int(gate["coverage_centres"]),
-                    coverage_quantile=float(gate["coverage_quantile"]),
-                    energy_restore_fraction=float(gate["energy_restore_fraction"]),
+            raise GrounderError(f"{where}: unknown residual space {_shown(space)}; {_RETRAIN}")
+        field = _MetaFields(raw, where)
+        features, outputs = field.names("features"), field.names("outputs")
+        if space == "free" and (features != FEATURE_NAMES or outputs != OUTPUT_NAMES):
+            raise GrounderError(f"{where}: features or outputs differ from this version's; {_RETRAIN}")
+        gate = _MetaFields(field.value("gate", dict, "an object"), where, "gate.")
+        training = raw.get("training", {})
+        if not isinstance(training, dict):
+            raise GrounderError(f"{where}: training is a JSON {_json_type(training)}, expected an object; {_RETRAIN}")
+        sha256 = field.value("scene_xml_sha256", str, "the scene.xml's sha256 (64 hex digits)")
+        if re.fullmatch(r"[0-9a-f]{64}", sha256) is None:
+            raise field.bad("scene_xml_sha256", sha256, "the scene.xml's sha256 (64 lowercase hex digits)")
+        return ResidualMeta(
+            period_steps=field.integer("period_steps", 1, MAX_PERIOD_STEPS),
+            timestep_s=field.number("timestep_s", lambda x: x > 0.0, "a number > 0"),
+            bodies=field.names("bodies", nonempty=True),
+            hidden=field.integer("hidden", 1),
+            layers=field.integer("layers", 1),
+            gate=GateOptions(
+                rest_speed_m_s=gate.pair("rest_speed_m_s", lowest=0.0),
+                air_clearance_m=gate.pair("air_clearance_m"),
+                range_margin=gate.number("range_margin", lambda x: x >= 0.0, "a number >= 0"),
+                coverage_centres=gate.integer("coverage_centres", 1),
+                coverage_quantile=gate.number("coverage_quantile", lambda x: 0.0 < x <= 1.0, "a number in (0, 1]"),
+                energy_restore_fraction=gate.number(
+                    "energy_restore_fraction", lambda x: 0.0 <= x <= 1.0, "a number in [0, 1]"
                 ),
-                scene_xml_sha256=str(raw.get("scene_xml_sha256", "")),
-                training=dict(raw.get("training", {})),
-                space=space,
-                feature_names=tuple(str(f) for f in features),
-                output_names=tuple(str(o) for o in outputs),
-            )
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise GrounderError(f"{where}: malformed residual metadata ({type(exc).__name__}: {exc})") from exc
+            ),
+            scene_xml_sha256=sha256,
+            training=dict(training),
+            space=space,
+            feature_names=features,
+            output_names=outputs,
+        )
+
+
+_RETRAIN = "retrain with `image2sim residual train`"
+
+MAX_PERIOD_STEPS = 100_000
+"""Most model steps one period may span: far beyond any data rate (1 Hz at a 10 us timestep), while a rollout's
+buffers, which grow with the period whatever the data, stay small."""
+
+
+def _json_type(value: Any) -> str:
+    names = {dict: "object", list: "array", str: "string", bool: "boolean", int: "number", float: "number"}
+    return "null" if value is None else names.get(type(value), type(value).__name__)
+
+
+def _shown(value: Any) -> str:
+    """A value from an untrusted JSON file for a one-line message: as JSON writes it, at most 40 characters."""
+    try:
+        text = json.dumps(value, ensure_ascii=True)
+    except (TypeError, ValueError, RecursionError):
+        text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+class _MetaFields:
+    """Typed reads of one JSON object of ``residual.json``; each failure is one GrounderError line naming the field."""
+
+    def __init__(self, raw: dict[str, Any], where: Path, prefix: str = ""):
+        self.raw, self.where, self.prefix = raw, where, prefix
+
+    def bad(self, key: str, value: Any, expected: str) -> GrounderError:
+        return GrounderError(f"{self.where}: {self.prefix}{key} is {_shown(value)}, expected {expected}; {_RETRAIN}")
+
+    def value(self, key: str, kind: type | tuple[type, ...], expected: str) -> Any:
+        if key not in self.raw:
+            raise GrounderError(f"{self.where}: {self.prefix}{key} is missing, expected {expected}; {_RETRAIN}")
+        value = self.raw[key]
+        if not isinstance(value, kind) or isinstance(value, bool) is not (kind is bool):
+            raise self.bad(key, value, expected)
+        return value
+
+    def integer(self, key: str, lowest: int, highest: int | None = None) -> int:
+        expected = f"an integer >= {lowest}" if highest is None else f"an integer in [{lowest}, {highest}]"
+        value = self.value(key, int, expected)  # not a float: 8.7 steps must not become 8
+        if value < lowest or (highest is not None and value > highest):
+            raise self.bad(key, value, expected)
+        return int(value)
+
+    def number(self, key: str, ok: Callable[[float], bool], expected: str) -> float:
+        return self._finite(key, self.value(key, (int, float), expected), ok, expected)
+
+    def _finite(self, key: str, value: int | float, ok: Callable[[float], bool], expected: str) -> float:
+        try:
+            number = float(value)
+        except OverflowError:  # an integer beyond float range
+            number = math.inf
+        if not math.isfinite(number) or not ok(number):
+            raise self.bad(key, value, expected)
+        return number
+
+    def pair(self, key: str, lowest: float = -math.inf) -> tuple[float, float]:
+        """(off, on) thresholds: finite, off >= lowest, on > off (the gate divides by on - off)."""
+        expected = "[off, on], finite numbers with on > off"
+        expected += "" if lowest == -math.inf else f" and off >= {lowest:g}"
+        value = self.value(key, list, expected)
+        if len(value) != 2 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+            raise self.bad(key, value, expected)
+        try:
+            off = self._finite(key, value[0], lambda x: x >= lowest, expected)
+            on = self._finite(key, value[1], lambda x: x > off, expected)
+        except GrounderError:
+            raise self.bad(key, value, expected) from None  # the pair, not one number of it
+        return off, on
+
+    def names(self, key: str, *, nonempty: bool = False) -> tuple[str, ...]:
+        expected = "a non-empty list of names" if nonempty else "a list of names"
+        value = self.value(key, list, expected)
+        if not all(isinstance(v, str) for v in value) or (nonempty and not value):
+            raise self.bad(key, value, expected)
+        return tuple(value)
 
 
 class CoverageStats(Protocol):
@@ -914,28 +1010,173 @@ def has_residual_files(scene_dir: Path) -> bool:
     return scene_dir.is_dir() and (scene_dir / META_FILE).is_file() and (scene_dir / WEIGHTS_FILE).is_file()
 
 
-def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual | NumpyJointResidual:
+@contextmanager
+def quiet_pickle_protocol_warning() -> Iterator[None]:
+    """Around ``torch.load(..., weights_only=True)`` of an untrusted file: silences the two-line UserWarning torch
+    prints for a pickle protocol other than its own (a plain pickle, not a ``torch.save`` file), just before it
+    fails on such a file; the caller's one-line error says all there is to say."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"Detected pickle protocol", category=UserWarning)
+        yield
+
+
+def load_weights_file(path: Path, remedy: str) -> Any:
+    """``torch.load`` of an untrusted weights file (``weights_only=True``, on the CPU), without torch's warnings.
+
+    Args:
+        path: The file.
+        remedy: What the user should do when it is not a weights file (the end of the error line).
+
+    Raises:
+        GrounderError: one line, ``"{path}: not a valid weights file (<error type>); {remedy}"``. Not torch's own
+            text: it runs over several lines and suggests ``weights_only=False``, unsafe for a file of unknown origin.
+    """
+    import torch
+
+    try:
+        with quiet_pickle_protocol_warning():
+            return torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as exc:  # torch raises many types for corrupt or unsafe files
+        raise GrounderError(f"{path}: not a valid weights file ({type(exc).__name__}); {remedy}") from exc
+
+
+def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.ndarray]:
+    """``residual.pt``'s tensors as float64 arrays, each checked against the metadata first.
+
+    Every tensor must be dense, of a real floating-point dtype (``speed_columns`` of a joint-space residual:
+    integer), of the shape that ``residual.json`` implies (bodies, features, outputs, ``hidden``, ``layers``,
+    ``gate.coverage_centres``) and finite; the ones the residual divides by positive (``feat_std``, ``out_bound``,
+    ``coverage_dist``), ``out_gain`` >= 0 and ``range_lo`` <= ``range_hi``. No tensor may be missing or extra.
+
+    Raises:
+        GrounderError: one line naming the file, the tensor and the problem.
+    """
+    import torch
+
+    if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
+        raise GrounderError(
+            f"{where}: expected a state_dict (names -> tensors), not a {type(state).__name__}; {_RETRAIN}"
+        )
+    if len(state) < 2 * (meta.layers + 1):  # before listing the layers' tensors: a huge count must not build a list
+        raise GrounderError(
+            f"{where}: holds {len(state)} tensors, too few for the {meta.layers} hidden layers in {META_FILE}; "
+            f"{_RETRAIN}"
+        )
+    num_b = 1 if meta.space == "joint" else len(meta.bodies)
+    num_f, num_o = len(meta.feature_names), len(meta.output_names)
+    expected: dict[str, tuple[int, ...]] = {
+        "feat_mean": (num_b, num_f),
+        "feat_std": (num_b, num_f),
+        "out_scale": (num_b, num_o),
+        "out_bound": (num_b, num_o),
+        "range_lo": (num_b, num_f),
+        "range_hi": (num_b, num_f),
+        "centres": (num_b, meta.gate.coverage_centres, num_f),
+        "coverage_dist": (num_b,),
+        "out_gain": (num_b,),
+        "radius_m": (num_b,),
+    }
+    if meta.space == "joint":
+        expected["speed_columns"] = (len(meta.bodies),)
+    widths = (num_f, *([meta.hidden] * meta.layers), num_o)
+    for b in range(num_b):
+        for i in range(meta.layers + 1):
+            expected[f"nets.{b}.{2 * i}.weight"] = (widths[i + 1], widths[i])
+            expected[f"nets.{b}.{2 * i}.bias"] = (widths[i + 1],)
+    sizes = (
+        f"{len(meta.bodies)} {'joints' if meta.space == 'joint' else 'bodies'}, {num_f} features, {num_o} outputs, "
+        f"hidden={meta.hidden}, layers={meta.layers}, gate.coverage_centres={meta.gate.coverage_centres}"
+    )
+    missing = [name for name in expected if name not in state]
+    if missing:
+        raise GrounderError(f"{where}: missing tensor {_shown(missing[0])} ({META_FILE}: {sizes}); {_RETRAIN}")
+    extra = [name for name in state if name not in expected]
+    if extra:
+        raise GrounderError(f"{where}: unexpected tensor {_shown(extra[0])} ({META_FILE}: {sizes}); {_RETRAIN}")
+    arrays: dict[str, np.ndarray] = {}
+    for name, shape in expected.items():
+        tensor = state[name]
+        problem = None
+        if not isinstance(tensor, torch.Tensor):
+            problem = f"is a {type(tensor).__name__}, not a tensor"
+        elif tensor.is_nested or tensor.layout != torch.strided or tensor.device.type != "cpu":
+            problem = f"is not a dense tensor (layout {tensor.layout}, device {tensor.device.type})"
+        elif name == "speed_columns" and (tensor.dtype.is_floating_point or tensor.dtype.is_complex):
+            problem = f"has dtype {tensor.dtype}, expected an integer one"
+        elif name != "speed_columns" and not tensor.dtype.is_floating_point:  # complex is not floating point
+            problem = f"has dtype {tensor.dtype}, expected a real floating-point one"
+        elif tuple(tensor.shape) != shape:
+            problem = f"has shape {tuple(tensor.shape)}, expected {shape} ({META_FILE}: {sizes})"
+        if problem is None:
+            try:
+                array = tensor.detach().resolve_conj().resolve_neg().to(torch.float64).numpy()
+            except (RuntimeError, TypeError) as exc:
+                raise GrounderError(
+                    f"{where}: tensor {name!r} cannot be read as numbers ({type(exc).__name__}); {_RETRAIN}"
+                ) from exc
+            if not np.isfinite(array).all():
+                problem = "holds NaN or infinite values"
+            elif name in ("feat_std", "out_bound", "coverage_dist") and not (array > 0.0).all():
+                problem = "holds values <= 0 (the residual divides by them)"
+            elif name == "out_gain" and not (array >= 0.0).all():
+                problem = "holds a negative output gain"
+            elif name == "range_hi" and not (array >= arrays["range_lo"]).all():
+                problem = "is below range_lo somewhere"
+            arrays[name] = array
+        if problem is not None:
+            raise GrounderError(f"{where}: tensor {name!r} {problem}; {_RETRAIN}")
+    return arrays
+
+
+def load_residual(
+    scene_dir: Path, model: mujoco.MjModel, *, scene_xml: Path | None = None, check_scene_xml: bool = True
+) -> NumpyResidual | NumpyJointResidual:
     """Reads ``residual.json`` and ``residual.pt`` from a scene folder, checked against the scene's model.
+
+    Both files are untrusted input: the metadata's fields and every tensor are checked (types, ranges, shapes
+    against the metadata, finite values) before anything uses them.
+
+    Args:
+        scene_dir: The residual scene folder.
+        model: The scene's compiled model.
+        scene_xml: The MJCF ``model`` was compiled from (default ``scene_dir/scene.xml``); its sha256 must be the
+            one in ``residual.json``, so that a residual is never applied to a scene edited since training.
+        check_scene_xml: Check that hash (off for a caller that only reads the period and never applies the
+            residual, such as training a new residual on an edited residual scene).
 
     Returns:
         The free-body residual, or the joint-space one (``grounder._residual_joint``) for an articulated scene.
 
     Raises:
-        GrounderError: missing or malformed files, or a residual trained for other bodies or another timestep.
+        GrounderError: missing or malformed files, a residual trained for other bodies or another timestep, or a
+            scene.xml that changed since training.
     """
-    import torch
-
     from grounder._residual_joint import JOINT_SPACE, NumpyJointResidual, check_joint_meta, history_of, joint_space
 
     scene_dir = Path(scene_dir)
     meta_path, weights_path = scene_dir / META_FILE, scene_dir / WEIGHTS_FILE
     try:
-        meta = ResidualMeta.from_json(json.loads(meta_path.read_text()), meta_path)
-    except (OSError, json.JSONDecodeError) as exc:
-        raise GrounderError(f"{meta_path}: could not be read ({type(exc).__name__}: {exc})") from exc
+        raw = json.loads(meta_path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise GrounderError(f"{meta_path}: could not be read ({exc.strerror or type(exc).__name__})") from exc
+    except UnicodeDecodeError as exc:
+        raise GrounderError(f"{meta_path}: not UTF-8 text (byte {exc.start}); {_RETRAIN}") from exc
+    except json.JSONDecodeError as exc:
+        raise GrounderError(f"{meta_path}: not valid JSON ({exc.msg}, line {exc.lineno}); {_RETRAIN}") from exc
+    except RecursionError as exc:
+        raise GrounderError(f"{meta_path}: JSON nested too deeply; {_RETRAIN}") from exc
+    meta = ResidualMeta.from_json(raw, meta_path)
     if meta.space == JOINT_SPACE:
-        space = joint_space(model, history_of(meta.feature_names))
+        try:
+            space = joint_space(model, history_of(meta.feature_names))
+        except GrounderError as exc:  # a scene of other joints: name the residual it does not fit
+            raise GrounderError(f"{meta_path}: a joint-space residual, not for this scene ({exc}); retrain it") from exc
         check_joint_meta(meta, space, str(meta_path))
+        if meta.output_names != space.output_names:
+            raise GrounderError(
+                f"{meta_path}: outputs {_shown(list(meta.output_names))} are not the scene's joints' "
+                f"{_shown(list(space.output_names))}; retrain it on this scene"
+            )
         bodies: list[FreeBody] = []
     else:
         bodies = free_bodies(model)
@@ -949,19 +1190,22 @@ def load_residual(scene_dir: Path, model: mujoco.MjModel) -> NumpyResidual | Num
             f"{meta_path}: trained with timestep {meta.timestep_s:.6g} s but the scene has {model.opt.timestep:.6g} s; "
             "retrain the residual on this scene"
         )
-    try:
-        state = torch.load(weights_path, weights_only=True, map_location="cpu")
-    except Exception as exc:  # torch raises many types for corrupt or unsafe files
-        raise GrounderError(f"{weights_path}: could not be read ({type(exc).__name__}: {exc})") from exc
-    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
-        raise GrounderError(f"{weights_path}: expected a state_dict of tensors")
-    arrays = {k: v.detach().to(torch.float64).numpy() for k, v in state.items()}
-    try:
-        if meta.space == JOINT_SPACE:
-            return NumpyJointResidual(arrays, meta, space)
-        return NumpyResidual(arrays, meta, bodies, model.opt.gravity)
-    except KeyError as exc:
-        raise GrounderError(f"{weights_path}: missing tensor {exc}; retrain the residual") from exc
+    if check_scene_xml:
+        xml = Path(scene_xml) if scene_xml is not None else scene_dir / "scene.xml"
+        try:
+            digest = file_sha256(xml)
+        except OSError as exc:
+            raise GrounderError(f"{xml}: could not be read ({exc.strerror or type(exc).__name__})") from exc
+        if digest != meta.scene_xml_sha256:
+            raise GrounderError(
+                f"{xml}: {xml.name} changed since the residual was trained (sha256 {digest[:12]}..., "
+                f"{META_FILE} has {meta.scene_xml_sha256[:12]}...); retrain with `image2sim residual train` "
+                "or restore the scene"
+            )
+    arrays = _checked_state(load_weights_file(weights_path, _RETRAIN), meta, weights_path)
+    if meta.space == JOINT_SPACE:
+        return NumpyJointResidual(arrays, meta, space)
+    return NumpyResidual(arrays, meta, bodies, model.opt.gravity)
 
 
 def smooth_free_bodies(

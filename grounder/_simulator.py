@@ -51,7 +51,14 @@ class Simulator:
         xml, self.model = load_scene_model(Path(scene))
         self.nthread = nthread or default_nthread()
         scene_dir = xml.parent
-        residual = load_residual(scene_dir, self.model) if has_residual(scene_dir) else None
+        # The metadata (period_steps included) comes checked from load_residual. Without use_residual the residual
+        # is never applied, so a scene.xml edited since training is no reason to refuse: training a new residual on
+        # that scene is the way to bring them back in line.
+        residual = (
+            load_residual(scene_dir, self.model, scene_xml=xml, check_scene_xml=use_residual)
+            if has_residual(scene_dir)
+            else None
+        )
         self.period_steps = residual.meta.period_steps if residual is not None else 1
         self.residual: NumpyResidual | NumpyJointResidual | None = residual if use_residual else None
         self._data = mujoco.MjData(self.model)
