@@ -62,6 +62,8 @@ def load_dair_pll_cube(src_dir: Path) -> list[Trajectory]:
     """
     import torch
 
+    from grounder._residual import quiet_pickle_protocol_warning
+
     folder = _tosses_dir(src_dir)
     files = [p for p in folder.iterdir() if p.is_file() and re.fullmatch(r"\d+\.pt", p.name)]
     if not files:
@@ -72,7 +74,8 @@ def load_dair_pll_cube(src_dir: Path) -> list[Trajectory]:
     out: list[Trajectory] = []
     for path in files:
         try:
-            tensor = torch.load(path, weights_only=True, map_location="cpu")
+            with quiet_pickle_protocol_warning():  # torch's two-line warning before it fails on a plain pickle
+                tensor = torch.load(path, weights_only=True, map_location="cpu")
         except Exception as exc:  # torch raises many types for corrupt or unsafe files
             # Not torch's own text: it runs over several lines and suggests weights_only=False, unsafe here.
             raise GrounderError(

@@ -67,6 +67,15 @@ def test_bad_input(tmp_path: Path) -> None:
     torch.save(torch.ones(5, 13, dtype=torch.float64), bad / "1.pt")
     with pytest.raises(GrounderError, match="quaternion"):
         load_dair_pll_cube(bad)
+    import pickle
+    import warnings
+
+    (bad / "1.pt").write_bytes(pickle.dumps([1, 2], protocol=4))  # a plain pickle: torch warns before failing
+    with warnings.catch_warnings(record=True) as caught_warnings:
+        warnings.simplefilter("always")
+        with pytest.raises(GrounderError, match="not a tensor file torch loads safely"):
+            load_dair_pll_cube(bad)
+    assert not [w for w in caught_warnings if "pickle" in str(w.message)]  # nothing printed ahead of the one line
     (bad / "1.pt").write_text("not a tensor")  # torch's own message runs over lines and suggests an unsafe load
     with pytest.raises(GrounderError, match="not a tensor file torch loads safely") as caught:
         load_dair_pll_cube(bad)
