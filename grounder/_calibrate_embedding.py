@@ -125,29 +125,42 @@ def embedding_space(scene: Path, model: mujoco.MjModel, decoder: Decoder | None 
             named in scene.json that the MJCF lacks.
     """
     manifest = scene_manifest(scene)
+    redo = "re-run `image2sim ground` for this scene, or use --mode raw"
     objects = manifest.get("objects", {})
-    items = list(objects.items()) if isinstance(objects, dict) else [(o.get("name", ""), o) for o in objects]
+    if isinstance(objects, dict):
+        items = list(objects.items())
+    elif isinstance(objects, list) and all(isinstance(o, dict) for o in objects):
+        items = [(o.get("name", ""), o) for o in objects]
+    else:
+        raise GrounderError(f"scene.json: 'objects' is not a mapping of body names to entries; {redo}")
     priors: list[ObjectPrior] = []
     for body, entry in items:
         props = entry.get("properties") if isinstance(entry, dict) else None
         if not isinstance(props, dict) or "embedding" not in props:
             continue
-        emb = np.asarray(props["embedding"], dtype=np.float64)
-        std = np.asarray(props.get("embedding_std", np.ones_like(emb)), dtype=np.float64)
+        if not isinstance(body, str):
+            raise GrounderError(f"scene.json: object name {body!r} is not text; {redo}")
+        try:
+            emb = np.asarray(props["embedding"], dtype=np.float64)
+            std = np.asarray(props.get("embedding_std", np.ones_like(emb)), dtype=np.float64)
+            density0 = entry.get("density_kg_m3")
+            density0_kg_m3 = float(density0) if density0 else math.nan
+        except (TypeError, ValueError) as exc:
+            raise GrounderError(
+                f"scene.json: object {body!r} has a non-numeric embedding or density ({exc}); {redo}"
+            ) from exc
         if emb.ndim != 1 or emb.shape != std.shape or not np.isfinite(emb).all() or not (std > 0).all():
-            raise GrounderError(f"scene.json: object {body!r} has a malformed embedding / embedding_std")
+            raise GrounderError(f"scene.json: object {body!r} has a malformed embedding / embedding_std; {redo}")
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
         if bid <= 0:
             raise GrounderError(f"scene.json names object {body!r} but the MJCF has no such body")
-        mass0 = float(model.body_mass[bid])
-        density0 = entry.get("density_kg_m3")
         priors.append(
             ObjectPrior(
                 body=body,
                 embedding=emb,
                 embedding_std=std,
-                density0_kg_m3=float(density0) if density0 else math.nan,
-                mass0_kg=mass0,
+                density0_kg_m3=density0_kg_m3,
+                mass0_kg=float(model.body_mass[bid]),
             )
         )
     if not priors:
@@ -156,9 +169,15 @@ def embedding_space(scene: Path, model: mujoco.MjModel, decoder: Decoder | None 
     # Without the density the mass was computed with, the prior mean's density stands for the scene's mass.
     fixed = []
     for p in priors:
+        try:
+            decoded_density = float(decoder(p.embedding)["density_kg_m3"])
+        except (GrounderError, ValueError, RuntimeError) as exc:  # e.g. an embedding of another model's size
+            raise GrounderError(
+                f"scene.json: object {p.body!r}: its embedding does not fit this property model "
+                f"({' '.join(str(exc).split())}); {redo}"
+            ) from exc
         if not math.isfinite(p.density0_kg_m3) or p.density0_kg_m3 <= 0:
-            density = float(decoder(p.embedding)["density_kg_m3"])
-            p = ObjectPrior(**{**p.__dict__, "density0_kg_m3": density})
+            p = ObjectPrior(**{**p.__dict__, "density0_kg_m3": decoded_density})
         fixed.append(p)
     params = tuple(resolve_parameter(model, f"{p.body}.{f}") for p in fixed for f in _FIELDS)
     return EmbeddingSpace(objects=tuple(fixed), params=params, decoder=decoder)

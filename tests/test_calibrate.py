@@ -221,6 +221,35 @@ def test_embedding_mode_needs_an_embedding(synthetic) -> None:
         calibrate(CUBE_XML, trajs, options=CalibrateOptions(mode="embedding"))
 
 
+@pytest.mark.parametrize(
+    ("objects", "needle"),
+    [
+        ([1, 2], "'objects' is not a mapping"),
+        ({"cube": {"properties": {"embedding": ["a", "b"]}}}, "non-numeric embedding"),
+        ({"cube": {"density_kg_m3": "heavy", "properties": {"embedding": [0.0, 0.0]}}}, "non-numeric embedding"),
+        ({"cube": {"properties": {"embedding": [0.0, float("nan")]}}}, "malformed embedding"),
+        ({"cube": {"properties": {"embedding": [0.0, 0.0, 0.0]}}}, "does not fit this property model"),
+    ],
+    ids=["objects-list", "text-embedding", "text-density", "nan", "wrong-size"],
+)
+def test_embedding_mode_malformed_scene_json_is_one_error(objects: object, needle: str, tmp_path: Path) -> None:
+    """scene.json comes with the scene: each of these was a traceback (TypeError, AttributeError, ValueError) or an
+    error naming neither the file nor the way out."""
+    from grounder._calibrate_embedding import embedding_space
+
+    def decoder(z: np.ndarray) -> dict:  # a property model of embedding size 2
+        if z.shape != (2,):
+            raise GrounderError(f"z.shape={z.shape} but expected (2,)")
+        return {"density_kg_m3": 500.0, "friction": [0.3, 0.005, 1e-4], "solref": [0.02, 1.0]}
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    (scene / "scene.json").write_text(json.dumps({"objects": objects}))
+    with pytest.raises(GrounderError, match=rf"scene\.json.*{needle}.*re-run `image2sim ground`"):
+        embedding_space(scene, mujoco.MjModel.from_xml_path(str(CUBE_XML)), decoder)
+
+
 def test_embedding_mode_recovers_a_known_embedding(synthetic, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """With a stand-in decoder (z -> friction, timeconst), the posterior embedding explains the synthetic tosses."""
     import grounder._calibrate_embedding as emb
