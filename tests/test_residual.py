@@ -12,6 +12,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from _gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 from typer.testing import CliRunner
 
 from grounder._residual import (
@@ -235,10 +236,7 @@ def _gate_of_every_form(
     correction (with the same statistics and gain) over the raw one. Also returns (N,) True where ``correct_one``
     left the prediction exactly as it was.
     """
-    import onnx
     import torch
-    from onnx import numpy_helper
-    from onnx.reference import ReferenceEvaluator
 
     from grounder._residual_torch import ResidualModel
 
@@ -261,27 +259,9 @@ def _gate_of_every_form(
     model.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
     with torch.no_grad():
         gate_torch = model.gate(torch.as_tensor(feats))[:, 0].numpy()
-    graph = onnx.load(str(onnx_path))
-    for init in graph.graph.initializer:
-        if init.name in ("coverage_dist", "out_gain"):
-            init.CopyFrom(numpy_helper.from_array(state[init.name], init.name))
-    (corr,) = ReferenceEvaluator(graph).run(None, {"features": feats})
-    gate_onnx = np.sum(corr[:, 0] * raw, axis=1) / np.sum(raw * raw, axis=1)
+    gate_onnx = onnx_gate(onnx_path, state, feats, raw, swapped=("coverage_dist", "out_gain"))
     gates = {"numpy": residual.gate(feats)[:, 0], "fast": fast, "torch": gate_torch, "onnx": gate_onnx}
     return gates, untouched
-
-
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
-
-
-def _nearest_centre_dist(residual: NumpyResidual, feats: np.ndarray) -> np.ndarray:
-    """(N, F) raw features -> (N,) standardised distance to the nearest coverage centre, computed directly."""
-    from scipy.spatial.distance import cdist
-
-    z = (feats - residual.feat_mean[0]) / residual.feat_std[0]
-    return np.min(cdist(z, residual.centres[0]), axis=1)
 
 
 @pytest.mark.parametrize(("coverage_scale", "multiples"), [(1.0, (0.5, 1.5)), (0.5, (0.5, 1.5, 2.5))])
@@ -304,7 +284,7 @@ def test_gate_fades_with_distance_from_the_training_states(
     qvel = np.concatenate([t.qvel for t in training_tosses])
     feats, rots = body_features(qpos, qvel, residual.bodies)
     f = feats[:, 0]
-    dist = _nearest_centre_dist(residual, f) / coverage_dist
+    dist = nearest_centre_dist(residual, f) / coverage_dist
     flying = f[:, 0] > residual.meta.gate.air_clearance_m[1]  # in flight the at-rest gate is 1 whatever the speed
     starts = np.flatnonzero(np.all((f >= lo) & (f <= hi), axis=1) & flying & (dist < 0.25))
     # towards a corner (2% inside) of the velocity ranges, the orientation and height kept: inside every range
@@ -313,8 +293,8 @@ def test_gate_fades_with_distance_from_the_training_states(
     for i in starts:
         targets = np.repeat(f[i][None], len(corners), axis=0)
         targets[:, 5:] = corners
-        target = targets[np.argmax(_nearest_centre_dist(residual, targets))]
-        d = _nearest_centre_dist(residual, f[i] + t * (target - f[i])) / coverage_dist
+        target = targets[np.argmax(nearest_centre_dist(residual, targets))]
+        d = nearest_centre_dist(residual, f[i] + t * (target - f[i])) / coverage_dist
         if d.max() < multiples[-1] + 0.05:
             continue
         end = int(np.argmax(d > multiples[-1] + 0.05)) + 1
@@ -333,7 +313,7 @@ def test_gate_fades_with_distance_from_the_training_states(
     np.testing.assert_allclose(d[picks], multiples, atol=0.02)
     gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
     for form, gate in gates.items():
-        np.testing.assert_allclose(gate, 1.0 - _smoothstep(d - 1.0), atol=1e-9, err_msg=form)
+        np.testing.assert_allclose(gate, 1.0 - smoothstep(d - 1.0), atol=1e-9, err_msg=form)
         assert gate[picks[0]] == pytest.approx(1.0, abs=1e-12), form
         assert 0.05 < gate[picks[1]] < 0.95, form
         assert np.all(np.diff(gate) <= 1e-12), form  # never opens again on the way out
@@ -369,7 +349,7 @@ def test_gate_closes_outside_a_feature_range_near_the_training_states(
     ok &= f[:, 0] > residual.meta.gate.air_clearance_m[1]
     pushed = f.copy()
     pushed[:, k] = edge + outward * beyond[-1] * margin
-    i = int(np.flatnonzero(ok)[np.argmin(_nearest_centre_dist(residual, pushed[ok]))])
+    i = int(np.flatnonzero(ok)[np.argmin(nearest_centre_dist(residual, pushed[ok]))])
     new_k = edge + outward * beyond * margin
     path_q = np.repeat(qpos[i][None], len(beyond), axis=0)
     path_v = np.repeat(qvel[i][None], len(beyond), axis=0)
@@ -378,10 +358,10 @@ def test_gate_closes_outside_a_feature_range_near_the_training_states(
     np.testing.assert_allclose(path_f[:, k], new_k, atol=1e-9)
     np.testing.assert_allclose(path_f[:, others], np.repeat(f[i, others][None], len(beyond), 0), atol=1e-9)
     # near the training states (no distance fade), so only the range check can close the gate
-    assert np.all(_nearest_centre_dist(residual, path_f) < residual.coverage_dist[0])
+    assert np.all(nearest_centre_dist(residual, path_f) < residual.coverage_dist[0])
     gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
     for form, gate in gates.items():
-        np.testing.assert_allclose(gate, 1.0 - _smoothstep(beyond), atol=1e-6, err_msg=form)
+        np.testing.assert_allclose(gate, 1.0 - smoothstep(beyond), atol=1e-6, err_msg=form)
         assert gate[0] == pytest.approx(1.0, abs=1e-12) and gate[-1] == pytest.approx(0.0, abs=1e-12), form
     assert gates["numpy"][-1] == 0.0
     assert np.all(residual(body_features(path_q[2:], path_v[2:], residual.bodies)[0]) == 0.0)

@@ -10,6 +10,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from _gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 
 from grounder._cases import make_case
 from grounder._diagnose_bench import select_cases
@@ -125,10 +126,7 @@ def _gate_of_every_form(
     prediction (the gated correction itself); ``torch``: ``JointResidualModel.gate``; ``onnx``: the exported graph's
     correction (at gain 1) over the raw one. Also returns (N,) True where ``correct_one`` left the prediction as it was.
     """
-    import onnx
     import torch
-    from onnx import numpy_helper
-    from onnx.reference import ReferenceEvaluator
 
     from grounder._residual_torch import JointResidualModel
 
@@ -153,27 +151,9 @@ def _gate_of_every_form(
     model.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
     with torch.no_grad():
         gate_torch = model.gate(torch.as_tensor(feats))[:, 0].numpy()
-    graph = onnx.load(str(onnx_path))
-    for init in graph.graph.initializer:
-        if init.name == "out_gain":
-            init.CopyFrom(numpy_helper.from_array(state[init.name], init.name))
-    (corr,) = ReferenceEvaluator(graph).run(None, {"features": feats})
-    gate_onnx = np.sum(corr[:, 0] * raw, axis=1) / np.sum(raw * raw, axis=1)
+    gate_onnx = onnx_gate(onnx_path, state, feats, raw, swapped=("out_gain",))
     gates = {"numpy": residual.gate(feats)[:, 0], "fast": fast, "torch": gate_torch, "onnx": gate_onnx}
     return gates, untouched
-
-
-def _smoothstep(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return x * x * (3.0 - 2.0 * x)
-
-
-def _nearest_centre_dist(residual: NumpyJointResidual, feats: np.ndarray) -> np.ndarray:
-    """(N, F) raw features -> (N,) standardised distance to the nearest coverage centre, computed directly."""
-    from scipy.spatial.distance import cdist
-
-    z = (feats - residual.feat_mean[0]) / residual.feat_std[0]
-    return np.min(cdist(z, residual.centres[0]), axis=1)
 
 
 def test_gate_fades_with_distance_from_the_training_states(
@@ -194,13 +174,13 @@ def test_gate_fades_with_distance_from_the_training_states(
     qpos = np.concatenate([t.qpos for t in pendulum_case[1]])
     qvel = np.concatenate([t.qvel for t in pendulum_case[1]])
     f = joint_features(qpos, qvel, None, space)[:, 0]
-    dist = _nearest_centre_dist(residual, f) / coverage_dist
+    dist = nearest_centre_dist(residual, f) / coverage_dist
     starts = np.flatnonzero(np.all((f >= lo) & (f <= hi), axis=1) & (np.abs(qvel[:, 0]) > 10 * moving) & (dist < 0.25))
     # far states: in range, moving, beyond the last multiple; tried nearest first from each start
     angle, vel = (g.ravel() for g in np.meshgrid(np.linspace(-np.pi, np.pi, 361), np.linspace(lo[2], hi[2], 201)))
     grid = joint_features(angle[:, None], vel[:, None], None, space)[:, 0]
     far = np.all((grid >= lo) & (grid <= hi), axis=1) & (np.abs(vel) > 2 * moving)
-    far &= _nearest_centre_dist(residual, grid) / coverage_dist > multiples[-1] + 0.2
+    far &= nearest_centre_dist(residual, grid) / coverage_dist > multiples[-1] + 0.2
     t = np.linspace(0.0, 1.0, 801)
     for i in starts:
         turn = np.angle(np.exp(1j * (angle[far] - qpos[i, 0])))  # the shorter way round
@@ -209,7 +189,7 @@ def test_gate_fades_with_distance_from_the_training_states(
             path_q = (qpos[i, 0] + t * turn_j)[:, None]
             path_v = (qvel[i, 0] + t * (vel_j - qvel[i, 0]))[:, None]
             path_f = joint_features(path_q, path_v, None, space)[:, 0]
-            d = _nearest_centre_dist(residual, path_f) / coverage_dist
+            d = nearest_centre_dist(residual, path_f) / coverage_dist
             end = int(np.argmax(d > multiples[-1] + 0.05)) + 1
             inside = np.all((path_f[:end] >= lo) & (path_f[:end] <= hi)) and np.all(np.abs(path_v[:end]) >= moving)
             if inside and np.all(np.diff(np.clip(d[:end] - 1.0, 0.0, 1.0)) >= 0.0):
@@ -224,7 +204,7 @@ def test_gate_fades_with_distance_from_the_training_states(
     np.testing.assert_allclose(d[picks], multiples, atol=0.02)
     gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
     for form, gate in gates.items():
-        np.testing.assert_allclose(gate, 1.0 - _smoothstep(d - 1.0), atol=1e-9, err_msg=form)
+        np.testing.assert_allclose(gate, 1.0 - smoothstep(d - 1.0), atol=1e-9, err_msg=form)
         assert gate[picks[0]] == pytest.approx(1.0, abs=1e-12), form
         assert 0.05 < gate[picks[1]] < 0.95, form
         assert gate[picks[2]] == pytest.approx(0.0, abs=1e-12), form
@@ -258,16 +238,16 @@ def test_gate_closes_outside_a_feature_range_near_the_training_states(
     ok = np.all((f[:, :k] >= lo[:k]) & (f[:, :k] <= hi[:k]), axis=1)
     pushed = f.copy()
     pushed[:, k] = edge + outward * beyond[-1] * margin
-    i = int(np.flatnonzero(ok)[np.argmin(_nearest_centre_dist(residual, pushed[ok]))])
+    i = int(np.flatnonzero(ok)[np.argmin(nearest_centre_dist(residual, pushed[ok]))])
     path_q = np.repeat(qpos[i][None], len(beyond), axis=0)
     path_v = (edge + outward * beyond * margin)[:, None]
     path_f = joint_features(path_q, path_v, None, space)[:, 0]
-    near = 1.0 - _smoothstep(_nearest_centre_dist(residual, path_f) / coverage_dist - 1.0)
+    near = 1.0 - smoothstep(nearest_centre_dist(residual, path_f) / coverage_dist - 1.0)
     assert np.all(near >= 0.5), near  # near the training states: only the range check can close the gate
     assert np.all(np.abs(path_v) > residual.meta.gate.rest_speed_m_s[1])
     gates, untouched = _gate_of_every_form(residual, state, trained / ONNX_FILE, path_q, path_v)
     for form, gate in gates.items():
-        np.testing.assert_allclose(gate, near * (1.0 - _smoothstep(beyond)), atol=1e-6, err_msg=form)
+        np.testing.assert_allclose(gate, near * (1.0 - smoothstep(beyond)), atol=1e-6, err_msg=form)
         assert gate[0] >= 0.5 and gate[-1] == pytest.approx(0.0, abs=1e-12), form
     assert gates["numpy"][-1] == 0.0
     assert np.all(residual(joint_features(path_q[2:], path_v[2:], None, space)) == 0.0)
