@@ -113,6 +113,25 @@ def test_known_extent_and_unknown_scale_on_the_same_model(reconstruction_dir: Pa
     unknown = world_unknown_scale(rec, plane, points)
     assert unknown.scale_source == ScaleSource.UNKNOWN and unknown.scale == 1.0
 
+    # The same model moved by a known similarity (scale 0.37, turned 50 deg about a tilted axis, shifted), as SfM
+    # could have returned it: the scale found is 1 / 0.37 of the metric model's, up is found again, and the cameras
+    # land where the metric model put them. (A function that changed nothing would pass the checks above alone.)
+    sfm_from_metric = pycolmap.Sim3d(0.37, pycolmap.Rotation3d(np.radians(50.0) * np.array([0.6, -0.48, 0.64])),
+                                     np.array([0.3, -1.2, 2.0]))  # fmt: skip
+    moved = pycolmap.Reconstruction(reconstruction_dir / "sparse")
+    moved.transform(sfm_from_metric)
+    moved_points = np.array([p.xyz for p in moved.points3D.values()])
+    moved_cams = np.array([im.projection_center() for im in moved.images.values()])
+    moved_world = world_from_extent(moved, fit_support_plane(moved_points, moved_cams), moved_points, moved_cams,
+                                    longest_m)  # fmt: skip
+    assert moved_world.scale == pytest.approx(world.scale / 0.37, rel=0.01)
+    up_sfm = (moved_world.world_from_sfm[:3, :3] / moved_world.scale)[2]  # the world's z axis in SfM coordinates
+    true_up_sfm = sfm_from_metric.rotation.matrix() @ rotation[2]
+    assert np.degrees(np.arccos(np.clip(up_sfm @ true_up_sfm, -1, 1))) < 0.3
+    cams_world = (world.world_from_sfm[:3, :3] @ cams.T).T + world.world_from_sfm[:3, 3]
+    moved_cams_world = (moved_world.world_from_sfm[:3, :3] @ moved_cams.T).T + moved_world.world_from_sfm[:3, 3]
+    assert np.abs(moved_cams_world - cams_world).max() < 5e-3
+
 
 def test_real_apple_video_with_known_extent(grounded_apple: Path) -> None:
     """Transfer to a real handheld phone video: registration, gravity, and a plausible metric scale (the reconstruct
