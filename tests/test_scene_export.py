@@ -332,7 +332,10 @@ def test_manifest_describes_every_object(exported: ExportedScene, truth: dict[st
         np.testing.assert_allclose(entry["extents_m"], obj["extents_m"], atol=1e-6)
         assert entry["volume_m3"] == pytest.approx(obj["volume_m3"], rel=1e-6)
         assert entry["mass_kg"] == pytest.approx(obj["mass_kg"], rel=1e-6)
-        assert np.shape(entry["inertia_kg_m2"]) == (3, 3)
+        mesh = obj["trimesh"].copy()  # the manifest's inertia (about the centre of mass) is the true mesh's
+        mesh.density = obj["density_kg_m3"]
+        inertia = np.asarray(entry["inertia_kg_m2"])
+        np.testing.assert_allclose(inertia, mesh.moment_inertia, rtol=0, atol=1e-6 * np.abs(inertia).max())
         assert entry["collision_method"] == ("coacd" if name == "bowl" else "convex_hull")
         assert {"density_kg_m3", "friction", "solref", "solimp", "num_hulls"} <= set(entry)
 
