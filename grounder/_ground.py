@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from grounder.errors import GrounderError
-from reconstruction import ReconstructOptions, ScaleSource, reconstruct, staged_output_dir
+from reconstruction import ReconstructOptions, ScaleSource, reconstruct, rescale_written, staged_output_dir
 from reconstruction._primitives import CylinderFit, CylinderSnapOptions, snap_to_upright_cylinder
 from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
 from reconstruction._texture import TextureOptions, TextureView, bake_texture_report
@@ -90,9 +90,10 @@ def _read_image(path: Path) -> np.ndarray:
 
 
 def _rescale(
-    scene: SceneObjects, result: ReconstructionResult, factor: float
+    scene: SceneObjects, result: ReconstructionResult, factor: float, note: str
 ) -> tuple[SceneObjects, ReconstructionResult]:
-    """Scales the whole world (objects, cameras, points) about its origin by `factor`."""
+    """Scales the whole world (objects, cameras, points) about its origin by `factor`, and rewrites the
+    reconstruction folder in the same metres (`reconstruction.rescale_written`)."""
     objects = []
     for obj in scene.objects:
         pose = obj.world_from_object.copy()
@@ -100,16 +101,8 @@ def _rescale(
         objects.append(
             replace(obj, mesh=replace(obj.mesh, vertices_m=obj.mesh.vertices_m * factor), world_from_object=pose)
         )
-    frames = []
-    for frame in result.frames:
-        pose = frame.world_from_cam.copy()
-        pose[:3, 3] *= factor
-        frames.append(replace(frame, world_from_cam=pose))
     half = (scene.table_half_extents[0] * factor, scene.table_half_extents[1] * factor)
-    return (
-        replace(scene, objects=tuple(objects), table_half_extents=half),
-        replace(result, frames=tuple(frames), points_world_m=result.points_world_m * factor),
-    )
+    return replace(scene, objects=tuple(objects), table_half_extents=half), rescale_written(result, factor, note)
 
 
 def ground(
@@ -154,8 +147,8 @@ def ground(
         if rec.world.scale_source == ScaleSource.KNOWN_EXTENT and options.reconstruct.known_extent_m:
             largest = max(scene.objects, key=lambda o: float(np.prod(np.ptp(o.mesh.vertices_m, axis=0))))
             factor = options.reconstruct.known_extent_m / float(np.ptp(largest.mesh.vertices_m, axis=0).max())
-            scene, rec = _rescale(scene, rec, factor)
             scale_note = f"known extent refined on the segmented mesh of {largest.name}: scale x {factor:.4f}"
+            scene, rec = _rescale(scene, rec, factor, scale_note)
         for obj in scene.objects:
             warnings.extend(f"{obj.name}: {w}" for w in obj.warnings)
 

@@ -2,7 +2,7 @@
 
 from reconstruction._frames import Frame, FrameSelection, read_frames, select_frames
 from reconstruction._outdir import check_output_dir, check_outside_inputs, staged_output_dir
-from reconstruction._reconstruct import reconstruct
+from reconstruction._reconstruct import reconstruct, rescale_written
 from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
 from reconstruction._texture import TextureOptions, TextureView, bake_texture, bake_texture_report, texture_coverage
 from reconstruction._types import (
@@ -47,6 +47,7 @@ __all__ = [
     "find_objects",
     "read_frames",
     "reconstruct",
+    "rescale_written",
     "select_frames",
     "staged_output_dir",
     "texture_coverage",

@@ -205,6 +205,38 @@ def reconstruct(
     return result
 
 
+def rescale_written(result: ReconstructionResult, factor: float, note: str) -> ReconstructionResult:
+    """The reconstruction with its world scaled by `factor` about the origin, and its output folder rewritten to
+    match: the sparse model, `transforms.json`, `reconstruct.json` (scale, `world_from_sfm`, `note` added) and the
+    preview. For a later, better scale estimate (`image2sim ground` refines a known extent on the segmented mesh):
+    the folder then stays in the same metres as the scene built from it.
+    """
+    from dataclasses import replace
+
+    sparse_dir = result.out_dir / "sparse"
+    model = pycolmap.Reconstruction(sparse_dir)
+    model.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+    model.write(sparse_dir)
+    world_from_sfm = result.world.world_from_sfm.copy()
+    world_from_sfm[:3, :] *= factor  # world = factor * (s R sfm + t)
+    frames = []
+    for frame in result.frames:
+        pose = frame.world_from_cam.copy()
+        pose[:3, 3] *= factor
+        frames.append(replace(frame, world_from_cam=pose))
+    world = replace(
+        result.world,
+        world_from_sfm=world_from_sfm,
+        scale=result.world.scale * factor,
+        notes=(*result.world.notes, note),
+    )
+    rescaled = replace(result, world=world, frames=tuple(frames), points_world_m=result.points_world_m * factor)
+    write_transforms_json(result.out_dir / "transforms.json", rescaled)
+    write_preview(result.out_dir / "preview.png", rescaled)
+    write_report(result.out_dir / "reconstruct.json", rescaled)
+    return rescaled
+
+
 def _world_from_cam(image: pycolmap.Image) -> np.ndarray:
     pose = np.eye(4)
     pose[:3, :] = image.cam_from_world().inverse().matrix()
