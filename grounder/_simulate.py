@@ -108,15 +108,16 @@ def scene_files(xml: Path) -> list[Path]:
 
 def copy_scene_files(scene: Path, stage: Path, *, skip: Sequence[str] = ()) -> None:
     """Copies what a scene's MJCF needs into ``stage``, at the same relative paths: a scene folder's files (not
-    those named in ``skip``, not ``stage`` itself when it lies inside the folder; links are copied as links), or a
-    lone MJCF's included and loaded files (`scene_files`) and nothing else of its folder. The MJCF itself is left
-    to the caller, which writes its own ``scene.xml``.
+    the top-level entries named in ``skip``, not ``stage`` itself when it lies inside the folder; links are copied
+    as links), or a lone MJCF's included and loaded files (`scene_files`) and nothing else of its folder. The MJCF
+    itself is left to the caller, which writes its own ``scene.xml``.
     """
-    stage_resolved = stage.resolve()
+    stage_resolved, top = stage.resolve(), scene.resolve()
     if scene.is_dir():
 
         def ignore(folder: str, names: list[str]) -> list[str]:
-            return [n for n in names if n in skip or (Path(folder) / n).resolve() == stage_resolved]
+            at_top = Path(folder).resolve() == top
+            return [n for n in names if (at_top and n in skip) or (Path(folder) / n).resolve() == stage_resolved]
 
         shutil.copytree(scene, stage, symlinks=True, ignore=ignore, dirs_exist_ok=True)
         return

@@ -292,6 +292,7 @@ def test_scene_folder_with_assets(tmp_path: Path, synthetic) -> None:
     scene = tmp_path / "scene"
     (scene / "assets").mkdir(parents=True)
     (scene / "assets" / "note.txt").write_text("asset")
+    (scene / "assets" / "report.html").write_text("an asset that shares a name with calibrate's own report")
     (scene / "scene.json").write_text("{}")
     (scene / "residual.json").write_text("{}")  # trained against the uncalibrated model: not carried over
     (scene / "scene.xml").write_text(CUBE_XML.read_text())
@@ -302,6 +303,7 @@ def test_scene_folder_with_assets(tmp_path: Path, synthetic) -> None:
         out=tmp_path / "out",
     )
     assert (tmp_path / "out" / "assets" / "note.txt").read_text() == "asset"
+    assert (tmp_path / "out" / "assets" / "report.html").read_text().startswith("an asset")  # only top-level skips
     manifest = json.loads((tmp_path / "out" / "scene.json").read_text())
     assert set(manifest["calibration"]["parameters"]) == {"cube.friction.sliding"}
     assert not (tmp_path / "out" / "residual.json").exists()
