@@ -2,15 +2,26 @@
 
 from __future__ import annotations
 
+import os
+import secrets
 import shutil
-import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from reconstruction.errors import InputError
 
-MARKER_FILES = ("reconstruct.json", "scene.json", "diagnosis.json", "calibration.json")
+# The record each command writes at the top of its output folder: a folder holding one is an image2sim output.
+MARKER_FILES = (
+    "reconstruct.json",
+    "scene.json",
+    "diagnosis.json",
+    "calibration.json",
+    "residual.json",
+    "track.json",
+    "variants.json",
+    "property_net.json",
+)
 
 
 def check_outside_inputs(
@@ -55,6 +66,8 @@ def check_output_dir(
         raise error(f"output {out_dir} is a symbolic link; pass the folder's real path (-o), or a new folder")
     if out_dir.exists() and not out_dir.is_dir():
         raise error(f"output {out_dir} is a file; pass a folder path (-o)")
+    if out_dir.is_dir() and any(out_dir.iterdir()) and overwrite:
+        _check_not_part_of_an_input(out_dir, inputs, error)
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
         what_to_do = (
             "pass --overwrite (Python: overwrite=True) or another output folder"
@@ -62,6 +75,20 @@ def check_output_dir(
             else "choose a new or empty output folder"
         )
         raise error(f"output folder {out_dir} already exists and is not empty; {what_to_do}")
+
+
+def _check_not_part_of_an_input(out_dir: Path, inputs: Iterable[str | Path | None], error: type[Exception]) -> None:
+    """Refuses to replace a folder inside an input folder (a scene's `assets/`, say) unless it is an image2sim
+    output (it holds one of `MARKER_FILES`): --overwrite would delete part of the input."""
+    out = out_dir.resolve()
+    for given in inputs:
+        if given is None or not Path(given).is_dir():
+            continue
+        if Path(given).resolve() in out.parents and not any((out_dir / m).is_file() for m in MARKER_FILES):
+            raise error(
+                f"output folder {out_dir} lies inside the input {given} and is not an image2sim output, so "
+                "--overwrite would delete part of the input; choose an output folder outside the inputs"
+            )
 
 
 @contextmanager
@@ -82,14 +109,22 @@ def staged_output_dir(
         `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; it is a file; or
         it is or holds one of `inputs`.
     """
-    out_dir = Path(out_dir)
     check_output_dir(out_dir, overwrite=overwrite, error=error, inputs=inputs)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    out_dir = Path(os.path.abspath(out_dir))  # `-o .` has no name to stage beside; links are refused, not followed
+    created = [p for p in (out_dir.parent, *out_dir.parent.parents) if not p.exists()]  # removed again on failure
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        # mkdir, not mkdtemp: the folder gets the user's usual permissions (mkdtemp's are owner-only)
+        staging = out_dir.with_name(f".{out_dir.name}.partial-{secrets.token_hex(4)}")
+        staging.mkdir()
+    except OSError as exc:
+        _remove_empty(created)
+        raise error(f"cannot create the output folder {out_dir} ({exc.strerror or exc}); choose another -o") from exc
     try:
         yield staging
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
+        _remove_empty(created)
         raise
     backup = None
     try:
@@ -104,3 +139,12 @@ def staged_output_dir(
         raise
     if backup is not None:
         shutil.rmtree(backup, ignore_errors=True)
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Removes the folders (deepest first) that were created for an output that did not come to be."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return

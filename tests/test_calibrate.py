@@ -581,3 +581,25 @@ def test_cli_rollout_overwrite_replaces_the_whole_folder(traj_dir: Path, tmp_pat
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in traj_dir.iterdir())
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pred"]
+
+
+@pytest.mark.parametrize(("command", "flags"), [(["rollout"], ["--no-residual"]), (["residual", "train"], [])])
+def test_cli_overwrite_of_a_folder_inside_the_scene_is_refused(
+    command: list[str], flags: list[str], traj_dir: Path, tmp_path: Path
+) -> None:
+    """-o scene/assets --overwrite used to replace the scene's meshes with the output (exit 0; the scene then no
+    longer loaded). A folder inside an input is replaced only when it is an image2sim output."""
+    from reconstruction import check_output_dir
+
+    scene = tmp_path / "scene"
+    _write_cube_obj(scene / "assets" / "cube.obj")
+    (scene / "scene.xml").write_text(_mesh_cube_xml("assets/cube.obj"))
+    before = (scene / "assets" / "cube.obj").read_bytes()
+    result = _cli(*command, str(scene), str(traj_dir), "-o", str(scene / "assets"), "--overwrite", *flags)
+    _assert_exit_2(result, "lies inside the input")
+    assert [p.name for p in (scene / "assets").iterdir()] == ["cube.obj"]
+    assert (scene / "assets" / "cube.obj").read_bytes() == before
+    # An earlier output of the tool inside the input folder may be replaced.
+    (scene / "calibrated").mkdir()
+    (scene / "calibrated" / "calibration.json").write_text("{}")
+    check_output_dir(scene / "calibrated", overwrite=True, inputs=(scene,))

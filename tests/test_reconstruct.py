@@ -260,3 +260,29 @@ def test_loop_detection_index_is_the_same_on_every_build_in_one_process(
     assert digests[0] == digests[1]
     other_seed = build_vocab_tree(database, tmp_path / "tree_seed1.bin", num_threads=2, seed=1)
     assert hashlib.sha256(other_seed.read_bytes()).hexdigest() != digests[0]  # the seed is what fixes it
+
+
+def test_staged_output_dir_edge_paths(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`-o .` (was: the whole run, then "PosixPath('.') has an empty name"); an output folder gets the user's usual
+    permissions (mkdtemp made them owner-only); a failed run removes the parent folders it created; a location
+    that cannot be created is one InputError (was a FileNotFoundError traceback)."""
+    import os
+    import stat
+
+    from reconstruction import staged_output_dir
+    from reconstruction.errors import InputError
+
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    with staged_output_dir(Path(".")) as stage:
+        (stage / "result.txt").write_text("done")
+    assert (tmp_path / "here" / "result.txt").read_text() == "done"
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE((tmp_path / "here").stat().st_mode) == 0o777 & ~umask
+    with pytest.raises(RuntimeError), staged_output_dir(tmp_path / "new" / "a" / "out"):
+        raise RuntimeError("the work failed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here"]
+    (tmp_path / "file").write_text("")
+    with pytest.raises(InputError, match="cannot create the output folder"), staged_output_dir(tmp_path / "file" / "o"):
+        pass
