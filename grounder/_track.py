@@ -264,37 +264,67 @@ class TrackResult:
 
 
 def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -> tuple[list[np.ndarray], float]:
-    """Frames (BGR uint8) of a video, or of a folder of images (then 30 fps is assumed), and the frame rate.
+    """Frames (BGR uint8) of a video, or of a folder of images in natural name order (then 30 fps is assumed), and
+    the frame rate.
 
-    Reads frames start_frame, start_frame + 1, ... (at most max_frames of them).
+    Reads frames start_frame, start_frame + 1, ... (at most max_frames of them). Every frame of the span is held in
+    memory (they are the data): a span that would take more than `MAX_DECODED_BYTES` is refused before decoding.
     """
+    from reconstruction._frames import MAX_DECODED_BYTES, MAX_IMAGE_PIXELS, image_paths, read_image
+    from reconstruction.errors import InputError
+
     clip = Path(clip)
     if not clip.exists():
         raise TrackError(f"clip {clip} does not exist; pass a video file or a folder of images")
+
+    def check_span(count: int, width: float, height: float) -> None:
+        if width * height > MAX_IMAGE_PIXELS:
+            raise TrackError(
+                f"{clip}: frames of {width:.0f}x{height:.0f} px, more than {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx; "
+                "downscale the clip"
+            )
+        span = max(0, count - start_frame) if max_frames is None else min(max(0, count - start_frame), max_frames)
+        if span * width * height * 3 > MAX_DECODED_BYTES:
+            raise TrackError(
+                f"{clip}: {span} frames of {width:.0f}x{height:.0f} px would take "
+                f"{span * width * height * 3 / 1e9:.1f} GB decoded; track a part of it with --max-frames "
+                "(and --start-frame)"
+            )
+
     frames: list[np.ndarray] = []
     if clip.is_dir():
-        files = sorted(p for p in clip.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+        files = image_paths(clip)
+        if files:
+            first = read_image(files[0]) if start_frame < len(files) else None
+            if first is not None:
+                check_span(len(files), first.shape[1], first.shape[0])
         stop = None if max_frames is None else start_frame + max_frames
-        for path in files[start_frame:stop]:
-            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-            if image is None:
-                raise TrackError(f"{path} is not a readable image")
-            frames.append(image)
+        try:
+            frames = [read_image(path) for path in files[start_frame:stop]]
+        except InputError as exc:
+            raise TrackError(str(exc)) from exc
         fps = 30.0
+        count = len(files)
     else:
         capture = open_video(clip)
-        fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
-        index = 0
-        while max_frames is None or len(frames) < max_frames:
-            ok, image = capture.read()
-            if not ok:
-                break
-            if index >= start_frame:
-                frames.append(image)
-            index += 1
-        capture.release()
+        try:
+            fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+            count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+            check_span(count, capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
+            index = 0
+            while (max_frames is None or len(frames) < max_frames) and capture.grab():
+                if index >= start_frame:  # the frames before the span are decoded, not copied out
+                    ok, image = capture.retrieve()
+                    if not ok:
+                        break
+                    frames.append(image)
+                index += 1
+            count = max(count, index)
+        finally:
+            capture.release()
     if len(frames) < 2:
-        raise TrackError(f"{clip}: read {len(frames)} frame(s); a clip needs at least 2 readable frames")
+        where = f" from frame {start_frame} on (the clip has {count})" if start_frame else ""
+        raise TrackError(f"{clip}: read {len(frames)} frame(s){where}; a clip needs at least 2 readable frames")
     if not fps > 0:
         raise TrackError(f"{clip}: the video does not state its frame rate; re-encode it with one")
     shapes = {f.shape for f in frames}

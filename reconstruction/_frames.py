@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +15,8 @@ from reconstruction.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 MIN_FRAMES = 3
+MAX_IMAGE_PIXELS = 50_000_000  # an 8K frame is 33 Mpx
+MAX_DECODED_BYTES = 2 << 30  # decoded frames held at once: ~340 1080p frames, ~85 4K frames
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,44 +87,111 @@ def _opened_video(source: Path) -> cv2.VideoCapture:
     return capture
 
 
-def read_frames(source: Path) -> list[Frame]:
-    """Decodes every frame of a video file, or every image of a folder in natural name order.
+def image_paths(folder: Path) -> list[Path]:
+    """The images of a folder (`IMAGE_SUFFIXES`), in natural name order (`2.png` before `10.png`)."""
+    return sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
+        key=lambda p: [int(t) if t.isdigit() else t for t in _split_digits(p.name)],
+    )
+
+
+def read_image(path: Path) -> np.ndarray:
+    """One image (H, W, 3) uint8 BGR, its size read from the header first: a small file that would decode to a
+    huge image (an image bomb) is refused before it is decoded.
+
+    Raises:
+        InputError: the image is unreadable or larger than `MAX_IMAGE_PIXELS`.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as header:
+            width, height = header.size
+    except (OSError, UnidentifiedImageError, ValueError) as exc:
+        raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG") from exc
+    if width * height > MAX_IMAGE_PIXELS:
+        raise InputError(
+            f"{path} is {width}x{height} px, more than the {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx an image may have; "
+            "downscale the images"
+        )
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG")
+    return np.asarray(image)
+
+
+def read_frames(
+    source: Path, progress: Callable[[int, int], None] | None = None, *, max_bytes: int = MAX_DECODED_BYTES
+) -> list[Frame]:
+    """As `read_frames_counted`, without the count of frames in the source."""
+    return read_frames_counted(source, progress, max_bytes=max_bytes)[0]
+
+
+def read_frames_counted(
+    source: Path, progress: Callable[[int, int], None] | None = None, *, max_bytes: int = MAX_DECODED_BYTES
+) -> tuple[list[Frame], int]:
+    """Decodes the frames of a video file, or the images of a folder in natural name order.
+
+    Decoded frames are kept within `max_bytes`: a long or high-resolution video keeps every 2nd, 4th, ... frame,
+    evenly over its length (each frame keeps its index in the source), so memory does not grow with the video.
+    `progress(done, total)` is called as frames are read (total 0 when a video does not state its length).
+
+    Returns:
+        The frames kept and how many frames the source has.
 
     Raises:
         InputError: the source is missing, unreadable, has frames of different sizes or too few frames.
     """
-    frames: list[Frame] = []
+    source = Path(source)
+    report = progress or (lambda _d, _t: None)
+    kept: list[Frame] = []
+    stride = 1
+
+    def keep(frame: Frame) -> None:
+        nonlocal kept, stride
+        kept.append(frame)
+        if len(kept) > MIN_FRAMES and sum(f.image_bgr.nbytes for f in kept) > max_bytes:
+            kept, stride = kept[::2], stride * 2  # what is kept stays evenly spread: indices 0, 2 * stride, ...
+
     if not is_video(source):
         _check_path(source)
-        paths = sorted(
-            (p for p in source.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES),
-            key=lambda p: [int(t) if t.isdigit() else t for t in _split_digits(p.name)],
-        )
+        paths = image_paths(source)
         for i, path in enumerate(paths):
-            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-            if image is None:
-                raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG")
-            frames.append(Frame(index=i, name=path.name, image_bgr=image))
+            if i % stride == 0:
+                keep(Frame(index=i, name=path.name, image_bgr=read_image(path)))
+            report(i + 1, len(paths))
+        count = len(paths)
     else:
         capture = _opened_video(source)
+        total = max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
+        width, height = capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)
+        if width * height > MAX_IMAGE_PIXELS:
+            capture.release()
+            raise InputError(
+                f"{source} is {width:.0f}x{height:.0f} px, more than the {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx a frame "
+                "may have; downscale the video"
+            )
         try:
-            while True:
-                ok, image = capture.read()
-                if not ok:
-                    break
-                frames.append(Frame(index=len(frames), name=f"frame_{len(frames):05d}.png", image_bgr=image))
+            i = 0
+            while capture.grab():  # decodes; the pixels are copied out only for the frames kept
+                if i % stride == 0:
+                    ok, image = capture.retrieve()
+                    if not ok:
+                        break
+                    keep(Frame(index=i, name=f"frame_{i:05d}.png", image_bgr=image))
+                i += 1
+                report(i, total)
         finally:
             capture.release()
-        if not frames:
+        count = i
+        if not kept:
             raise InputError(f"{source} decoded to no frames; check that it is a video file and not truncated")
-    shapes = {f.image_bgr.shape for f in frames}
+    shapes = {f.image_bgr.shape for f in kept}
     if len(shapes) > 1:
         raise InputError(f"{source}: images have different sizes {sorted(shapes)}; one camera needs one image size")
-    if len(frames) < MIN_FRAMES:
-        raise InputError(
-            f"{source} has {len(frames)} frame(s) but at least {MIN_FRAMES} are needed; film a longer orbit"
-        )
-    return frames
+    if len(kept) < MIN_FRAMES:
+        raise InputError(f"{source} has {len(kept)} frame(s) but at least {MIN_FRAMES} are needed; film a longer orbit")
+    return kept, count
 
 
 def _split_digits(name: str) -> list[str]:
@@ -155,7 +225,9 @@ def _median_motion_px(prev: np.ndarray, cur: np.ndarray) -> float:
     return float(np.median(np.linalg.norm((moved - corners)[ok].reshape(-1, 2), axis=1)))
 
 
-def select_frames(frames: list[Frame], options: FrameSelectionOptions) -> FrameSelection:
+def select_frames(
+    frames: list[Frame], options: FrameSelectionOptions, num_source_frames: int | None = None
+) -> FrameSelection:
     """Drops blurred frames (relative to their neighbours) and near-duplicates, then caps the count.
 
     Raises:
@@ -195,6 +267,6 @@ def select_frames(frames: list[Frame], options: FrameSelectionOptions) -> FrameS
         kept=tuple(frames[p] for p in kept_positions),
         blurred=tuple(blurred),
         duplicate=tuple(duplicate),
-        num_source_frames=len(frames),
+        num_source_frames=len(frames) if num_source_frames is None else num_source_frames,
         sharpness=tuple(float(s) for s in sharp),
     )

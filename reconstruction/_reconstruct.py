@@ -112,8 +112,10 @@ def reconstruct(
     with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,)) as stage_dir:
         tick = time.perf_counter()
         report("reading frames", 0, 1)
-        frames = _frames.read_frames(source)
-        selection = _frames.select_frames(frames, options.frames)
+        frames, num_source_frames = _frames.read_frames_counted(
+            source, lambda done, total: report("reading frames", done, max(total, done))
+        )
+        selection = _frames.select_frames(frames, options.frames, num_source_frames)
         del frames
         image_dir = stage_dir / "images"
         image_dir.mkdir()

@@ -286,3 +286,32 @@ def test_staged_output_dir_edge_paths(tmp_path: Path, monkeypatch: pytest.Monkey
     (tmp_path / "file").write_text("")
     with pytest.raises(InputError, match="cannot create the output folder"), staged_output_dir(tmp_path / "file" / "o"):
         pass
+
+
+def test_read_frames_bounds_memory_and_refuses_image_bombs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A long video used to be decoded whole before --max-frames applied (4 GB for 20 s of 1080p), and a 0.9 MB PNG
+    of 30000 x 30000 px was decoded (10.8 GB). Now the frames kept stay within the byte budget, evenly spread with
+    their source indices and the source's count, and an image larger than the pixel limit is refused from its
+    header, before decoding."""
+    import cv2
+
+    import reconstruction._frames as frames_module
+    from reconstruction._frames import read_frames_counted
+    from reconstruction.errors import InputError
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(40):  # named so that string order would differ from the natural order
+        cv2.imwrite(str(folder / f"{i}.png"), rng.integers(0, 255, (24, 32, 3), np.uint8))
+    one_frame = 24 * 32 * 3
+    steps: list[tuple[int, int]] = []
+    frames, count = read_frames_counted(folder, lambda d, t: steps.append((d, t)), max_bytes=10 * one_frame)
+    assert count == 40 and steps[-1] == (40, 40)
+    assert [f.index for f in frames] == list(range(0, 40, 4))  # thinned twice: every 4th frame, from the first
+    assert [f.name for f in frames] == [f"{i}.png" for i in range(0, 40, 4)]
+    np.testing.assert_array_equal(frames[3].image_bgr, cv2.imread(str(folder / "12.png")))
+    assert sum(f.image_bgr.nbytes for f in frames) <= 10 * one_frame
+    monkeypatch.setattr(frames_module, "MAX_IMAGE_PIXELS", 700)
+    with pytest.raises(InputError, match=r"0\.png is 32x24 px, more than"):
+        read_frames_counted(folder)

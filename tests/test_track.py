@@ -298,6 +298,28 @@ def test_scan_frames_outside_the_scene_are_not_read(tmp_path: Path) -> None:
         assert scan is not None and len(scan[0]) == 1 and read == [str(rec / "frame.png")]
 
 
+def test_read_clip_folder_order_and_size_limits(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A folder of 1.png ... 12.png was tracked as 1, 10, 11, 12, 2, ... (string order), and .bmp frames were not
+    seen; a clip whose frames would not fit in memory is refused before decoding, naming --max-frames."""
+    import cv2
+
+    import reconstruction._frames as frames_module
+
+    for i in range(1, 13):
+        cv2.imwrite(str(tmp_path / f"{i}.bmp"), np.full((8, 8, 3), i, np.uint8))
+    frames, fps = read_clip(tmp_path)
+    assert [int(f[0, 0, 0]) for f in frames] == list(range(1, 13)) and fps == 30.0
+    assert [int(f[0, 0, 0]) for f in read_clip(tmp_path, max_frames=3, start_frame=9)[0]] == [10, 11, 12]
+    with pytest.raises(TrackError, match=r"from frame 20 on \(the clip has 12\)"):
+        read_clip(tmp_path, start_frame=20)
+    monkeypatch.setattr(frames_module, "MAX_DECODED_BYTES", 8 * 8 * 3 * 10)
+    with pytest.raises(TrackError, match=r"12 frames of 8x8 px would take .*--max-frames"):
+        read_clip(tmp_path)
+    assert len(read_clip(tmp_path, max_frames=10)[0]) == 10
+    with pytest.raises(TrackError, match=r"90 frames of 640x480 px would take .*--max-frames"):
+        read_clip(TOSS / "video.mp4")
+
+
 def test_options_reject_bad_values() -> None:
     with pytest.raises(TrackError, match="aruco_size_m"):
         TrackOptions(aruco_size_m=-1.0)
