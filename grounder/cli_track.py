@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -33,6 +34,7 @@ def register(app: typer.Typer) -> None:
             typer.Option("--static-camera/--moving-camera", help="Default: decided from the marker's motion."),
         ] = None,
         max_frames: Annotated[int | None, typer.Option(help="Track at most this many frames.")] = None,
+        start_frame: Annotated[int, typer.Option(help="First frame of the clip to track (0-based).")] = 0,
         min_segment_frames: Annotated[
             int, typer.Option(help="Shortest run of fully tracked frames written as a trajectory.")
         ] = 5,
@@ -59,9 +61,15 @@ def register(app: typer.Typer) -> None:
         """6-DoF pose of every grounded object in every frame; lost frames flagged; trajectories per tracked run."""
         _setup_logging(verbose)
         require(
-            ("--aruco-size", aruco_size, aruco_size > 0, "> 0"),
+            ("--aruco-size", aruco_size, math.isfinite(aruco_size) and aruco_size > 0, "> 0 and finite"),
             ("--min-segment-frames", min_segment_frames, min_segment_frames >= 3, ">= 3"),
-            ("--max-frames", max_frames, max_frames is None or max_frames >= 2, ">= 2"),
+            (
+                "--max-frames",
+                max_frames,
+                max_frames is None or max_frames >= min_segment_frames,
+                f">= --min-segment-frames ({min_segment_frames}): a shorter span can hold no trajectory",
+            ),
+            ("--start-frame", start_frame, start_frame >= 0, ">= 0"),
         )
         if marker_use not in ("pose", "rotation"):
             fail(f"--marker-use {marker_use}: expected pose or rotation")
@@ -76,6 +84,7 @@ def register(app: typer.Typer) -> None:
                 intrinsics_colmap=intrinsics,
                 static_camera=static_camera,
                 max_frames=max_frames,
+                start_frame=start_frame,
                 min_segment_frames=min_segment_frames,
                 object_markers=markers,
                 marker_use=marker_use,

@@ -239,6 +239,14 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
         assert result.exit_code == 2 and "do not fit the" in result.output and "Traceback" not in result.output, (
             result.output
         )
+    # Values that pass the type but cannot work: refused before any work, naming the option.
+    for flags, needle in (
+        (["--aruco-size", "inf"], "--aruco-size inf must be > 0 and finite"),
+        (["--max-frames", "3"], "--max-frames 3 must be >= --min-segment-frames (5)"),
+        (["--start-frame", "-1"], "--start-frame -1 must be >= 0"),
+    ):
+        result = runner.invoke(app, ["track", clip, "--scene", scene, "-o", str(tmp_path / "o"), *flags])
+        assert result.exit_code == 2 and needle in result.output, result.output
     assert not (tmp_path / "o").exists()
     # A non-empty output folder is refused before the clip is read, not after the tracking (the clip here is not even
     # a video: the output is what the one line names).
