@@ -21,6 +21,7 @@ import copy
 import itertools
 import json
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -236,8 +237,12 @@ def check_inputs(model: mujoco.MjModel, trajs: Sequence[Trajectory], options: Di
             f"training and {n_hold} held out; the diagnosis needs at least 2 of each: record more trajectories "
             f"(8 or more recommended)"
         )
-    if options.horizon_s <= 0:
-        raise GrounderError(f"horizon must be > 0 s, got {options.horizon_s}")
+    sample_s = max(float(np.median(np.diff(t.time_s))) for t in trajs)
+    if not (math.isfinite(options.horizon_s) and options.horizon_s >= sample_s):
+        raise GrounderError(
+            f"--horizon {options.horizon_s:g} s is shorter than the recordings' sample interval ({sample_s:.4g} s) "
+            "or not finite: a window needs two samples; pass a horizon of a few samples or more"
+        )
     resolve_effects(list(options.effects) if options.effects is not None else None, model)
     if model.nu and any(t.ctrl is None for t in trajs):
         raise GrounderError("the model has actuators but the trajectories carry no 'ctrl'; record the controls")

@@ -6,6 +6,7 @@ Bad input of any kind ends with one line on stderr, naming the problem and the f
 from __future__ import annotations
 
 import logging
+import math
 import os
 import sys
 from collections.abc import Callable, Iterator
@@ -203,7 +204,7 @@ def ground(
     """
     _setup_logging(verbose)
     require(
-        ("--density", density, density > 0, "> 0"),
+        ("--density", density, math.isfinite(density) and density > 0, "> 0 and finite"),
         ("--face-budget", face_budget, face_budget >= 100, ">= 100"),
         ("--max-hulls", max_hulls, max_hulls >= 1, ">= 1"),
     )

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
 import typer
+
+MAX_THREADS = 256  # each thread holds its own MjData; thousands would only exhaust memory
 
 
 def _effect_names(values: list[str] | None) -> tuple[str, ...] | None:
@@ -41,8 +44,11 @@ def register(app: typer.Typer) -> None:
         Writes OUT/diagnosis.json, OUT/report.html and OUT/diagnosed.xml.
         """
         _setup_logging(verbose)
-        if threads is not None and threads < 1:
-            fail("--threads must be >= 1")
+        require(
+            ("--threads", threads, threads is None or 1 <= threads <= MAX_THREADS, f"between 1 and {MAX_THREADS}"),
+            ("--seed", seed, seed >= 0, ">= 0"),
+            ("--horizon", horizon, math.isfinite(horizon) and horizon > 0, "> 0 and finite (seconds)"),
+        )
         with user_errors_exit_2():
             from grounder._diagnose import DiagnoseOptions, diagnose_files
 
@@ -72,7 +78,8 @@ def register(app: typer.Typer) -> None:
         """Withheld-effect benchmark: generate cases with hidden effects, diagnose them blind, print the table."""
         require(
             ("--trajectories", trajectories, trajectories >= 8, ">= 8 (each case holds 30% out for the check)"),
-            ("--threads", threads, threads >= 1, ">= 1"),
+            ("--threads", threads, 1 <= threads <= MAX_THREADS, f"between 1 and {MAX_THREADS}"),
+            ("--seed", seed, seed >= 0, ">= 0"),
         )
         if json_out is not None:  # before the benchmark's minutes, not after
             if json_out.exists():

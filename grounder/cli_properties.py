@@ -9,6 +9,8 @@ from typing import Annotated
 
 import typer
 
+MAX_VARIANTS = 10_000  # each variant is a compiled scene held in memory while the folder is written
+
 
 def register(app: typer.Typer) -> None:
     """Adds the `properties` command group to the `image2sim` app."""
@@ -71,8 +73,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Errors and 90%-interval coverage on held-out shapes and appearances, against a train-mean baseline."""
         _setup_logging(verbose)
-        if num_samples < 10:
-            fail("--num-samples must be >= 10")
+        require(("--num-samples", num_samples, num_samples >= 10, ">= 10"), ("--seed", seed, seed >= 0, ">= 0"))
         if seed in (1, 2):
             fail(f"--seed {seed} is a training/calibration seed; pick another for held-out data")
         with user_errors_exit_2():
@@ -102,10 +103,12 @@ def register(app: typer.Typer) -> None:
         overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder.")] = False,
     ) -> None:
         """Scene variants with densities, frictions and solref drawn from the predicted distributions."""
-        if n < 1:
-            fail("-n must be >= 1")
+        require(("-n", n, 1 <= n <= MAX_VARIANTS, f"between 1 and {MAX_VARIANTS}"), ("--seed", seed, seed >= 0, ">= 0"))
         with user_errors_exit_2():
             from grounder._properties import write_scene_variants
+            from reconstruction import check_output_dir
+
+            check_output_dir(out, overwrite=overwrite, inputs=(scene,))  # before drawing the variants
 
             paths = write_scene_variants(scene, out, n, seed, overwrite=overwrite)
         typer.echo(f"wrote {len(paths)} variants to {out}")

@@ -66,6 +66,7 @@ def check_output_dir(
         raise error(f"output {out_dir} is a symbolic link; pass the folder's real path (-o), or a new folder")
     if out_dir.exists() and not out_dir.is_dir():
         raise error(f"output {out_dir} is a file; pass a folder path (-o)")
+    _check_creatable(out_dir, error)
     if out_dir.is_dir() and any(out_dir.iterdir()) and overwrite:
         _check_not_part_of_an_input(out_dir, inputs, error)
     if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
@@ -75,6 +76,22 @@ def check_output_dir(
             else "choose a new or empty output folder"
         )
         raise error(f"output folder {out_dir} already exists and is not empty; {what_to_do}")
+
+
+def _check_creatable(out_dir: Path, error: type[Exception]) -> None:
+    """Creates and removes a folder beside `out_dir`, so that a location the output cannot be written to (a
+    read-only or virtual file system, a file in the path) fails before the work rather than after it."""
+    parent = Path(os.path.abspath(out_dir)).parent
+    created = [p for p in (parent, *parent.parents) if not p.exists()]
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        probe = parent / f".{out_dir.name or 'out'}.probe-{secrets.token_hex(4)}"
+        probe.mkdir()
+        probe.rmdir()
+    except OSError as exc:
+        raise error(f"cannot create the output folder {out_dir} ({exc.strerror or exc}); choose another -o") from exc
+    finally:
+        _remove_empty(created)
 
 
 def _check_not_part_of_an_input(out_dir: Path, inputs: Iterable[str | Path | None], error: type[Exception]) -> None:

@@ -260,3 +260,25 @@ def test_value_checks_name_each_value_that_is_wrong(capsys: pytest.CaptureFixtur
             ("--density", 0.0, False, "> 0"), ("--face-budget", 4000, True, ">= 100"), ("--max-hulls", 0, False, ">= 1")
         )
     assert capsys.readouterr().err == "image2sim: error: --density 0.0 must be > 0; --max-hulls 0 must be >= 1\n"
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["diagnose", "s.xml", "t", "-o", "o", "--threads", "100000"], "--threads 100000 must be between 1 and 256"),
+        (["diagnose", "s.xml", "t", "-o", "o", "--seed", "-1"], "--seed -1 must be >= 0"),
+        (["diagnose", "s.xml", "t", "-o", "o", "--horizon", "nan"], "--horizon nan must be > 0 and finite"),
+        (["diagnose-benchmark", "--threads", "2000"], "--threads 2000 must be between 1 and 256"),
+        (["diagnose-benchmark", "--seed", "-1"], "--seed -1 must be >= 0"),
+        (["properties", "evaluate", "--seed", "-1"], "--seed -1 must be >= 0"),
+        (["properties", "sample", "s", "-o", "o", "-n", "100000"], "-n 100000 must be between 1 and 10000"),
+        (["ground", "v.mp4", "-o", "o", "--density", "inf"], "--density inf must be > 0 and finite"),
+        (["properties", "train", "-o", "/proc/image2sim_test/w", "--num-train", "100"], "cannot create the output"),
+    ],
+)
+def test_values_that_cannot_work_are_refused_before_any_work(args: list[str], needle: str) -> None:
+    """Each of these was accepted: --threads 2000 grew to 15 GB and ignored SIGTERM, --seed -1 was numpy's
+    traceback, --horizon nan reported 'every nan s', --density inf failed after a minute of grounding naming
+    another value, an uncreatable -o failed only after training."""
+    proc = run_cli(*args, timeout=60)
+    assert_one_line_error(proc, needle, alone=True)

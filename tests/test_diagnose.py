@@ -500,7 +500,7 @@ def _write_traj(folder: Path, name: str, **arrays: np.ndarray) -> None:
     np.savez(folder / f"{name}.npz", **arrays)  # type: ignore[arg-type]
 
 
-@pytest.mark.parametrize("problem", ["nq", "nan", "time", "few", "effect", "scene"])
+@pytest.mark.parametrize("problem", ["nq", "nan", "time", "few", "effect", "scene", "horizon"])
 def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], tmp_path: Path) -> None:
     scene, trajs = pendulum_case
     extra: list[str] = []
@@ -526,6 +526,8 @@ def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], t
         (tmp_path / "s").mkdir()
         (tmp_path / "s" / "scene.xml").write_text("<mujoco")
         scene, needle = tmp_path / "s", "scene.xml: MuJoCo cannot load it (XML parse error"
+    elif problem == "horizon":  # shorter than a sample: was a diagnosis of noise ('70% less' from velocity_lag)
+        extra, needle = ["--horizon", "1e-9"], "shorter than the recordings' sample interval"
     else:
         extra, needle = ["--effects", "warp_drive"], "unknown effect 'warp_drive'"
     out = tmp_path / "out"
