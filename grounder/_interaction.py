@@ -64,7 +64,7 @@ from grounder._ground import GroundOptions, ground
 from grounder._interaction_impacts import ImpactOptions, impacts_body, impacts_figure
 from grounder._interaction_shooting import ShootingOptions, fit_contact, moving_runs
 from grounder._restitution import REFERENCE_IMPACT_SPEED_M_S, body_restitution
-from grounder._track import TrackOptions, TrackResult, track, track_payload_trajectories
+from grounder._track import TrackOptions, TrackResult, read_clip, track, track_payload_trajectories
 from grounder._track_smooth import SmoothingOptions, quat_from_matrix
 from grounder._trajectory import Trajectory, load_trajectories, save_trajectories
 from grounder.errors import GrounderError
@@ -1254,6 +1254,13 @@ def ground_with_interaction(
     if grounded_scene is None:  # the videos that will be read fail now, not after the grounding
         check_source(Path(scan))
     check_source(Path(clip))
+    needed = track_options.min_segment_frames  # a few frames decoded now: a clip too short to track fails here
+    first, _ = read_clip(Path(clip), needed, track_options.start_frame)
+    if len(first) < needed:
+        raise GrounderError(
+            f"{clip}: {len(first)} frames; tracking needs at least {needed} (min_segment_frames) to make a trajectory"
+        )
+    del first
     with staged_output_dir(Path(out), overwrite=overwrite, inputs=(scan, clip, grounded_scene)) as stage:
         tick = time.perf_counter()
         grounded = stage / "grounded"

@@ -188,6 +188,11 @@ def scene_markers(scene_json: Path) -> tuple[ObjectMarker, ...]:
         rows = json.loads(path.read_text()).get("object_markers") or []
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError) as exc:
         raise GrounderError(f"{path}: cannot read it ({exc}); ground the scene again") from exc
+    if not isinstance(rows, list):
+        raise GrounderError(
+            f"{path}: 'object_markers' is {type(rows).__name__} {rows!r:.40}, not a list of markers; ground the "
+            "scene again"
+        )
     return tuple(_marker_from_row(row, f"{path}: object marker {k}", "scan") for k, row in enumerate(rows))
 
 

@@ -215,6 +215,16 @@ def test_unreadable_interaction_clip_fails_before_grounding(tmp_path: Path, tabl
     )
     assert_one_line_error(proc, "toss.mp4", "not a readable video", alone=True)
     assert not (tmp_path / "out").exists()
+    # A clip that opens but is too short to track (3 frames) failed only after the grounding (71 s).
+    short = tmp_path / "short"
+    short.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(short / f"{i}.png"), np.full((48, 64, 3), 40 * i, np.uint8))
+    proc = run_cli(
+        "ground", str(tabletop_dir / "video.mp4"), "--interaction", str(short), "-o", str(tmp_path / "out"), timeout=60
+    )
+    assert_one_line_error(proc, "3 frames; tracking needs at least 5", alone=True)
+    assert not (tmp_path / "out").exists()
 
 
 def test_properties_train_keeps_a_non_empty_output(tmp_path: Path) -> None:

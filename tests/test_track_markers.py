@@ -222,6 +222,12 @@ def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
         ObjectMarker(marker_id=2, size_m=0.036, origin="scan"),
     )
     assert [(m.marker_id, m.origin) for m in combined_markers((box,), scan)] == [(1, "layout"), (2, "scan")]
+    # The scene's own record of its markers comes with the scene: a number there was "'int' object is not iterable".
+    from grounder._track_markers import scene_markers
+
+    (tmp_path / "scene.json").write_text('{"object_markers": 5}')
+    with pytest.raises(GrounderError, match=r"'object_markers' is int 5, not a list of markers; ground the scene"):
+        scene_markers(tmp_path / "scene.json")
 
 
 def test_cli_marker_options_reject_bad_input(tmp_path: Path) -> None:
