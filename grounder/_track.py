@@ -390,6 +390,8 @@ def load_scan(
             raise ValueError(f"{transforms}: 'frames' is not a list of frames")
         objects = json.loads(manifest.read_text())["objects"]
         world_from_objects = [pose_matrix(objects[n]["pos_m"], objects[n]["quat_wxyz"]) for n in names]
+        if not all(np.isfinite(pose).all() for pose in world_from_objects):
+            raise ValueError(f"{manifest}: an object's pos_m or quat_wxyz is not finite")
     except (OSError, ValueError, KeyError, TypeError) as exc:
         log.warning("scan frames not used for the feature models: %s", exc)
         return None

@@ -304,6 +304,11 @@ def test_scan_frames_outside_the_scene_are_not_read(tmp_path: Path) -> None:
         (rec / "transforms.json").write_text(json.dumps({"frames": [frame]}))
         scan = load_scan(tmp_path / "scene" / "scene.xml", ["box"], TrackOptions(), lambda im: im, (48, 64))
         assert scan is not None and len(scan[0]) == 1 and read == [str(rec / "frame.png")]
+        # An object pose that is not finite leaves the scan frames out (it was used as it was: 8 mm, 1 m/s off).
+        (tmp_path / "scene" / "scene.json").write_text(
+            json.dumps({"objects": {"box": {"pos_m": [0, float("nan"), 0], "quat_wxyz": [1, 0, 0, 0]}}})
+        )
+        assert load_scan(tmp_path / "scene" / "scene.xml", ["box"], TrackOptions(), lambda im: im, (48, 64)) is None
 
 
 def test_read_clip_folder_order_and_size_limits(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
