@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -104,10 +104,21 @@ def select_cases(names: Sequence[str] | None) -> list[CaseSpec]:
 
 
 def run_benchmark(
-    names: Sequence[str] | None = None, num_trajectories: int = 16, nthread: int = 2, seed: int = 0
+    names: Sequence[str] | None = None,
+    num_trajectories: int = 16,
+    nthread: int = 2,
+    seed: int = 0,
+    progress: Callable[[str, int, int], None] | None = None,
 ) -> list[BenchResult]:
-    """Runs the named cases (all by default) one after another."""
-    return [run_case(spec, num_trajectories, nthread, seed) for spec in select_cases(names)]
+    """Runs the named cases (all by default) one after another; `progress(stage, done, total)` after each."""
+    report = progress or (lambda _s, _d, _t: None)
+    specs = select_cases(names)
+    results = []
+    for k, spec in enumerate(specs):
+        report(f"withheld-effect cases ({spec.name})", k, len(specs))
+        results.append(run_case(spec, num_trajectories, nthread, seed))
+    report("withheld-effect cases", len(specs), len(specs))
+    return results
 
 
 def _fmt_params(values: dict[str, float]) -> str:

@@ -89,9 +89,11 @@ def register(app: typer.Typer) -> None:
         with user_errors_exit_2():
             from grounder._diagnose_bench import format_table, run_benchmark
 
-            results = run_benchmark(
-                names=_effect_names(cases), num_trajectories=trajectories, nthread=threads, seed=seed
-            )
+            with stage_progress() as progress:
+                results = run_benchmark(
+                    names=_effect_names(cases), num_trajectories=trajectories, nthread=threads, seed=seed,
+                    progress=progress,
+                )  # fmt: skip
         typer.echo(format_table(results))
         if json_out is not None:
             import json
