@@ -85,6 +85,8 @@ def load_property_model(weights_dir: Path | None = None) -> PropertyModel:
     try:
         with quiet_pickle_protocol_warning():
             net, norm, meta = load(weights_dir)
+    except GrounderError:  # already one line naming the file and the field
+        raise
     except Exception as exc:
         # Not the exception's own text: torch's runs over several lines and suggests weights_only=False, unsafe for
         # a file of unknown origin.
@@ -343,12 +345,101 @@ def assign_properties(
 # ---------------------------------------------------------------- informed domain randomisation
 
 
+# Bounds on the transformed targets (ln density, ln frictions, logit restitution, ln time constant) of a stored
+# Gaussian: a mean beyond +-30 (exp(30) ~ 1e13) is no physical density, friction or time constant, so it is refused;
+# each draw is clipped to the mean +-10 (a factor 2e4 either way), so that exp() of it stays finite and the drawn
+# masses stay well above MuJoCo's minimum whatever the stored spread. At the model's spreads (std <= ~1.5) that is
+# beyond 6 std: the clip does not change the distribution `scene.json` states.
+_MAX_ABS_TRANSFORMED_MEAN = 30.0
+_MAX_TRANSFORMED_DEVIATION = 10.0
+_NUM_TRANSFORMED = 6
+
+
+def _short(value: Any) -> str:
+    """A JSON value for an error line: dicts and lists by kind, other values as written (at most 60 characters)."""
+    if isinstance(value, dict):
+        return "a JSON object"
+    text = repr(value) if isinstance(value, float) else json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _finite_number(value: Any) -> bool:
+    """A JSON number (not a bool) that is finite as a float (a huge integer is not)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
+def _checked_objects(manifest: Any, manifest_path: Path) -> dict[str, dict[str, Any]]:
+    """`scene.json`'s objects, each one that carries `properties` checked for what sampling reads.
+
+    Checks the structure (an object at the top, `objects` an object of objects), and per object with `properties`:
+    `properties.transformed.mean` and `.std` (lists of 6 finite numbers, std > 0, |mean| <= 30) and `density_kg_m3`
+    (finite, > 0). Objects without `properties` are returned unchecked; sampling keeps their values.
+
+    Raises:
+        GrounderError: one line naming the file, the object and the field, and what to do.
+    """
+    redo = "re-run `image2sim ground` to rewrite it"
+
+    def bad(field: str, expected: str, value: Any, *, got: str | None = None) -> GrounderError:
+        got = got or _short(value)
+        return GrounderError(f"{manifest_path}: {field} must be {expected}, got {got}; {redo}")
+
+    if not isinstance(manifest, dict):
+        raise bad("the top level", "a JSON object", manifest, got="a list" if isinstance(manifest, list) else None)
+    objects = manifest.get("objects", {})
+    if not isinstance(objects, dict):
+        raise bad(
+            "objects",
+            "a JSON object (body name -> object)",
+            objects,
+            got="a list" if isinstance(objects, list) else None,
+        )
+    for name, entry in objects.items():
+        where = f"objects.{name}"
+        if not isinstance(entry, dict):
+            raise bad(where, "a JSON object", entry)
+        if "properties" not in entry:
+            continue
+        props = entry["properties"]
+        if not isinstance(props, dict):
+            raise bad(f"{where}.properties", "a JSON object", props)
+        transformed = props.get("transformed")
+        if not isinstance(transformed, dict):
+            raise bad(f"{where}.properties.transformed", "a JSON object with mean and std", transformed)
+        for key in ("mean", "std"):
+            values = transformed.get(key)
+            ok = isinstance(values, list) and len(values) == _NUM_TRANSFORMED and all(_finite_number(v) for v in values)
+            if not ok:
+                raise bad(
+                    f"{where}.properties.transformed.{key}", f"a list of {_NUM_TRANSFORMED} finite numbers", values
+                )
+        if not all(v > 0 for v in transformed["std"]):
+            raise bad(f"{where}.properties.transformed.std", "positive", transformed["std"])
+        if not all(abs(v) <= _MAX_ABS_TRANSFORMED_MEAN for v in transformed["mean"]):
+            raise bad(
+                f"{where}.properties.transformed.mean",
+                f"within +-{_MAX_ABS_TRANSFORMED_MEAN:g} (logs of physical values)",
+                transformed["mean"],
+            )
+        density: Any = entry.get("density_kg_m3")
+        if not (_finite_number(density) and density > 0):
+            raise bad(f"{where}.density_kg_m3", "a finite number > 0 (kg/m^3)", density)
+    return objects
+
+
 def _sample_physical(entry: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
-    """Draws one set of properties from an object's stored Gaussian over the transformed targets."""
+    """Draws one set of properties from an object's stored Gaussian over the transformed targets (checked by
+    `_checked_objects`)."""
     transformed = entry["transformed"]
     mean_t = np.asarray(transformed["mean"], dtype=np.float64)
     std_t = np.asarray(transformed["std"], dtype=np.float64)
     draw = mean_t + std_t * rng.standard_normal(len(mean_t))
+    draw = np.clip(draw, mean_t - _MAX_TRANSFORMED_DEVIATION, mean_t + _MAX_TRANSFORMED_DEVIATION)
     e = float(1.0 / (1.0 + math.exp(-draw[4])))
     return {
         "density_kg_m3": float(math.exp(draw[0])),
@@ -390,7 +481,13 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
     if n < 1:
         raise GrounderError(f"{n=} but expected at least 1 variant")
     scene_files(xml_path)  # nothing outside the scene folder
-    objects = json.loads(manifest_path.read_text()).get("objects", {})
+    try:
+        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise GrounderError(
+            f"{manifest_path}: not valid JSON ({type(exc).__name__}); re-run `image2sim ground` to rewrite it"
+        ) from exc
+    objects = _checked_objects(manifest, manifest_path)
     rng = np.random.default_rng(seed)
     out: list[tuple[mujoco.MjSpec, dict[str, Any]]] = []
     for _ in range(n):
@@ -403,7 +500,10 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
             sampled[body_name] = props
             body = spec.body(body_name)
             if body is None:
-                raise GrounderError(f"scene.json names object {body_name!r} but scene.xml has no such body")
+                raise GrounderError(
+                    f"{manifest_path}: objects.{body_name} has no body of that name in {xml_path.name}; "
+                    "re-run `image2sim ground` to write the two together"
+                )
             ratio = props["density_kg_m3"] / float(entry["density_kg_m3"])
             body.mass = body.mass * ratio
             full = np.asarray(body.fullinertia, dtype=np.float64)
@@ -439,7 +539,13 @@ def write_scene_variants(
     with staged_output_dir(out_dir, overwrite=overwrite, inputs=(scene_dir,)) as stage:
         copy_scene_files(scene_dir / "scene.xml", stage)  # one copy of the meshes and textures, shared by all variants
         for i, (spec, sampled) in enumerate(variants):
-            spec.compile()  # with the scene's own asset folder
+            try:
+                spec.compile()  # with the scene's own asset folder
+            except ValueError as exc:  # MuJoCo's compiler error, over several lines
+                raise GrounderError(
+                    f"{scene_dir / 'scene.json'}: variant {i} drawn from its objects' properties does not compile "
+                    f"({' '.join(str(exc).split())}); re-run `image2sim ground` to rewrite the scene"
+                ) from exc
             name = f"variant_{i:03d}.xml"
             (stage / name).write_text(spec.to_xml())
             paths.append(out_dir / name)

@@ -359,11 +359,116 @@ def save(net: PropertyNet, meta: dict[str, Any], out_dir: Path) -> None:
     meta_tmp.replace(out_dir / META_FILE)
 
 
+def _regenerate(weights_dir: Path) -> str:
+    """What to do about a broken weights folder: the `train` command that rewrites it."""
+    from grounder._properties import WEIGHTS_DIR
+
+    command = "image2sim properties train"
+    command += "" if Path(weights_dir).resolve() == WEIGHTS_DIR else f" -o {weights_dir} --overwrite"
+    return f"regenerate with `{command}`"
+
+
+def _finite_numbers(value: Any, length: int) -> bool:
+    """A JSON list of `length` numbers (not bools), each finite as a float."""
+    if not isinstance(value, list) or len(value) != length:
+        return False
+    try:
+        return all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(float(v)) for v in value)
+    except OverflowError:  # an integer beyond float range
+        return False
+
+
+def _checked_meta(meta: Any, meta_path: Path, remedy: str) -> dict[str, Any]:
+    """`property_net.json` checked for every field that loading and prediction read (before any of it sizes
+    memory): version, embedding size, target and material names, normalisation (finite; stds and spread scales
+    positive) and baseline (finite)."""
+    from grounder._properties import PropertyModelError
+
+    def bad(field: str, expected: str, value: Any) -> PropertyModelError:
+        got = "a JSON object" if isinstance(value, dict) else json.dumps(value)
+        got = got if len(got) <= 60 else got[:57] + "..."
+        return PropertyModelError(f"{meta_path}: {field} must be {expected}, got {got}; {remedy}")
+
+    if not isinstance(meta, dict):
+        raise bad("the top level", "a JSON object", "a list" if isinstance(meta, list) else meta)
+    if not isinstance(meta.get("model_version"), str):
+        raise bad("model_version", "a string", meta.get("model_version"))
+    embed_dim = meta.get("embed_dim")
+    if isinstance(embed_dim, bool) or not isinstance(embed_dim, int) or embed_dim < 1:
+        raise bad("embed_dim", "a positive integer", embed_dim)
+    for key, names in (("target_names", TARGET_NAMES), ("material_names", MATERIAL_NAMES)):
+        if meta.get(key) != list(names):
+            raise bad(key, f"this version's {list(names)}", meta.get(key))
+    norm = meta.get("normalisation")
+    if not isinstance(norm, dict):
+        raise bad("normalisation", "a JSON object", norm)
+    for key in Normalisation.__dataclass_fields__:
+        length = NUM_SHAPE_FEATURES if key.startswith("shape_") else len(TARGET_NAMES)
+        if not _finite_numbers(norm.get(key), length):
+            raise bad(f"normalisation.{key}", f"a list of {length} finite numbers", norm.get(key))
+        if key.endswith("_std") or key == "spread_scale":
+            if not all(v > 0 for v in norm[key]):
+                raise bad(f"normalisation.{key}", "positive", norm[key])
+    baseline = meta.get("baseline")
+    if not isinstance(baseline, dict):
+        raise bad("baseline", "a JSON object", baseline)
+    for key in ("train_mean_log_density", "train_mean_sliding_friction"):
+        if not _finite_numbers([baseline.get(key)], 1):
+            raise bad(f"baseline.{key}", "a finite number", baseline.get(key))
+    return meta
+
+
 def load(weights_dir: Path) -> tuple[PropertyNet, Normalisation, dict[str, Any]]:
-    """The network (eval mode), its normalisation and metadata from a weights folder."""
-    meta = json.loads((weights_dir / META_FILE).read_text())
-    net = PropertyNet(int(meta["embed_dim"]))
-    net.load_state_dict(torch.load(weights_dir / WEIGHTS_FILE, weights_only=True, map_location="cpu"))
+    """The network (eval mode), its normalisation and metadata from a weights folder.
+
+    Both files are untrusted: the metadata is checked field by field, the weights are read with
+    `weights_only=True`, and the metadata's embedding size is checked against the tensors' shapes before the
+    network is built from it (a wrong size in the JSON alone would otherwise allocate whatever it says).
+
+    Raises:
+        GrounderError: one line naming the file and the field or tensor, and the `train` command that rewrites them.
+    """
+    from grounder._properties import PropertyModelError
+    from grounder._residual import load_weights_file
+
+    weights_dir = Path(weights_dir)
+    meta_path, weights_path = weights_dir / META_FILE, weights_dir / WEIGHTS_FILE
+    remedy = _regenerate(weights_dir)
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise PropertyModelError(f"{meta_path}: not a readable JSON file ({type(exc).__name__}); {remedy}") from exc
+    meta = _checked_meta(meta, meta_path, remedy)
+    state = load_weights_file(weights_path, remedy)
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise PropertyModelError(f"{weights_path}: not a state dict of tensors; {remedy}")
+    embed_dim = meta["embed_dim"]
+    z_head = state.get("z_head.weight")
+    if z_head is None or z_head.ndim != 2:
+        raise PropertyModelError(f"{weights_path}: no 2-D tensor z_head.weight; {remedy}")
+    if z_head.shape[0] != 2 * embed_dim:
+        raise PropertyModelError(
+            f"{meta_path}: embed_dim {embed_dim} does not match {WEIGHTS_FILE} (z_head.weight has "
+            f"{z_head.shape[0]} rows, i.e. embed_dim {z_head.shape[0] // 2}); {remedy}"
+        )
+    net = PropertyNet(embed_dim)  # sized as the tensors in the file are: no more memory than the file itself
+    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    missing = sorted(set(expected) - set(state))
+    unexpected = sorted(set(state) - set(expected))
+    if missing or unexpected:
+        raise PropertyModelError(
+            f"{weights_path}: tensors {', '.join(missing[:3]) or '-'} missing, {', '.join(unexpected[:3]) or '-'} "
+            f"unexpected for a property network; {remedy}"
+        )
+    for key, shape in expected.items():
+        tensor = state[key]
+        if tuple(tensor.shape) != shape:
+            raise PropertyModelError(
+                f"{weights_path}: tensor {key} has shape {tuple(tensor.shape)}, expected {shape}; {remedy}"
+            )
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise PropertyModelError(f"{weights_path}: tensor {key} has non-finite values; {remedy}")
+    net.load_state_dict(state)
     # Inference in float64: `decode_embedding` is differentiated numerically by calibration code.
     net.double().eval()
     return net, Normalisation.from_json(meta["normalisation"]), meta

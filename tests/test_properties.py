@@ -289,3 +289,132 @@ def test_sampled_variants_differ_and_load(grounded: Path, tmp_path: Path) -> Non
     for v in record["variants"]:
         model = mujoco.MjModel.from_xml_path(str(moved / v["xml"]))
         assert model.nbody == len(models[0].body_mass)
+
+
+# ---------------------------------------------------------------- malformed inputs (audit)
+
+
+def _tiny_scene(folder: Path, entry: object) -> Path:
+    """A scene folder with one free box `object_0` and a scene.json whose `objects.object_0` is `entry`."""
+    folder.mkdir()
+    (folder / "scene.xml").write_text(
+        '<mujoco><worldbody><body name="object_0" pos="0 0 0.1"><freejoint/>'
+        '<inertial pos="0 0 0" mass="0.125" diaginertia="2e-4 2e-4 2e-4"/>'
+        '<geom type="box" size="0.05 0.05 0.05"/></body></worldbody></mujoco>'
+    )
+    (folder / "scene.json").write_text(json.dumps({"format": "image2sim.scene/1", "objects": {"object_0": entry}}))
+    return folder
+
+
+def _entry(**changes: object) -> dict[str, object]:
+    transformed = {"mean": [7.0, -0.7, -7.0, -9.0, -0.5, -4.0], "std": [0.5, 0.2, 0.5, 0.8, 0.4, 0.3]}
+    entry: dict[str, object] = {"density_kg_m3": 1000.0, "properties": {"transformed": transformed}}
+    for key, value in changes.items():
+        if key in ("mean", "std"):
+            transformed[key] = value
+        else:
+            entry[key] = value
+    return entry
+
+
+@pytest.mark.parametrize(
+    ("manifest", "field"),
+    [
+        ([1, 2], "the top level"),
+        ({"objects": [1]}, "objects must"),
+        ({"objects": {"object_0": "x"}}, "objects.object_0 must"),
+        ({"objects": {"object_0": {"density_kg_m3": 1000.0, "properties": "x"}}}, "objects.object_0.properties must"),
+        ({"objects": {"object_0": _entry(std="abc")}}, "objects.object_0.properties.transformed.std"),
+        ({"objects": {"object_0": _entry(std=[0.5, 0.2, 0.5, 0.8, 0.4, 0.0])}}, "transformed.std must be positive"),
+        ({"objects": {"object_0": _entry(mean=[1000.0] * 6)}}, "objects.object_0.properties.transformed.mean"),
+        ({"objects": {"object_0": _entry(mean=[1.0])}}, "objects.object_0.properties.transformed.mean"),
+        ({"objects": {"object_0": _entry(mean=[math.nan] * 6)}}, "objects.object_0.properties.transformed.mean"),
+        ({"objects": {"object_0": _entry(density_kg_m3=0)}}, "objects.object_0.density_kg_m3"),
+        ({"objects": {"object_0": _entry(density_kg_m3="heavy")}}, "objects.object_0.density_kg_m3"),
+        ({"objects": {"object_0": _entry(density_kg_m3=math.nan)}}, "objects.object_0.density_kg_m3"),
+    ],
+)
+def test_sampling_rejects_a_malformed_scene_json(tmp_path: Path, manifest: object, field: str) -> None:
+    scene = _tiny_scene(tmp_path / "scene", _entry())
+    assert len(sample_variant_specs(scene, 2, seed=0)) == 2  # the well-formed scene samples
+    (scene / "scene.json").write_text(json.dumps(manifest))
+    with pytest.raises(grounder.GrounderError) as info:
+        sample_variant_specs(scene, 2, seed=0)
+    message = str(info.value)
+    assert "\n" not in message and str(scene / "scene.json") in message and field in message, message
+    assert "image2sim ground" in message, message
+
+
+def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Path) -> None:
+    # A very wide (but finite) stored spread: every drawn value stays finite and the variants compile.
+    wide = _tiny_scene(tmp_path / "wide", _entry(std=[1e6] * 6))
+    for spec, drawn in sample_variant_specs(wide, 8, seed=0):
+        values = drawn["object_0"]
+        assert all(math.isfinite(v) for v in [values["density_kg_m3"], *values["friction"], *values["solref"]])
+        assert spec.compile().body_mass[1] == pytest.approx(0.125 * values["density_kg_m3"] / 1000.0, rel=1e-9)
+    # Objects without `properties` keep their values.
+    plain = _tiny_scene(tmp_path / "plain", {"density_kg_m3": 1000.0})
+    (spec, drawn), *_ = sample_variant_specs(plain, 1)
+    assert drawn == {} and spec.body("object_0").mass == pytest.approx(0.125)
+    # Through the CLI: one line, exit 2, nothing written.
+    bad = _tiny_scene(tmp_path / "bad", _entry(density_kg_m3=0))
+    proc = run_cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert proc.stderr.count("\n") == 1 and "objects.object_0.density_kg_m3" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "out").exists()
+
+
+def _copied_weights(folder: Path, **changes: object) -> Path:
+    """The shipped weights in `folder` with top-level or `normalisation` metadata fields replaced."""
+    from grounder._properties_model import META_FILE, WEIGHTS_FILE
+
+    folder.mkdir()
+    (folder / WEIGHTS_FILE).write_bytes((WEIGHTS_DIR / WEIGHTS_FILE).read_bytes())
+    meta = json.loads((WEIGHTS_DIR / META_FILE).read_text())
+    for key, value in changes.items():
+        if key in meta["normalisation"]:
+            meta["normalisation"][key] = value
+        else:
+            meta[key] = value
+    (folder / META_FILE).write_text(json.dumps(meta))
+    return folder
+
+
+def test_weights_metadata_is_checked_against_the_tensors_before_building(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from grounder import _properties_model
+    from grounder._properties import PropertyModelError
+
+    built: list[int] = []
+    real_net = _properties_model.PropertyNet
+
+    def spy(embed_dim: int = 16) -> object:
+        built.append(embed_dim)
+        if embed_dim != 16:  # stands in for the gigabytes the network of this size would take
+            raise MemoryError
+        return real_net(embed_dim)
+
+    monkeypatch.setattr(_properties_model, "PropertyNet", spy)
+    assert load_property_model(_copied_weights(tmp_path / "ok")).net.embed_dim == 16
+    with pytest.raises(PropertyModelError) as info:
+        load_property_model(_copied_weights(tmp_path / "embed", embed_dim=4_000_000))
+    message = str(info.value)
+    assert built == [16], built  # the oversized network was never built
+    assert "property_net.json" in message and "embed_dim" in message and "image2sim properties train" in message
+    assert "\n" not in message, message
+    for field, value in (("embed_dim", "16"), ("target_std", [1.0] * 5), ("spread_scale", [1.0] * 5 + [-1.0])):
+        with pytest.raises(PropertyModelError, match=field):
+            load_property_model(_copied_weights(tmp_path / f"bad_{field}", **{field: value}))
+
+
+def test_non_finite_normalisation_is_refused_by_evaluate(tmp_path: Path) -> None:
+    from grounder._properties_model import load
+
+    weights = _copied_weights(tmp_path / "nan", target_std=[math.nan] * 6)
+    with pytest.raises(grounder.GrounderError, match=r"property_net\.json: normalisation\.target_std"):
+        load(weights)
+    proc = run_cli("properties", "evaluate", "--weights", str(weights), "--num-samples", "10", timeout=120)
+    assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr[-2000:])
+    assert proc.stderr.count("\n") == 1 and "normalisation.target_std" in proc.stderr, proc.stderr
+    assert "regenerate with `image2sim properties train" in proc.stderr and "MAE" not in proc.stdout
