@@ -85,8 +85,10 @@ def load_property_model(weights_dir: Path | None = None) -> PropertyModel:
     try:
         with quiet_pickle_protocol_warning():
             net, norm, meta = load(weights_dir)
-    except GrounderError:  # already one line naming the file and the field
+    except PropertyModelError:
         raise
+    except GrounderError as exc:  # already one line naming the file and the field: only the type is the model's
+        raise PropertyModelError(str(exc)) from exc
     except Exception as exc:
         # Not the exception's own text: torch's runs over several lines and suggests weights_only=False, unsafe for
         # a file of unknown origin.

@@ -287,7 +287,7 @@ def test_property_weights_that_do_not_load_are_one_line(tmp_path: Path) -> None:
             load_property_model(weights)
         message = str(error.value)
         assert "\n" not in message and "weights_only" not in message, message
-        assert message.startswith(f"{weights / PROPERTY_WEIGHTS}: not a valid property-model weights file"), message
+        assert message.startswith(f"{weights / PROPERTY_WEIGHTS}: not a valid weights file"), message
         assert f"`image2sim properties train -o {weights} --overwrite`" in message
         assert not [w for w in caught if "pickle protocol" in str(w.message)]
 
