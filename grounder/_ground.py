@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import shutil
 import time
 from collections.abc import Callable
@@ -67,6 +68,15 @@ class GroundOptions:
     property_model: bool = True
     settle_seconds: float = 2.0
     cylinder_snap: CylinderSnapOptions | None = field(default_factory=CylinderSnapOptions)
+
+    def __post_init__(self) -> None:  # checked when built, not after a minute of reconstruction
+        density, friction = self.default_density_kg_m3, tuple(self.default_friction)
+        if not (math.isfinite(density) and density > 0):
+            raise GrounderError(f"default_density_kg_m3={density} but expected a finite density > 0 (kg/m^3)")
+        if len(friction) != 3 or not all(math.isfinite(f) and f >= 0 for f in friction):
+            raise GrounderError(f"default_friction={friction} but expected (sliding, torsional, rolling), finite >= 0")
+        if not (math.isfinite(self.settle_seconds) and self.settle_seconds >= 0):
+            raise GrounderError(f"settle_seconds={self.settle_seconds} but expected a finite time >= 0 (s)")
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -240,3 +240,18 @@ def test_scan_frames_for_the_feature_models_read_back_with_their_cameras(scene_d
         assert np.linalg.norm(frame.world_from_cam[:3, 3] - true_pose[:3, 3]) < 5e-3
         assert rotation_angle_deg(frame.world_from_cam[:3, :3], true_pose[:3, :3]) < 0.5
         assert frame.gray.shape == (480, 640)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("default_density_kg_m3", float("inf")), ("default_density_kg_m3", 0.0), ("default_friction", (0.5, -1.0, 0.0)),
+     ("settle_seconds", float("nan"))],
+)  # fmt: skip
+def test_ground_options_refuse_values_that_cannot_work(field: str, value: object) -> None:
+    """From Python, GroundOptions(default_density_kg_m3=inf) used to run a minute of reconstruction and then fail
+    naming another value; the options now refuse it when built."""
+    from grounder._ground import GroundOptions
+    from grounder.errors import GrounderError
+
+    with pytest.raises(GrounderError, match=field):
+        GroundOptions(**{field: value})
