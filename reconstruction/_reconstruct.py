@@ -216,11 +216,11 @@ def rescale_written(result: ReconstructionResult, factor: float, note: str) -> R
     from dataclasses import replace
 
     sparse_dir = result.out_dir / "sparse"
+    scaling = np.diag([factor, factor, factor, 1.0])
     model = pycolmap.Reconstruction(sparse_dir)
-    model.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+    _apply_world(model, scaling)
     model.write(sparse_dir)
-    world_from_sfm = result.world.world_from_sfm.copy()
-    world_from_sfm[:3, :] *= factor  # world = factor * (s R sfm + t)
+    world_from_sfm = scaling @ result.world.world_from_sfm  # world = factor * (s R sfm + t)
     frames = []
     for frame in result.frames:
         pose = frame.world_from_cam.copy()
