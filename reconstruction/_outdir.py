@@ -61,37 +61,45 @@ def check_output_dir(
         symbolic link; or it is or holds one of `inputs`.
     """
     out_dir = Path(out_dir)
+    inputs = tuple(inputs)  # read twice below
     check_outside_inputs(out_dir, inputs, error=error)
     if out_dir.is_symlink():  # replacing the output would replace the link, or write through it into its target
         raise error(f"output {out_dir} is a symbolic link; pass the folder's real path (-o), or a new folder")
     if out_dir.exists() and not out_dir.is_dir():
         raise error(f"output {out_dir} is a file; pass a folder path (-o)")
-    _check_creatable(out_dir, error)
-    if out_dir.is_dir() and any(out_dir.iterdir()) and overwrite:
-        _check_not_part_of_an_input(out_dir, inputs, error)
-    if out_dir.is_dir() and any(out_dir.iterdir()) and not overwrite:
-        what_to_do = (
-            "pass --overwrite (Python: overwrite=True) or another output folder"
-            if offers_overwrite
-            else "choose a new or empty output folder"
-        )
-        raise error(f"output folder {out_dir} already exists and is not empty; {what_to_do}")
+    # A probe beside the output: a location it cannot be written to (a read-only or virtual file system, a file in
+    # the path) fails before the work rather than after it.
+    probe, created = _mkdir_beside(Path(os.path.abspath(out_dir)), "probe", error)
+    probe.rmdir()
+    _remove_empty(created)
+    if out_dir.is_dir() and any(out_dir.iterdir()):
+        if overwrite:
+            _check_not_part_of_an_input(out_dir, inputs, error)
+        else:
+            what_to_do = (
+                "pass --overwrite (Python: overwrite=True) or another output folder"
+                if offers_overwrite
+                else "choose a new or empty output folder"
+            )
+            raise error(f"output folder {out_dir} already exists and is not empty; {what_to_do}")
 
 
-def _check_creatable(out_dir: Path, error: type[Exception]) -> None:
-    """Creates and removes a folder beside `out_dir`, so that a location the output cannot be written to (a
-    read-only or virtual file system, a file in the path) fails before the work rather than after it."""
-    parent = Path(os.path.abspath(out_dir)).parent
-    created = [p for p in (parent, *parent.parents) if not p.exists()]
+def _mkdir_beside(out_dir: Path, tag: str, error: type[Exception]) -> tuple[Path, list[Path]]:
+    """A new hidden folder `.{name}.{tag}-{random}` beside the absolute `out_dir`, its parents made as needed (with
+    `mkdir`, so it has the user's usual permissions). Returns it and the parents it created, deepest first.
+
+    Raises:
+        `error`: the folder cannot be made there (nothing created is left behind).
+    """
+    created = [p for p in (out_dir.parent, *out_dir.parent.parents) if not p.exists()]
     try:
-        parent.mkdir(parents=True, exist_ok=True)
-        probe = parent / f".{out_dir.name or 'out'}.probe-{secrets.token_hex(4)}"
-        probe.mkdir()
-        probe.rmdir()
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        folder = out_dir.with_name(f".{out_dir.name or 'out'}.{tag}-{secrets.token_hex(4)}")
+        folder.mkdir()
     except OSError as exc:
-        raise error(f"cannot create the output folder {out_dir} ({exc.strerror or exc}); choose another -o") from exc
-    finally:
         _remove_empty(created)
+        raise error(f"cannot create the output folder {out_dir} ({exc.strerror or exc}); choose another -o") from exc
+    return folder, created
 
 
 def _check_not_part_of_an_input(out_dir: Path, inputs: Iterable[str | Path | None], error: type[Exception]) -> None:
@@ -128,15 +136,7 @@ def staged_output_dir(
     """
     check_output_dir(out_dir, overwrite=overwrite, error=error, inputs=inputs)
     out_dir = Path(os.path.abspath(out_dir))  # `-o .` has no name to stage beside; links are refused, not followed
-    created = [p for p in (out_dir.parent, *out_dir.parent.parents) if not p.exists()]  # removed again on failure
-    try:
-        out_dir.parent.mkdir(parents=True, exist_ok=True)
-        # mkdir, not mkdtemp: the folder gets the user's usual permissions (mkdtemp's are owner-only)
-        staging = out_dir.with_name(f".{out_dir.name}.partial-{secrets.token_hex(4)}")
-        staging.mkdir()
-    except OSError as exc:
-        _remove_empty(created)
-        raise error(f"cannot create the output folder {out_dir} ({exc.strerror or exc}); choose another -o") from exc
+    staging, created = _mkdir_beside(out_dir, "partial", error)  # `created` is removed again on failure
     try:
         yield staging
     except BaseException:
