@@ -270,7 +270,7 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
     Reads frames start_frame, start_frame + 1, ... (at most max_frames of them). Every frame of the span is held in
     memory (they are the data): a span that would take more than `MAX_DECODED_BYTES` is refused before decoding.
     """
-    from reconstruction._frames import MAX_DECODED_BYTES, MAX_IMAGE_PIXELS, image_paths, read_image
+    from reconstruction._frames import MAX_DECODED_BYTES, check_frame_pixels, image_paths, image_size, read_image
     from reconstruction.errors import InputError
 
     clip = Path(clip)
@@ -278,11 +278,6 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
         raise TrackError(f"clip {clip} does not exist; pass a video file or a folder of images")
 
     def check_span(count: int, width: float, height: float) -> None:
-        if width * height > MAX_IMAGE_PIXELS:
-            raise TrackError(
-                f"{clip}: frames of {width:.0f}x{height:.0f} px, more than {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx; "
-                "downscale the clip"
-            )
         span = max(0, count - start_frame) if max_frames is None else min(max(0, count - start_frame), max_frames)
         if span * width * height * 3 > MAX_DECODED_BYTES:
             raise TrackError(
@@ -292,36 +287,36 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
             )
 
     frames: list[np.ndarray] = []
-    if clip.is_dir():
-        files = image_paths(clip)
-        if files:
-            first = read_image(files[0]) if start_frame < len(files) else None
-            if first is not None:
-                check_span(len(files), first.shape[1], first.shape[0])
-        stop = None if max_frames is None else start_frame + max_frames
-        try:
+    try:
+        if clip.is_dir():
+            files = image_paths(clip)
+            if start_frame < len(files):  # the span's size from the first image's header, before decoding any
+                check_span(len(files), *image_size(files[start_frame]))
+            stop = None if max_frames is None else start_frame + max_frames
             frames = [read_image(path) for path in files[start_frame:stop]]
-        except InputError as exc:
-            raise TrackError(str(exc)) from exc
-        fps = 30.0
-        count = len(files)
-    else:
-        capture = open_video(clip)
-        try:
-            fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
-            count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-            check_span(count, capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
-            index = 0
-            while (max_frames is None or len(frames) < max_frames) and capture.grab():
-                if index >= start_frame:  # the frames before the span are decoded, not copied out
-                    ok, image = capture.retrieve()
-                    if not ok:
-                        break
-                    frames.append(image)
-                index += 1
-            count = max(count, index)
-        finally:
-            capture.release()
+            fps = 30.0
+            count = len(files)
+        else:
+            capture = open_video(clip)
+            try:
+                fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+                count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+                width, height = capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)
+                check_frame_pixels(clip, width, height, "the clip")
+                check_span(count, width, height)
+                index = 0
+                while (max_frames is None or len(frames) < max_frames) and capture.grab():
+                    if index >= start_frame:  # the frames before the span are decoded, not copied out
+                        ok, image = capture.retrieve()
+                        if not ok:
+                            break
+                        frames.append(image)
+                    index += 1
+                count = max(count, index)
+            finally:
+                capture.release()
+    except InputError as exc:  # an unreadable image, or a frame over the pixel limit
+        raise TrackError(str(exc)) from exc
     if len(frames) < 2:
         where = f" from frame {start_frame} on (the clip has {count})" if start_frame else ""
         raise TrackError(f"{clip}: read {len(frames)} frame(s){where}; a clip needs at least 2 readable frames")

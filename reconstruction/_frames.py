@@ -95,9 +95,21 @@ def image_paths(folder: Path) -> list[Path]:
     )
 
 
-def read_image(path: Path) -> np.ndarray:
-    """One image (H, W, 3) uint8 BGR, its size read from the header first: a small file that would decode to a
-    huge image (an image bomb) is refused before it is decoded.
+def check_frame_pixels(where: Path, width: float, height: float, what: str = "the images") -> None:
+    """Refuses a frame larger than `MAX_IMAGE_PIXELS`, from its stated size, before anything is decoded.
+
+    Raises:
+        InputError: naming `where`, its size and the limit.
+    """
+    if width * height > MAX_IMAGE_PIXELS:
+        raise InputError(
+            f"{where} is {width:.0f}x{height:.0f} px, more than the {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx a frame may "
+            f"have; downscale {what}"
+        )
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image from its header, without decoding it; checked by `check_frame_pixels`.
 
     Raises:
         InputError: the image is unreadable or larger than `MAX_IMAGE_PIXELS`.
@@ -109,11 +121,18 @@ def read_image(path: Path) -> np.ndarray:
             width, height = header.size
     except (OSError, UnidentifiedImageError, ValueError) as exc:
         raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG") from exc
-    if width * height > MAX_IMAGE_PIXELS:
-        raise InputError(
-            f"{path} is {width}x{height} px, more than the {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx an image may have; "
-            "downscale the images"
-        )
+    check_frame_pixels(path, width, height)
+    return width, height
+
+
+def read_image(path: Path) -> np.ndarray:
+    """One image (H, W, 3) uint8 BGR, its size read from the header first (`image_size`): a small file that would
+    decode to a huge image (an image bomb) is refused before it is decoded.
+
+    Raises:
+        InputError: the image is unreadable or larger than `MAX_IMAGE_PIXELS`.
+    """
+    image_size(path)
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG")
@@ -145,13 +164,15 @@ def read_frames_counted(
     source = Path(source)
     report = progress or (lambda _d, _t: None)
     kept: list[Frame] = []
-    stride = 1
+    kept_bytes, stride = 0, 1
 
     def keep(frame: Frame) -> None:
-        nonlocal kept, stride
+        nonlocal kept, kept_bytes, stride
         kept.append(frame)
-        if len(kept) > MIN_FRAMES and sum(f.image_bgr.nbytes for f in kept) > max_bytes:
+        kept_bytes += frame.image_bgr.nbytes
+        if len(kept) > MIN_FRAMES and kept_bytes > max_bytes:
             kept, stride = kept[::2], stride * 2  # what is kept stays evenly spread: indices 0, 2 * stride, ...
+            kept_bytes = sum(f.image_bgr.nbytes for f in kept)
 
     if not is_video(source):
         _check_path(source)
@@ -164,14 +185,10 @@ def read_frames_counted(
     else:
         capture = _opened_video(source)
         total = max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
-        width, height = capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)
-        if width * height > MAX_IMAGE_PIXELS:
-            capture.release()
-            raise InputError(
-                f"{source} is {width:.0f}x{height:.0f} px, more than the {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx a frame "
-                "may have; downscale the video"
-            )
         try:
+            check_frame_pixels(
+                source, capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT), "the video"
+            )
             i = 0
             while capture.grab():  # decodes; the pixels are copied out only for the frames kept
                 if i % stride == 0:
