@@ -365,7 +365,7 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _finite_number(value: Any) -> bool:
+def finite_number(value: Any) -> bool:
     """A JSON number (not a bool) that is finite as a float (a huge integer is not)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
         return False
@@ -373,6 +373,11 @@ def _finite_number(value: Any) -> bool:
         return math.isfinite(float(value))
     except OverflowError:
         return False
+
+
+def finite_numbers(value: Any, length: int) -> bool:
+    """A JSON list of `length` numbers, each a `finite_number`."""
+    return isinstance(value, list) and len(value) == length and all(finite_number(v) for v in value)
 
 
 def _checked_objects(manifest: Any, manifest_path: Path) -> dict[str, dict[str, Any]]:
@@ -415,8 +420,7 @@ def _checked_objects(manifest: Any, manifest_path: Path) -> dict[str, dict[str, 
             raise bad(f"{where}.properties.transformed", "a JSON object with mean and std", transformed)
         for key in ("mean", "std"):
             values = transformed.get(key)
-            ok = isinstance(values, list) and len(values) == _NUM_TRANSFORMED and all(_finite_number(v) for v in values)
-            if not ok:
+            if not finite_numbers(values, _NUM_TRANSFORMED):
                 raise bad(
                     f"{where}.properties.transformed.{key}", f"a list of {_NUM_TRANSFORMED} finite numbers", values
                 )
@@ -429,7 +433,7 @@ def _checked_objects(manifest: Any, manifest_path: Path) -> dict[str, dict[str, 
                 transformed["mean"],
             )
         density: Any = entry.get("density_kg_m3")
-        if not (_finite_number(density) and density > 0):
+        if not (finite_number(density) and density > 0):
             raise bad(f"{where}.density_kg_m3", "a finite number > 0 (kg/m^3)", density)
     return objects
 

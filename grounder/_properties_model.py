@@ -368,21 +368,11 @@ def _regenerate(weights_dir: Path) -> str:
     return f"regenerate with `{command}`"
 
 
-def _finite_numbers(value: Any, length: int) -> bool:
-    """A JSON list of `length` numbers (not bools), each finite as a float."""
-    if not isinstance(value, list) or len(value) != length:
-        return False
-    try:
-        return all(isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(float(v)) for v in value)
-    except OverflowError:  # an integer beyond float range
-        return False
-
-
 def _checked_meta(meta: Any, meta_path: Path, remedy: str) -> dict[str, Any]:
     """`property_net.json` checked for every field that loading and prediction read (before any of it sizes
     memory): version, embedding size, target and material names, normalisation (finite; stds and spread scales
     positive) and baseline (finite)."""
-    from grounder._properties import PropertyModelError
+    from grounder._properties import PropertyModelError, finite_number, finite_numbers
 
     def bad(field: str, expected: str, value: Any) -> PropertyModelError:
         got = "a JSON object" if isinstance(value, dict) else json.dumps(value)
@@ -404,7 +394,7 @@ def _checked_meta(meta: Any, meta_path: Path, remedy: str) -> dict[str, Any]:
         raise bad("normalisation", "a JSON object", norm)
     for key in Normalisation.__dataclass_fields__:
         length = NUM_SHAPE_FEATURES if key.startswith("shape_") else len(TARGET_NAMES)
-        if not _finite_numbers(norm.get(key), length):
+        if not finite_numbers(norm.get(key), length):
             raise bad(f"normalisation.{key}", f"a list of {length} finite numbers", norm.get(key))
         if key.endswith("_std") or key == "spread_scale":
             if not all(v > 0 for v in norm[key]):
@@ -413,7 +403,7 @@ def _checked_meta(meta: Any, meta_path: Path, remedy: str) -> dict[str, Any]:
     if not isinstance(baseline, dict):
         raise bad("baseline", "a JSON object", baseline)
     for key in ("train_mean_log_density", "train_mean_sliding_friction"):
-        if not _finite_numbers([baseline.get(key)], 1):
+        if not finite_number(baseline.get(key)):
             raise bad(f"baseline.{key}", "a finite number", baseline.get(key))
     return meta
 
