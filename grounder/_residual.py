@@ -387,6 +387,9 @@ class ResidualMeta:
         layers: Number of hidden layers.
         gate: The gate thresholds.
         scene_xml_sha256: Hash of the scene.xml the residual was trained on.
+        scene_files_sha256: Hash of each file that scene.xml includes or loads (meshes, textures, ...), by its path
+            relative to the scene's folder (:func:`scene_files_sha256`); None for a residual written before this
+            field, whose included files are then not checked.
         training: Free-form training summary (data, seeds, errors), for provenance.
         space: ``free`` (body-frame corrections of free bodies, this module) or ``joint`` (hinge and slide joints,
             ``grounder._residual_joint``; ``bodies`` then names the joints).
@@ -402,6 +405,7 @@ class ResidualMeta:
     scene_xml_sha256: str
     training: dict[str, Any]
     space: str = "free"
+    scene_files_sha256: dict[str, str] | None = None
     feature_names: tuple[str, ...] = FEATURE_NAMES
     output_names: tuple[str, ...] = OUTPUT_NAMES
 
@@ -436,6 +440,7 @@ class ResidualMeta:
                 "energy_restore_fraction": self.gate.energy_restore_fraction,
             },
             "scene_xml_sha256": self.scene_xml_sha256,
+            **({} if self.scene_files_sha256 is None else {"scene_files_sha256": dict(self.scene_files_sha256)}),
             "files": {"weights": WEIGHTS_FILE, "onnx": ONNX_FILE},
             "training": self.training,
         }
@@ -469,6 +474,14 @@ class ResidualMeta:
         sha256 = field.value("scene_xml_sha256", str, "the scene.xml's sha256 (64 hex digits)")
         if re.fullmatch(r"[0-9a-f]{64}", sha256) is None:
             raise field.bad("scene_xml_sha256", sha256, "the scene.xml's sha256 (64 lowercase hex digits)")
+        files_sha256 = None
+        if "scene_files_sha256" in raw:  # absent in residuals written before it
+            expected = "an object of file path -> sha256 (64 lowercase hex digits)"
+            files_sha256 = field.value("scene_files_sha256", dict, expected)
+            if len(files_sha256) > MAX_SCENE_FILES or not all(
+                isinstance(v, str) and re.fullmatch(r"[0-9a-f]{64}", v) is not None for v in files_sha256.values()
+            ):
+                raise field.bad("scene_files_sha256", files_sha256, expected)
         return ResidualMeta(
             period_steps=field.integer("period_steps", 1, MAX_PERIOD_STEPS),
             timestep_s=field.number("timestep_s", lambda x: x > 0.0, "a number > 0"),
@@ -490,10 +503,14 @@ class ResidualMeta:
             space=space,
             feature_names=features,
             output_names=outputs,
+            scene_files_sha256=None if files_sha256 is None else dict(files_sha256),
         )
 
 
 _RETRAIN = "retrain with `image2sim residual train`"
+
+MAX_SCENE_FILES = 100_000
+"""Most entries ``scene_files_sha256`` may hold (a scene's meshes, textures and includes)."""
 
 MAX_PERIOD_STEPS = 100_000
 """Most model steps one period may span: far beyond any data rate (1 Hz at a 10 us timestep), while a rollout's
@@ -1002,7 +1019,38 @@ class NumpyResidual:
 
 
 def file_sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    h = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def scene_files_sha256(xml: Path) -> dict[str, str]:
+    """sha256 of each file ``xml`` includes or loads (`grounder._simulate.scene_files`), keyed by its path relative
+    to the MJCF's folder (POSIX separators); files the MJCF names but that do not exist are left out (MuJoCo then
+    fails to load the scene anyway)."""
+    from grounder._simulate import scene_files
+
+    hashes = {}
+    for rel in scene_files(xml):
+        path = xml.parent / rel
+        if path.is_file():
+            hashes[rel.as_posix()] = file_sha256(path)
+    return dict(sorted(hashes.items()))
+
+
+def _changed_scene_file(xml: Path, trained: dict[str, str]) -> str | None:
+    """The first file of the scene that differs from the one the residual was trained with (as a phrase), or None."""
+    now = scene_files_sha256(xml)
+    for name in sorted(set(now) | set(trained)):
+        if name not in now:
+            return f"{name} is gone"
+        if name not in trained:
+            return f"{name} is new"
+        if now[name] != trained[name]:
+            return f"{name} changed (sha256 {now[name][:12]}..., the residual was trained with {trained[name][:12]}...)"
+    return None
 
 
 def has_residual_files(scene_dir: Path) -> bool:
@@ -1202,6 +1250,18 @@ def load_residual(
                 f"{META_FILE} has {meta.scene_xml_sha256[:12]}...); retrain with `image2sim residual train` "
                 "or restore the scene"
             )
+        if meta.scene_files_sha256 is not None:
+            try:
+                changed = _changed_scene_file(xml, meta.scene_files_sha256)
+            except OSError as exc:
+                raise GrounderError(
+                    f"{xml}: a file it uses could not be read ({exc.strerror or type(exc).__name__})"
+                ) from exc
+            if changed is not None:
+                raise GrounderError(
+                    f"{xml}: {changed} since the residual was trained; retrain with `image2sim residual train` "
+                    "or restore the scene"
+                )
     arrays = _checked_state(load_weights_file(weights_path, _RETRAIN), meta, weights_path)
     if meta.space == JOINT_SPACE:
         return NumpyJointResidual(arrays, meta, space)

@@ -39,6 +39,7 @@ from grounder._residual import (
     correction_targets,
     file_sha256,
     free_bodies,
+    scene_files_sha256,
     smooth_free_bodies,
 )
 from grounder._residual_joint import (
@@ -489,6 +490,7 @@ def train_residual(
             layers=options.layers,
             gate=options.gate,
             scene_xml_sha256=file_sha256(scene_xml),
+            scene_files_sha256=scene_files_sha256(scene_xml),
             training={},
         )
         space = trainer.space

@@ -31,6 +31,7 @@ from grounder._residual import (
     ResidualMeta,
     file_sha256,
     free_bodies,
+    scene_files_sha256,
 )
 from grounder._residual_torch import ResidualModel
 from grounder._residual_train import ResidualOptions, train_residual
@@ -57,11 +58,15 @@ CUBE_XML = f"""<mujoco>
 """
 
 
-def _write_residual(folder: Path, xml: str = CUBE_XML) -> Path:
-    """A valid residual scene folder (scene.xml, residual.json, residual.pt) with an untrained tiny network."""
+def _write_residual(folder: Path, xml: str = CUBE_XML, files: dict[str, str] | None = None) -> Path:
+    """A valid residual scene folder (scene.xml, the ``files`` it loads, residual.json, residual.pt) with an
+    untrained tiny network."""
     folder.mkdir(parents=True)
     (folder / "scene.xml").write_text(xml)
-    model = mujoco.MjModel.from_xml_string(xml)
+    for name, text in (files or {}).items():
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_text(text)
+    model = mujoco.MjModel.from_xml_path(str(folder / "scene.xml"))
     gate = GateOptions(coverage_centres=CENTRES)
     meta = ResidualMeta(
         period_steps=PERIOD_STEPS,
@@ -72,6 +77,7 @@ def _write_residual(folder: Path, xml: str = CUBE_XML) -> Path:
         gate=gate,
         scene_xml_sha256=file_sha256(folder / "scene.xml"),
         training={},
+        scene_files_sha256=scene_files_sha256(folder / "scene.xml"),
     )
     torch.manual_seed(0)
     radius_m = np.array([b.radius_m for b in free_bodies(model)])
@@ -182,6 +188,8 @@ BROKEN: list[tuple[str, Callable[[Path], None], str, str]] = [
     ("gate-air-huge-int", _set_meta("gate.air_clearance_m", [0, 10**400]), J, "gate.air_clearance_m is"),
     ("sha-missing", _set_meta("scene_xml_sha256", _DELETE), J, "scene_xml_sha256 is missing"),
     ("sha-not-hex", _set_meta("scene_xml_sha256", "x" * 64), J, "scene_xml_sha256 is"),
+    ("files-sha-list", _set_meta("scene_files_sha256", ["a" * 64]), J, 'scene_files_sha256 is ["'),
+    ("files-sha-not-hex", _set_meta("scene_files_sha256", {"m.obj": "x"}), J, 'scene_files_sha256 is {"m.obj"'),
     # residual.json and residual.pt disagree
     ("hidden-not-the-weights", _set_meta("hidden", 8), W, "'nets.0.0.weight' has shape (4, 11), expected (8, 11)"),
     ("layers-not-the-weights", _set_meta("layers", 3), W, 'missing tensor "nets.0.4.weight"'),
@@ -309,6 +317,43 @@ def test_scene_edited_since_training_is_refused(valid: Path, trajs: Path, tmp_pa
     assert Simulator(folder).residual is not None
 
 
+MESH_CUBE_XML = CUBE_XML.replace('<geom type="box" size="0.05 0.05 0.05"', '<geom type="mesh" mesh="cube"').replace(
+    "<worldbody>", '<asset><mesh name="cube" file="assets/cube.obj"/></asset>\n  <worldbody>'
+)
+CUBE_OBJ = "".join(f"v {x} {y} {z}\n" for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)) + (
+    "f 1 3 4 2\nf 5 6 8 7\nf 1 2 6 5\nf 3 7 8 4\nf 1 5 7 3\nf 2 4 8 6\n"
+)
+
+
+def test_mesh_edited_since_training_is_refused(trajs: Path, tmp_path: Path) -> None:
+    """The residual was trained on the scene's meshes too: a mesh changed, removed or added since training is
+    refused like an edited scene.xml, naming the file; a residual.json from before the per-file hashes (no
+    ``scene_files_sha256``) still loads, checked on scene.xml alone."""
+    folder = _write_residual(tmp_path / "res", MESH_CUBE_XML, {"assets/cube.obj": CUBE_OBJ})
+    meta = json.loads((folder / META_FILE).read_text())
+    assert meta["scene_files_sha256"] == {"assets/cube.obj": file_sha256(folder / "assets/cube.obj")}
+    assert Simulator(folder).residual is not None
+    mesh = folder / "assets/cube.obj"
+    mesh.write_text(CUBE_OBJ.replace("v 0.05 0.05 0.05", "v 0.06 0.05 0.05"))
+    with pytest.raises(GrounderError, match=r"assets/cube\.obj changed \(sha256 .*since the residual was trained"):
+        Simulator(folder)
+    line = _assert_one_line(_rollout(folder, trajs, tmp_path / "out"), "assets/cube.obj changed", "residual train")
+    assert "restore the scene" in line and not (tmp_path / "out").exists()
+    assert _rollout(folder, trajs, tmp_path / "plain", "--no-residual").exit_code == 0  # not applied: nothing stale
+    mesh.write_text(CUBE_OBJ)
+    assert Simulator(folder).residual is not None
+    # A file the scene loads that training did not see, or one it saw that is gone from the record.
+    _set_meta("scene_files_sha256", {**meta["scene_files_sha256"], "assets/old.obj": "0" * 64})(folder)
+    with pytest.raises(GrounderError, match=r"assets/old\.obj is gone since the residual was trained"):
+        Simulator(folder)
+    _set_meta("scene_files_sha256", {})(folder)
+    with pytest.raises(GrounderError, match=r"assets/cube\.obj is new since the residual was trained"):
+        Simulator(folder)
+    _set_meta("scene_files_sha256", _DELETE)(folder)  # written before the field existed
+    mesh.write_text(CUBE_OBJ.replace("v 0.05 0.05 0.05", "v 0.06 0.05 0.05"))
+    assert Simulator(folder).residual is not None
+
+
 def test_retraining_on_an_edited_residual_scene_works(valid: Path, tmp_path: Path) -> None:
     """What the refusal says to do: `residual train` on the edited folder (its old residual is not applied while
     training), and the new residual loads with the edited scene.xml."""
@@ -329,5 +374,7 @@ def test_retraining_on_an_edited_residual_scene_works(valid: Path, tmp_path: Pat
         steps=2, batch_size=8, hidden=HIDDEN, layers=1, gains=(0.0, 1.0), gate=GateOptions(coverage_centres=CENTRES)
     )
     out = train_residual(folder, recorded, tmp_path / "retrained", options).out  # type: ignore[arg-type]
-    assert json.loads((out / META_FILE).read_text())["scene_xml_sha256"] == file_sha256(folder / "scene.xml")
+    written = json.loads((out / META_FILE).read_text())
+    assert written["scene_xml_sha256"] == file_sha256(folder / "scene.xml")
+    assert written["scene_files_sha256"] == {}  # a scene of primitives loads no files
     assert Simulator(out).residual is not None
