@@ -9,9 +9,10 @@ rate may be coarser than the model timestep; sample times are rounded to whole m
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -260,17 +261,63 @@ def rollout_states(models: Sequence[mujoco.MjModel], batch: RolloutBatch, *, nth
     return full.reshape(m_count, b_count, batch.nstep + 1, -1)
 
 
+@contextlib.contextmanager
+def mujoco_warnings() -> Iterator[list[str]]:
+    """Collects the warnings MuJoCo would print (``mju_warning``: an unstable simulation, say) into a list while
+    the block runs, instead of letting them reach stdout; the previous handler is restored after."""
+    messages: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(messages.append)
+    try:
+        yield messages
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
+def check_stable(
+    states: np.ndarray, trajs: Sequence[Trajectory], model: mujoco.MjModel, warnings: Sequence[str] = ()
+) -> None:
+    """Refuses rollouts that MuJoCo stopped as unstable.
+
+    When a step meets a NaN, infinite or huge (> 1e10) position, velocity or acceleration, MuJoCo warns and
+    `mujoco.rollout` repeats the last state to the end, so the state's time stops advancing: the prediction from
+    there on is not a simulation.
+
+    Args:
+        states: (B, nstep + 1, nstate) full-physics states of one model's rollouts (time first), row 0 initial.
+        trajs: the B trajectories they re-simulate, for their names and start times.
+        warnings: MuJoCo's messages collected meanwhile (`mujoco_warnings`), the first quoted in the error.
+
+    Raises:
+        GrounderError: naming the first trajectory that became unstable and when.
+    """
+    stalled = np.diff(states[..., 0], axis=-1) <= 0.0  # (B, nstep)
+    if not stalled.any():
+        return
+    b = int(np.argmax(stalled.any(axis=1)))
+    after_s = float(np.argmax(stalled[b])) * model.opt.timestep
+    said = f" (MuJoCo: {warnings[0].split('. ')[0].rstrip('.')})" if warnings else ""  # not its "Time = ..."
+    raise GrounderError(
+        f"trajectory {trajs[b].name}: the simulation became unstable {after_s:.4g} s after its start{said}; check "
+        f"its first state and controls, which the scene cannot simulate, or lower the scene's timestep "
+        f"({model.opt.timestep:.4g} s)"
+    )
+
+
 def simulate(
     model: mujoco.MjModel | Sequence[mujoco.MjModel],
     trajs: Sequence[Trajectory],
     *,
     nthread: int | None = None,
+    stable: bool = False,
 ) -> list[list[Trajectory]] | list[Trajectory]:
     """Re-simulates each trajectory from its first state with its controls; predictions at the recorded times.
 
     Args:
         model: one model, or a sequence of models sharing a size signature (e.g. candidate parameter sets).
         trajs: recorded trajectories in the model's joint order.
+        stable: raise (`check_stable`) when MuJoCo stops a rollout as unstable, rather than return its repeated
+            last state (calibration leaves this off: an unstable candidate only scores badly).
 
     Returns:
         For one model, one predicted `Trajectory` per input (same name, times and ctrl). For a sequence of models,
@@ -278,7 +325,11 @@ def simulate(
     """
     models = [model] if isinstance(model, mujoco.MjModel) else list(model)
     batch = prepare(models[0], trajs)
-    states = rollout_states(models, batch, nthread=nthread)
+    with mujoco_warnings() if stable else contextlib.nullcontext([]) as warnings:
+        states = rollout_states(models, batch, nthread=nthread)
+    if stable:
+        for m, states_m in zip(models, states, strict=True):
+            check_stable(states_m, trajs, m, warnings)
     qpos_at, qvel_at = _offsets(models[0])
     nq, nv = models[0].nq, models[0].nv
     out: list[list[Trajectory]] = []

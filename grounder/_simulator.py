@@ -8,6 +8,7 @@ MuJoCo steps, then the residual corrects each free body from the state at the st
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -22,7 +23,16 @@ from grounder._residual import (
     load_residual,
 )
 from grounder._residual_joint import NumpyJointResidual
-from grounder._simulate import FULLPHYSICS, _offsets, default_nthread, load_scene_model, prepare, simulate
+from grounder._simulate import (
+    FULLPHYSICS,
+    _offsets,
+    check_stable,
+    default_nthread,
+    load_scene_model,
+    mujoco_warnings,
+    prepare,
+    simulate,
+)
 from grounder._trajectory import Trajectory
 from grounder.errors import GrounderError
 
@@ -213,18 +223,21 @@ class Simulator:
             states1[:, self._qvel_at : self._qvel_at + nv].copy(),
         )
 
-    def rollout(self, trajs: Sequence[Trajectory]) -> list[Trajectory]:
+    def rollout(self, trajs: Sequence[Trajectory], *, stable: bool = False) -> list[Trajectory]:
         """Re-simulates each trajectory from its first state with its controls; predictions at the recorded times.
 
         The same contract as :func:`grounder._simulate.simulate` (which it is, without a residual): every
         trajectory runs in one batch, period by period, and is read back at its recorded times rounded to model
-        steps.
+        steps. ``stable``: raise when MuJoCo stops a rollout as unstable (`grounder._simulate.check_stable`).
         """
         if self.residual is None:
-            out = simulate(self.model, trajs, nthread=self.nthread)
+            out = simulate(self.model, trajs, nthread=self.nthread, stable=stable)
             assert isinstance(out, list)
             return out  # type: ignore[return-value]
-        states = self._rollout_states(trajs)
+        with mujoco_warnings() if stable else contextlib.nullcontext([]) as warnings:
+            states = self._rollout_states(trajs)
+        if stable:
+            check_stable(states, trajs, self.model, warnings)
         batch_steps = [s for s in prepare(self.model, trajs).sample_steps]
         nq, nv = self.model.nq, self.model.nv
         preds = []

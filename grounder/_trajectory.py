@@ -41,6 +41,9 @@ _MAX_ARRAY_BYTES = 1 << 30  # per array: hours of a many-body recording; a bigge
 _NUMERIC_KINDS = "iuf"
 QUAT_NORM_TOL = 1e-3
 """Largest accepted ``| |quat| - 1 |`` for free- and ball-joint quaternions in a trajectory."""
+MAX_STATE_VALUE = 1e10
+"""Largest |qpos|, |qvel| or |ctrl| a trajectory may hold: MuJoCo's ``mjMAXVAL``, beyond which it stops a
+simulation as unstable at its first step."""
 
 
 def _checked_arrays(
@@ -109,6 +112,12 @@ def _checked_arrays(
             raise TrajectoryError(
                 f"{label}: '{file_keys[field]}' must be finite, but {where}={arr[tuple(bad)]} (row {row}); "
                 f"fill or drop the bad samples"
+            )
+        if field != "time_s" and arr.size and np.abs(arr).max() > MAX_STATE_VALUE:
+            bad = np.argwhere(np.abs(arr) > MAX_STATE_VALUE)[0]
+            raise TrajectoryError(
+                f"{label}: '{file_keys[field]}[{bad[0]}, {bad[1]}]' is {arr[tuple(bad)]:.3g}, beyond the "
+                f"{MAX_STATE_VALUE:g} MuJoCo can simulate; fix or drop the bad samples"
             )
     time_arr = out["time_s"]
     steps = np.diff(time_arr)

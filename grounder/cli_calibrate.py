@@ -206,10 +206,10 @@ def run_rollout(
     if use_residual and importlib.util.find_spec("grounder._simulator") is not None:
         module = importlib.import_module("grounder._simulator")
         if module.has_residual(scene_dir):
-            preds = module.Simulator(scene).rollout(trajs)
+            preds = module.Simulator(scene).rollout(trajs, stable=True)
             used = True
     if not used:
-        preds = simulate(model, trajs)
+        preds = simulate(model, trajs, stable=True)
     with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir)) as stage:
         save_trajectories(preds, stage)  # the whole folder replaced at once, as every command does
     return list(preds), used

@@ -383,6 +383,59 @@ def test_cli_rollout_matches_simulate(traj_dir: Path, tmp_path: Path) -> None:
         np.testing.assert_allclose(p.time_s, e.time_s)  # type: ignore[union-attr]
 
 
+STIFF_SPRING_XML = """<mujoco><option timestep="0.01"/><worldbody><body>
+<joint name="s" type="slide" axis="1 0 0" stiffness="1e6"/><geom type="sphere" size="0.05" mass="1"/>
+</body></worldbody></mujoco>"""
+
+
+def test_rollout_that_mujoco_stops_as_unstable_is_refused(traj_dir: Path, tmp_path: Path) -> None:
+    """A spring too stiff for the scene's timestep (dt sqrt(k/m) = 10, explicit in MuJoCo's Euler) grows x100
+    per step until MuJoCo stops the rollout and repeats its last state. `image2sim rollout` then names the
+    trajectory and when, in one line, exit 2, writes nothing, and MuJoCo's own warning does not reach the output.
+    Calibration keeps such a rollout (a candidate that goes unstable only scores badly)."""
+    scene = tmp_path / "spring.xml"
+    scene.write_text(STIFF_SPRING_XML)
+    model = mujoco.MjModel.from_xml_path(str(scene))
+    time_s = np.arange(20) / 100.0
+    still = Trajectory(time_s=time_s, qpos=np.zeros((20, 1)), qvel=np.zeros((20, 1)), name="still")
+    pulled = Trajectory(time_s=time_s, qpos=np.full((20, 1), 0.01), qvel=np.zeros((20, 1)), name="pulled")
+    data = save_trajectories([still, pulled], tmp_path / "trajs")
+    out = tmp_path / "pred"
+    result = _cli("rollout", str(scene), str(data), "-o", str(out))
+    assert result.exit_code == 2, result.output
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("image2sim: error: trajectory pulled: the simulation became unstable 0.04 s after")
+    assert "in QACC at DOF 0" in lines[0] and "lower the scene's timestep (0.01 s)" in lines[0], lines[0]
+    assert "WARNING" not in result.output and not out.exists()
+    with pytest.raises(GrounderError, match="trajectory pulled: the simulation became unstable"):
+        sim.simulate(model, [still, pulled], stable=True)
+    kept = sim.simulate(model, [still, pulled])  # calibration's call: the stopped rollout repeats its last state
+    assert isinstance(kept[1], Trajectory) and np.all(kept[1].qpos[5:] == kept[1].qpos[5])
+    cube = mujoco.MjModel.from_xml_path(str(CUBE_XML))
+    real = load_trajectories(traj_dir, cube)
+    for p, e in zip(sim.simulate(cube, real, stable=True), sim.simulate(cube, real), strict=True):
+        np.testing.assert_array_equal(p.qpos, e.qpos)  # type: ignore[union-attr]  # usual rollouts pass unchanged
+
+
+def test_cli_rollout_refuses_a_state_beyond_what_mujoco_simulates(traj_dir: Path, tmp_path: Path) -> None:
+    """A finite but absurd value (1e200 m/s, as a corrupt or hostile file may hold) is refused when the file is
+    read, naming the file and the entry, before any simulation (MuJoCo's own limit is 1e10)."""
+    model = mujoco.MjModel.from_xml_path(str(CUBE_XML))
+    real = load_trajectories(traj_dir, model)
+    files = save_trajectories(real, tmp_path / "trajs")
+    name = sorted(files.glob("*.npz"))[1]
+    with np.load(name) as f:
+        arrays = dict(f)
+    arrays["qvel"][0, 2] = -1e200
+    np.savez(name, **arrays)
+    result = _cli("rollout", str(CUBE_XML), str(files), "-o", str(tmp_path / "pred"))
+    _assert_exit_2(result, f"{name.name}: 'qvel[0, 2]' is -1e+200, beyond the 1e+10 MuJoCo can simulate")
+    assert not (tmp_path / "pred").exists()
+    with pytest.raises(GrounderError, match=r"'qvel\[3, 0\]' is 2e\+10"):
+        Trajectory(time_s=np.arange(4.0), qpos=np.zeros((4, 1)), qvel=np.array([[0.0], [0], [0], [2e10]]))
+
+
 def test_cli_rollout_uses_the_residual_when_the_scene_has_one(
     traj_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -395,8 +448,8 @@ def test_cli_rollout_uses_the_residual_when_the_scene_has_one(
             calls.append(str(scene))
             self.model = mujoco.MjModel.from_xml_path(str(CUBE_XML))
 
-        def rollout(self, trajs: list[Trajectory]) -> list[Trajectory]:
-            return sim.simulate(self.model, trajs)  # type: ignore[return-value]
+        def rollout(self, trajs: list[Trajectory], *, stable: bool = False) -> list[Trajectory]:
+            return sim.simulate(self.model, trajs, stable=stable)  # type: ignore[return-value]
 
     scene = tmp_path / "scene"
     scene.mkdir()

@@ -251,6 +251,19 @@ def test_a_valid_folder_loads_and_rolls_out(valid: Path, trajs: Path, tmp_path: 
     assert result.exit_code == 0 and "MuJoCo + residual" in result.output, result.output
 
 
+def test_unstable_rollout_with_the_residual_is_refused(valid: Path, tmp_path: Path) -> None:
+    """With the residual on, a rollout MuJoCo stops as unstable (a cube slammed into the floor at 1e9 m/s: the
+    contact's acceleration passes MuJoCo's 1e10 limit) is refused like plain MuJoCo's: one line, exit 2, nothing
+    written, rather than corrected period after period from a repeated state."""
+    time_s = np.arange(6) / RATE_HZ
+    qpos = np.tile([0.0, 0.0, 0.05, 1.0, 0.0, 0.0, 0.0], (6, 1))
+    qvel = np.zeros((6, 6))
+    qvel[0, 2] = -1e9
+    bad = save_trajectories([Trajectory(time_s=time_s, qpos=qpos, qvel=qvel, name="slam")], tmp_path / "t")
+    line = _assert_one_line(_rollout(valid, bad, tmp_path / "out"), "trajectory slam: the simulation became unstable")
+    assert "QACC at DOF 2" in line and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize(("breaks", "file", "needle"), [c[1:] for c in BROKEN], ids=[c[0] for c in BROKEN])
 def test_broken_residual_is_one_line_exit_2(
     breaks: Callable[[Path], None], file: str, needle: str, valid: Path, trajs: Path, tmp_path: Path
