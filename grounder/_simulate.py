@@ -325,7 +325,8 @@ def simulate(
     """
     models = [model] if isinstance(model, mujoco.MjModel) else list(model)
     batch = prepare(models[0], trajs)
-    with mujoco_warnings() if stable else contextlib.nullcontext([]) as warnings:
+    collect: contextlib.AbstractContextManager[list[str]] = mujoco_warnings() if stable else contextlib.nullcontext([])
+    with collect as warnings:
         states = rollout_states(models, batch, nthread=nthread)
     if stable:
         for m, states_m in zip(models, states, strict=True):

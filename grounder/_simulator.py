@@ -234,7 +234,10 @@ class Simulator:
             out = simulate(self.model, trajs, nthread=self.nthread, stable=stable)
             assert isinstance(out, list)
             return out  # type: ignore[return-value]
-        with mujoco_warnings() if stable else contextlib.nullcontext([]) as warnings:
+        collect: contextlib.AbstractContextManager[list[str]] = (
+            mujoco_warnings() if stable else contextlib.nullcontext([])
+        )
+        with collect as warnings:
             states = self._rollout_states(trajs)
         if stable:
             check_stable(states, trajs, self.model, warnings)
