@@ -262,10 +262,14 @@ def rollout_states(models: Sequence[mujoco.MjModel], batch: RolloutBatch, *, nth
 
 
 @contextlib.contextmanager
-def mujoco_warnings() -> Iterator[list[str]]:
+def mujoco_warnings(collect: bool = True) -> Iterator[list[str]]:
     """Collects the warnings MuJoCo would print (``mju_warning``: an unstable simulation, say) into a list while
-    the block runs, instead of letting them reach stdout; the previous handler is restored after."""
+    the block runs, instead of letting them reach stdout; the previous handler is restored after. With ``collect``
+    false it leaves MuJoCo's handler alone and the list stays empty."""
     messages: list[str] = []
+    if not collect:
+        yield messages
+        return
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(messages.append)
     try:
@@ -325,8 +329,7 @@ def simulate(
     """
     models = [model] if isinstance(model, mujoco.MjModel) else list(model)
     batch = prepare(models[0], trajs)
-    collect: contextlib.AbstractContextManager[list[str]] = mujoco_warnings() if stable else contextlib.nullcontext([])
-    with collect as warnings:
+    with mujoco_warnings(stable) as warnings:
         states = rollout_states(models, batch, nthread=nthread)
     if stable:
         for m, states_m in zip(models, states, strict=True):

@@ -8,7 +8,6 @@ MuJoCo steps, then the residual corrects each free body from the state at the st
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -234,10 +233,7 @@ class Simulator:
             out = simulate(self.model, trajs, nthread=self.nthread, stable=stable)
             assert isinstance(out, list)
             return out  # type: ignore[return-value]
-        collect: contextlib.AbstractContextManager[list[str]] = (
-            mujoco_warnings() if stable else contextlib.nullcontext([])
-        )
-        with collect as warnings:
+        with mujoco_warnings(stable) as warnings:
             states = self._rollout_states(trajs)
         if stable:
             check_stable(states, trajs, self.model, warnings)
