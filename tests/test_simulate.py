@@ -90,7 +90,8 @@ def test_a_time_column_too_long_to_simulate_is_refused_before_allocating() -> No
     """A trajectory whose times span 1e9 s (milliseconds written as seconds, or a hostile file) used to reach
     `mujoco.rollout` and fail allocating 121 TB; it is now one error naming the trajectory and its span."""
     model = mujoco.MjModel.from_xml_string(FALLING_CUBE)
-    traj = _ballistic(np.array([0.0, 1e9]), z0=2.0, vz0=0.0)
+    qpos = np.array([[0.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0]] * 2)  # at rest: a fall over 1e9 s passes MuJoCo's limit
+    traj = Trajectory(time_s=np.array([0.0, 1e9]), qpos=qpos, qvel=np.zeros((2, 6)), name="toss")
     with pytest.raises(
         GrounderError, match=r"trajectory 'toss' spans 1e\+09 s, 2000000000000 model steps.*time column"
     ):
