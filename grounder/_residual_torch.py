@@ -6,12 +6,16 @@ Computes exactly what :class:`grounder._residual.NumpyResidual` computes; see ``
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import nn
 
-from grounder._residual import NUM_FEATURES, NUM_OUTPUTS, GateOptions
+from grounder._residual import NUM_FEATURES, NUM_OUTPUTS, GateOptions, ResidualMeta
+
+if TYPE_CHECKING:
+    from grounder._residual_joint import JointSpace
 
 
 def _smoothstep(x: torch.Tensor) -> torch.Tensor:
@@ -139,6 +143,27 @@ class JointResidualModel(ResidualModel):
         g = self.gate_options
         speed = torch.amax(torch.abs(feats[..., self.speed_columns]), dim=-1)
         return _smoothstep((speed - g.rest_speed_m_s[0]) / (g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
+
+
+def residual_model(
+    meta: ResidualMeta, *, radius_m: np.ndarray | None = None, space: JointSpace | None = None
+) -> ResidualModel:
+    """The untrained network that ``residual.pt``'s state_dict fills, sized by ``meta``: the joint-space model for
+    ``space``, else the free-body model for bodies of these bounding radii (m)."""
+    if space is not None:
+        return JointResidualModel(
+            num_features=len(space.feature_names),
+            num_outputs=len(space.output_names),
+            hidden=meta.hidden,
+            layers=meta.layers,
+            gate=meta.gate,
+            speed_columns=space.speed_columns,
+        )
+    if radius_m is None:
+        raise ValueError("a free-body residual needs its bodies' radii (radius_m)")
+    return ResidualModel(
+        num_bodies=len(radius_m), hidden=meta.hidden, layers=meta.layers, gate=meta.gate, radius_m=radius_m
+    )
 
 
 def export_onnx(model: ResidualModel, path: Path) -> None:

@@ -463,7 +463,7 @@ def train_residual(
     """
     import torch
 
-    from grounder._residual_torch import JointResidualModel, ResidualModel, export_onnx
+    from grounder._residual_torch import export_onnx, residual_model
 
     options = options or ResidualOptions()
     started = time.perf_counter()
@@ -494,7 +494,6 @@ def train_residual(
             training={},
         )
         space = trainer.space
-        torch_model: ResidualModel
         if space is not None:
             meta = replace(
                 meta,
@@ -503,22 +502,7 @@ def train_residual(
                 feature_names=space.feature_names,
                 output_names=space.output_names,
             )
-            torch_model = JointResidualModel(
-                num_features=len(space.feature_names),
-                num_outputs=len(space.output_names),
-                hidden=options.hidden,
-                layers=options.layers,
-                gate=options.gate,
-                speed_columns=space.speed_columns,
-            )
-        else:
-            torch_model = ResidualModel(
-                num_bodies=len(trainer.bodies),
-                hidden=options.hidden,
-                layers=options.layers,
-                gate=options.gate,
-                radius_m=np.array([b.radius_m for b in trainer.bodies]),
-            )
+        torch_model = residual_model(meta, space=space, radius_m=np.array([b.radius_m for b in trainer.bodies]))
         data = base
         rounds = options.dagger_rounds + 1
         for r in range(rounds):

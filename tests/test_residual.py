@@ -238,7 +238,7 @@ def _gate_of_every_form(
     """
     import torch
 
-    from grounder._residual_torch import ResidualModel
+    from grounder._residual_torch import residual_model
 
     feats, rots = body_features(qpos0, qvel0, residual.bodies)
     raw = residual.raw(feats)[:, 0]
@@ -249,13 +249,7 @@ def _gate_of_every_form(
         residual.correct_one(qpos0[i], qvel0[i], qpos, qvel)
         untouched[i] = np.array_equal(qpos, origin) and np.array_equal(qvel, qvel0[i])
         fast[i] = (rots[i, 0].T @ qpos[:3]) @ raw[i, :3] / (raw[i, :3] @ raw[i, :3])
-    model = ResidualModel(
-        num_bodies=1,
-        hidden=residual.meta.hidden,
-        layers=residual.meta.layers,
-        gate=residual.meta.gate,
-        radius_m=residual.radius_m,
-    )
+    model = residual_model(residual.meta, radius_m=residual.radius_m)
     model.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
     with torch.no_grad():
         gate_torch = model.gate(torch.as_tensor(feats))[:, 0].numpy()
@@ -373,17 +367,11 @@ def test_numpy_torch_onnx_agree(trained: Path) -> None:
     import torch
     from onnx.reference import ReferenceEvaluator
 
-    from grounder._residual_torch import ResidualModel
+    from grounder._residual_torch import residual_model
 
     residual = Simulator(trained).residual
     assert residual is not None
-    model = ResidualModel(
-        num_bodies=1,
-        hidden=residual.meta.hidden,
-        layers=residual.meta.layers,
-        gate=residual.meta.gate,
-        radius_m=residual.radius_m,
-    )
+    model = residual_model(residual.meta, radius_m=residual.radius_m)
     model.load_state_dict(torch.load(trained / WEIGHTS_FILE, weights_only=True))
     held_out = _tosses(2, seed=8, fluid_density=DRAG_DENSITY)
     feats, _ = body_features(

@@ -128,7 +128,7 @@ def _gate_of_every_form(
     """
     import torch
 
-    from grounder._residual_torch import JointResidualModel
+    from grounder._residual_torch import residual_model
 
     space = residual.space
     feats = joint_features(qpos0, qvel0, None, space)
@@ -140,14 +140,7 @@ def _gate_of_every_form(
         untouched[i] = not (np.any(qpos) or np.any(qvel))
         added = np.concatenate([qpos[space.qpos_adr], qvel[space.dof_adr]])
         fast[i] = added @ raw[i] / (raw[i] @ raw[i])
-    model = JointResidualModel(
-        num_features=len(space.feature_names),
-        num_outputs=len(space.output_names),
-        hidden=residual.meta.hidden,
-        layers=residual.meta.layers,
-        gate=residual.meta.gate,
-        speed_columns=space.speed_columns,
-    )
+    model = residual_model(residual.meta, space=space)
     model.load_state_dict({k: torch.as_tensor(v) for k, v in state.items()})
     with torch.no_grad():
         gate_torch = model.gate(torch.as_tensor(feats))[:, 0].numpy()
@@ -259,20 +252,13 @@ def test_numpy_torch_onnx_agree(pendulum: tuple[Path, Path]) -> None:
     import torch
     from onnx.reference import ReferenceEvaluator
 
-    from grounder._residual_torch import JointResidualModel
+    from grounder._residual_torch import residual_model
 
     _, trained = pendulum
     residual = Simulator(trained).residual
     assert isinstance(residual, NumpyJointResidual)
     space = residual.space
-    model = JointResidualModel(
-        num_features=len(space.feature_names),
-        num_outputs=len(space.output_names),
-        hidden=residual.meta.hidden,
-        layers=residual.meta.layers,
-        gate=residual.meta.gate,
-        speed_columns=space.speed_columns,
-    )
+    model = residual_model(residual.meta, space=space)
     model.load_state_dict(torch.load(trained / WEIGHTS_FILE, weights_only=True))
     _, held_out = _case("pendulum/joint_damping", 2, seed=3)
     feats = joint_features(

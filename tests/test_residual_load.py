@@ -33,7 +33,7 @@ from grounder._residual import (
     free_bodies,
     scene_files_sha256,
 )
-from grounder._residual_torch import ResidualModel
+from grounder._residual_torch import residual_model
 from grounder._residual_train import ResidualOptions, train_residual
 from grounder._simulate import simulate
 from grounder._simulator import Simulator
@@ -81,7 +81,7 @@ def _write_residual(folder: Path, xml: str = CUBE_XML, files: dict[str, str] | N
     )
     torch.manual_seed(0)
     radius_m = np.array([b.radius_m for b in free_bodies(model)])
-    net = ResidualModel(num_bodies=1, hidden=HIDDEN, layers=1, gate=gate, radius_m=radius_m)
+    net = residual_model(meta, radius_m=radius_m)
     torch.save({k: v.detach().clone() for k, v in net.state_dict().items()}, folder / WEIGHTS_FILE)
     (folder / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
     return folder
