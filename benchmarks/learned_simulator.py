@@ -287,9 +287,8 @@ def random_yaw(count: int, gen: torch.Generator) -> torch.Tensor:
 def train_on_rollouts(
     sim: LearnedSimulator, tosses: list[Trajectory], steps: int, horizon: int, batch: int, lr: float, seed: int
 ) -> None:
-    """Fine-tunes the network on the error of its own ``horizon``-frame rollouts (see the module docstring)."""
-    if sim.mujoco is not None:
-        raise SystemExit("--rollout-steps needs the learned simulator alone: MuJoCo (--scene) is not differentiable")
+    """Fine-tunes the network on the error of its own ``horizon``-frame rollouts (see the module docstring); the
+    learned simulator alone (``main`` refuses it with ``--scene``: MuJoCo is not differentiable)."""
     length = max(len(t.time_s) for t in tosses)
     corners = np.empty((len(tosses), length, 8, 3))
     for i, toss in enumerate(tosses):

@@ -289,7 +289,7 @@ def check_stable(
 
     Args:
         states: (B, nstep + 1, nstate) full-physics states of one model's rollouts (time first), row 0 initial.
-        trajs: the B trajectories they re-simulate, for their names and start times.
+        trajs: the B trajectories they re-simulate, for their names.
         warnings: MuJoCo's messages collected meanwhile (`mujoco_warnings`), the first quoted in the error.
 
     Raises:

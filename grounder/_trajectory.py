@@ -113,8 +113,9 @@ def _checked_arrays(
                 f"{label}: '{file_keys[field]}' must be finite, but {where}={arr[tuple(bad)]} (row {row}); "
                 f"fill or drop the bad samples"
             )
-        if field != "time_s" and arr.size and np.abs(arr).max() > MAX_STATE_VALUE:
-            bad = np.argwhere(np.abs(arr) > MAX_STATE_VALUE)[0]
+        beyond = np.abs(arr) > MAX_STATE_VALUE
+        if field != "time_s" and beyond.any():
+            bad = np.argwhere(beyond)[0]
             raise TrajectoryError(
                 f"{label}: '{file_keys[field]}[{bad[0]}, {bad[1]}]' is {arr[tuple(bad)]:.3g}, beyond the "
                 f"{MAX_STATE_VALUE:g} MuJoCo can simulate; fix or drop the bad samples"
