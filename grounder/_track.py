@@ -270,7 +270,14 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
     Reads frames start_frame, start_frame + 1, ... (at most max_frames of them). Every frame of the span is held in
     memory (they are the data): a span that would take more than `MAX_DECODED_BYTES` is refused before decoding.
     """
-    from reconstruction._frames import MAX_DECODED_BYTES, check_frame_pixels, image_paths, image_size, read_image
+    from reconstruction._frames import (
+        MAX_DECODED_BYTES,
+        check_decoded_all,
+        check_frame_pixels,
+        image_paths,
+        image_size,
+        read_image,
+    )
     from reconstruction.errors import InputError
 
     clip = Path(clip)
@@ -304,18 +311,22 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
                 width, height = capture.get(cv2.CAP_PROP_FRAME_WIDTH), capture.get(cv2.CAP_PROP_FRAME_HEIGHT)
                 check_frame_pixels(clip, width, height, "the clip")
                 check_span(count, width, height)
-                index = 0
-                while (max_frames is None or len(frames) < max_frames) and capture.grab():
+                index, stated = 0, count
+                while max_frames is None or len(frames) < max_frames:
+                    if not capture.grab():
+                        check_decoded_all(clip, index, stated)  # the end of the file, or a break in it
+                        break
                     if index >= start_frame:  # the frames before the span are decoded, not copied out
                         ok, image = capture.retrieve()
                         if not ok:
+                            check_decoded_all(clip, index, stated)
                             break
                         frames.append(image)
                     index += 1
                 count = max(count, index)
             finally:
                 capture.release()
-    except InputError as exc:  # an unreadable image, or a frame over the pixel limit
+    except InputError as exc:  # an unreadable or truncated image or video, or a frame over the pixel limit
         raise TrackError(str(exc)) from exc
     if len(frames) < 2:
         where = f" from frame {start_frame} on (the clip has {count})" if start_frame else ""

@@ -83,8 +83,27 @@ def _opened_video(source: Path) -> cv2.VideoCapture:
     capture = open_video(source)
     if not capture.isOpened():
         capture.release()
-        raise InputError(f"{source} is not a readable video; pass an .mp4/.mov/.avi file or a folder of images")
+        raise InputError(
+            f"{source} is not a readable video (not a video file, or one cut short); pass an .mp4/.mov/.avi file or "
+            "a folder of images"
+        )
     return capture
+
+
+def check_decoded_all(source: Path, decoded: int, stated: int) -> None:
+    """Refuses a video whose decoding stopped before the frame count its container states (a file cut short, or
+    damaged): the frames after the break would be missing without a word. A container that only estimates its
+    count from duration x frame rate may be off by a frame or two, hence the margin.
+
+    Raises:
+        InputError: naming how many of the stated frames decoded.
+    """
+    if stated > 0 and decoded < stated - max(2, stated // 100):
+        raise InputError(
+            f"{source} stops decoding after {decoded} of the {stated} frames it states (the file is truncated or "
+            f"damaged); copy or export it again, or cut it to the frames that decode "
+            f"(ffmpeg -i {source.name} -frames:v {decoded} -c copy cut{source.suffix})"
+        )
 
 
 def image_paths(folder: Path) -> list[Path]:
@@ -125,14 +144,34 @@ def image_size(path: Path) -> tuple[int, int]:
     return width, height
 
 
+def _check_whole(path: Path) -> None:
+    """Refuses a JPEG or PNG whose data ends before its image does (a copy cut short): OpenCV would decode such a JPEG
+    with the missing rows grey, and only a "Premature end of JPEG file" on the console. A JPEG is checked by a decode
+    at 1/8 scale (the decoder's own DCT scaling: the whole stream is read at a fraction of a full decode's cost), a
+    PNG by Pillow's chunk checksums, without decompressing it."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as header:
+            if header.format == "JPEG":
+                width, height = header.size
+                header.draft("RGB", (max(1, width // 8), max(1, height // 8)))
+                header.load()
+            elif header.format == "PNG":
+                header.verify()
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as exc:  # Pillow's PNG reader raises SyntaxError
+        raise InputError(f"{path} is truncated or damaged ({exc}); copy it again from the camera or remove it") from exc
+
+
 def read_image(path: Path) -> np.ndarray:
     """One image (H, W, 3) uint8 BGR, its size read from the header first (`image_size`): a small file that would
-    decode to a huge image (an image bomb) is refused before it is decoded.
+    decode to a huge image (an image bomb) is refused before it is decoded, and so is a truncated JPEG or PNG.
 
     Raises:
-        InputError: the image is unreadable or larger than `MAX_IMAGE_PIXELS`.
+        InputError: the image is unreadable, truncated or larger than `MAX_IMAGE_PIXELS`.
     """
     image_size(path)
+    _check_whole(path)
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG")
@@ -201,6 +240,7 @@ def read_frames_counted(
         finally:
             capture.release()
         count = i
+        check_decoded_all(source, count, total)
         if not kept:
             raise InputError(f"{source} decoded to no frames; check that it is a video file and not truncated")
     shapes = {f.image_bgr.shape for f in kept}

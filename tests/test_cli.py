@@ -75,10 +75,10 @@ def test_console_script_installed() -> None:
     assert subprocess.run([str(exe), "--help"], capture_output=True, timeout=60).returncode == 0
 
 
-def _write_images(folder: Path, images: list[np.ndarray]) -> Path:
+def _write_images(folder: Path, images: list[np.ndarray], suffix: str = ".png") -> Path:
     folder.mkdir(parents=True)
     for i, image in enumerate(images):
-        cv2.imwrite(str(folder / f"img_{i:03d}.png"), image)
+        cv2.imwrite(str(folder / f"img_{i:03d}{suffix}"), image)
     return folder
 
 
@@ -104,6 +104,43 @@ def test_unreadable_video(tmp_path: Path) -> None:
     fake.write_text("this is not a video")
     proc = run_cli("reconstruct", str(fake), "-o", str(tmp_path / "out"))
     assert_one_line_error(proc, "clip.mp4", alone=True)
+    assert not (tmp_path / "out").exists()
+
+
+def _cut_short(path: Path) -> None:
+    """Keeps the first half of a file's bytes: a copy or download that stopped half-way."""
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+@pytest.mark.parametrize("suffix", [".jpg", ".png"])
+def test_truncated_image_in_a_folder_is_refused(tmp_path: Path, tabletop_dir: Path, suffix: str) -> None:
+    """A JPEG cut short decoded with its lower rows grey and only libjpeg's "Premature end of JPEG file" on the
+    console; it went on into structure from motion. Now it is named as the frames are read, before any other work."""
+    from reconstruction._frames import read_frames
+
+    folder = _write_images(tmp_path / "imgs", _tabletop_frames(tabletop_dir, [5, 10, 15, 20]), suffix)
+    assert len(read_frames(folder)) == 4  # the control: the whole images are read
+    _cut_short(folder / f"img_002{suffix}")
+    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, f"img_002{suffix} is truncated or damaged")
+    assert not (tmp_path / "out").exists()
+
+
+def test_truncated_video_is_refused(tmp_path: Path, tabletop_dir: Path) -> None:
+    """A video cut short whose container still states its length (here an AVI: its header gives 30 frames) decoded
+    the first half and went on as if that were the film. Now the break is named with how many frames decoded."""
+    clip = tmp_path / "orbit.avi"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
+    for frame in _tabletop_frames(tabletop_dir, list(range(0, 60, 2))):
+        writer.write(cv2.resize(frame, (320, 240)))
+    writer.release()
+    from reconstruction._frames import read_frames_counted
+
+    assert read_frames_counted(clip)[1] == 30  # the control: the whole file decodes to every frame it states
+    _cut_short(clip)
+    proc = run_cli("reconstruct", str(clip), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, "orbit.avi stops decoding after", "of the 30 frames it states")
     assert not (tmp_path / "out").exists()
 
 

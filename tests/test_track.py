@@ -333,6 +333,25 @@ def test_read_clip_folder_order_and_size_limits(tmp_path: Path, monkeypatch: pyt
         read_clip(TOSS / "video.mp4")
 
 
+def test_read_clip_refuses_a_video_cut_short(tmp_path: Path) -> None:
+    """A clip whose file stops half-way (its header states 40 frames) was tracked over the 20 that decode as if it
+    ended there; now the break is named. A span that ends before the break still reads."""
+    import cv2
+
+    clip = tmp_path / "toss.avi"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (64, 48))
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        writer.write(rng.integers(0, 255, (48, 64, 3), np.uint8))
+    writer.release()
+    assert len(read_clip(clip)[0]) == 40  # the control: the whole file
+    data = clip.read_bytes()
+    clip.write_bytes(data[: len(data) // 2])
+    with pytest.raises(TrackError, match=r"toss\.avi stops decoding after (19|20|21) of the 40 frames it states"):
+        read_clip(clip)
+    assert len(read_clip(clip, max_frames=10, start_frame=5)[0]) == 10
+
+
 def test_options_reject_bad_values() -> None:
     with pytest.raises(TrackError, match="aruco_size_m"):
         TrackOptions(aruco_size_m=-1.0)
