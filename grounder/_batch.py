@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from grounder._report import write_text_atomic
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, shown
 
 log = logging.getLogger(__name__)
 
@@ -142,17 +142,12 @@ def _list(where: str, value: object, what: str) -> list[Any]:
     """``value`` as a list; a scalar or a mapping (``jobs: 5``, ``scenes: a.xml``) is refused."""
     if isinstance(value, Sequence) and not isinstance(value, (str, bytes)):
         return list(value)
-    raise GrounderError(f"{where} must be a list of {what}, got {type(value).__name__} {_short(value)}")
-
-
-def _short(value: object) -> str:
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
+    raise GrounderError(f"{where} must be a list of {what}, got {type(value).__name__} {shown(value)}")
 
 
 def _path(where: str, value: object, root: Path) -> Path:
     if not isinstance(value, str) or not value:
-        raise GrounderError(f"{where} must be a path (text), got {type(value).__name__} {_short(value)}")
+        raise GrounderError(f"{where} must be a path (text), got {type(value).__name__} {shown(value)}")
     return (root / value).resolve()
 
 
@@ -163,7 +158,7 @@ def _check_format(where: str, fmt: object) -> str | None:
     if fmt is None or (isinstance(fmt, str) and fmt in IMPORTERS):
         return fmt
     raise GrounderError(
-        f"{where}: unknown trajectory format {_short(fmt)}; known formats: {', '.join(sorted(IMPORTERS))} "
+        f"{where}: unknown trajectory format {shown(fmt)}; known formats: {', '.join(sorted(IMPORTERS))} "
         "(leave 'format' out for a folder of .npz trajectories)"
     )
 
@@ -173,7 +168,7 @@ def _dataset(where: str, entry: object, root: Path) -> tuple[Path, str | None]:
         return _path(f"{where}: trajectories", entry, root), None
     if isinstance(entry, Mapping) and "path" in entry and set(entry) <= {"path", "format"}:
         return _path(f"{where}: trajectories.path", entry["path"], root), _check_format(where, entry.get("format"))
-    raise GrounderError(f"{where}: a dataset is a path or {{path: ..., format: ...}}, got {_short(entry)}")
+    raise GrounderError(f"{where}: a dataset is a path or {{path: ..., format: ...}}, got {shown(entry)}")
 
 
 def load_jobs(path: Path) -> list[Job]:
@@ -241,7 +236,7 @@ def load_jobs(path: Path) -> list[Job]:
                 if not isinstance(s, Mapping):
                     raise GrounderError(
                         f"{path}: matrix.settings[{k}] must be a mapping of calibrate options (and an optional "
-                        f"'name'), got {type(s).__name__} {_short(s)}"
+                        f"'name'), got {type(s).__name__} {shown(s)}"
                     )
                 name = str(s.get("name", f"s{k}"))
                 if name in named:
@@ -252,7 +247,7 @@ def load_jobs(path: Path) -> list[Job]:
         else:
             raise GrounderError(
                 f"{path}: matrix.settings must be a mapping name -> settings or a list of settings, "
-                f"got {type(raw_settings).__name__} {_short(raw_settings)}"
+                f"got {type(raw_settings).__name__} {shown(raw_settings)}"
             )
         for scene in scenes:
             for trajectories, fmt in datasets:
@@ -304,13 +299,13 @@ def _record_problem(data: object, job_id: str) -> str | None:
     if not isinstance(data, dict):
         return f"not a JSON object but {type(data).__name__}"
     if data.get("id") != job_id:
-        return f"'id' is {_short(data.get('id'))}, not {job_id!r}"
+        return f"'id' is {shown(data.get('id'))}, not {shown(job_id)}"
     if data.get("status") not in ("ok", "failed"):
-        return f"'status' is {_short(data.get('status'))}, not 'ok' or 'failed'"
+        return f'\'status\' is {shown(data.get("status"))}, not "ok" or "failed"'
     if "seconds" in data and not _is_number(data["seconds"]):
-        return f"'seconds' is {_short(data['seconds'])}, not a number"
+        return f"'seconds' is {shown(data['seconds'])}, not a number"
     if not isinstance(data.get("error"), (str, type(None))):
-        return f"'error' is {_short(data['error'])}, not text"
+        return f"'error' is {shown(data['error'])}, not text"
     parameters = data.get("parameters")
     if parameters and not (
         isinstance(parameters, dict) and all(isinstance(k, str) and _is_number(v) for k, v in parameters.items())

@@ -62,7 +62,7 @@ def load_dair_pll_cube(src_dir: Path) -> list[Trajectory]:
     """
     import torch
 
-    from grounder._residual import quiet_pickle_protocol_warning
+    from grounder._torch_files import quiet_pickle_protocol_warning, tensor_problem
 
     folder = _tosses_dir(src_dir)
     files = [p for p in folder.iterdir() if p.is_file() and re.fullmatch(r"\d+\.pt", p.name)]
@@ -82,18 +82,9 @@ def load_dair_pll_cube(src_dir: Path) -> list[Trajectory]:
                 f"{path}: not a tensor file torch loads safely ({type(exc).__name__}); pass the data's tosses/N.pt"
                 " files as saved, float64 tensors of shape (T, 13)"
             ) from exc
-        if not isinstance(tensor, torch.Tensor):
-            raise GrounderError(f"{path}: expected a torch tensor of shape (T, 13), got {type(tensor).__name__}")
-        unusual = (
-            "sparse" if tensor.layout != torch.strided else
-            "nested" if tensor.is_nested else
-            "meta (no data)" if tensor.is_meta else
-            "quantized" if tensor.is_quantized else
-            "complex" if tensor.is_complex() else
-            None
-        )  # fmt: skip
-        if unusual is not None:  # each would fail in .numpy() below, or lose its imaginary part silently
-            raise GrounderError(f"{path}: a {unusual} tensor; expected a dense real tensor of shape (T, 13)")
+        problem = tensor_problem(tensor)
+        if problem is not None:  # each would fail in .numpy() below, or lose its imaginary part silently
+            raise GrounderError(f"{path}: the toss {problem}; expected a dense real tensor of shape (T, 13)")
         rows = tensor.detach().to(torch.float64).numpy()
         if rows.ndim != 2 or rows.shape[1] != _NUM_COLUMNS or rows.shape[0] < 2:
             raise GrounderError(f"{path}: expected shape (T >= 2, 13), got {tuple(rows.shape)}")

@@ -41,7 +41,7 @@ from grounder._properties_data import (
     shape_features,
 )
 from grounder._restitution import contact_solref
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, shown
 
 if TYPE_CHECKING:
     import mujoco
@@ -74,7 +74,7 @@ class PropertyModel:
 def load_property_model(weights_dir: Path | None = None) -> PropertyModel:
     """The property model from `weights_dir` (default: the weights shipped with the package), cached."""
     from grounder._properties_model import META_FILE, WEIGHTS_FILE, load
-    from grounder._residual import quiet_pickle_protocol_warning
+    from grounder._torch_files import quiet_pickle_protocol_warning
 
     weights_dir = Path(weights_dir or WEIGHTS_DIR)
     if not (weights_dir / WEIGHTS_FILE).is_file() or not (weights_dir / META_FILE).is_file():
@@ -357,14 +357,6 @@ _MAX_TRANSFORMED_DEVIATION = 10.0
 _NUM_TRANSFORMED = 6
 
 
-def _short(value: Any) -> str:
-    """A JSON value for an error line: dicts and lists by kind, other values as written (at most 60 characters)."""
-    if isinstance(value, dict):
-        return "a JSON object"
-    text = repr(value) if isinstance(value, float) else json.dumps(value)
-    return text if len(text) <= 60 else text[:57] + "..."
-
-
 def finite_number(value: Any) -> bool:
     """A JSON number (not a bool) that is finite as a float (a huge integer is not)."""
     if isinstance(value, bool) or not isinstance(value, int | float):
@@ -393,7 +385,7 @@ def _checked_objects(manifest: Any, manifest_path: Path) -> dict[str, dict[str, 
     redo = "re-run `image2sim ground` to rewrite it"
 
     def bad(field: str, expected: str, value: Any, *, got: str | None = None) -> GrounderError:
-        got = got or _short(value)
+        got = got or shown(value)
         return GrounderError(f"{manifest_path}: {field} must be {expected}, got {got}; {redo}")
 
     if not isinstance(manifest, dict):

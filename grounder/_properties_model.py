@@ -419,7 +419,7 @@ def load(weights_dir: Path) -> tuple[PropertyNet, Normalisation, dict[str, Any]]
         GrounderError: one line naming the file and the field or tensor, and the `train` command that rewrites them.
     """
     from grounder._properties import PropertyModelError
-    from grounder._residual import load_weights_file
+    from grounder._torch_files import load_weights_file, tensor_problem
 
     weights_dir = Path(weights_dir)
     meta_path, weights_path = weights_dir / META_FILE, weights_dir / WEIGHTS_FILE
@@ -432,6 +432,10 @@ def load(weights_dir: Path) -> tuple[PropertyNet, Normalisation, dict[str, Any]]
     state = load_weights_file(weights_path, remedy)
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise PropertyModelError(f"{weights_path}: not a state dict of tensors; {remedy}")
+    for key, tensor in state.items():  # before any tensor is read: a sparse or meta one fails wherever it is used
+        problem = tensor_problem(tensor)
+        if problem is not None:
+            raise PropertyModelError(f"{weights_path}: tensor {key} {problem}; {remedy}")
     embed_dim = meta["embed_dim"]
     z_head = state.get("z_head.weight")
     if z_head is None or z_head.ndim != 2:
@@ -442,7 +446,8 @@ def load(weights_dir: Path) -> tuple[PropertyNet, Normalisation, dict[str, Any]]
             f"{z_head.shape[0]} rows, i.e. embed_dim {z_head.shape[0] // 2}); {remedy}"
         )
     net = PropertyNet(embed_dim)  # sized as the tensors in the file are: no more memory than the file itself
-    expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+    own = net.state_dict()
+    expected = {k: tuple(v.shape) for k, v in own.items()}
     missing = sorted(set(expected) - set(state))
     unexpected = sorted(set(state) - set(expected))
     if missing or unexpected:
@@ -456,7 +461,11 @@ def load(weights_dir: Path) -> tuple[PropertyNet, Normalisation, dict[str, Any]]
             raise PropertyModelError(
                 f"{weights_path}: tensor {key} has shape {tuple(tensor.shape)}, expected {shape}; {remedy}"
             )
-        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+        if tensor.is_floating_point() != own[key].is_floating_point():  # integer weights, or a float step count
+            raise PropertyModelError(
+                f"{weights_path}: tensor {key} has dtype {tensor.dtype}, expected {own[key].dtype}; {remedy}"
+            )
+        if not bool(torch.isfinite(tensor).all()):
             raise PropertyModelError(f"{weights_path}: tensor {key} has non-finite values; {remedy}")
     net.load_state_dict(state)
     # Inference in float64: `decode_embedding` is differentiated numerically by calibration code.

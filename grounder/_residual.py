@@ -44,9 +44,7 @@ import json
 import math
 import re
 import struct
-import warnings
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
@@ -54,8 +52,9 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 import mujoco
 import numpy as np
 
+from grounder._torch_files import load_weights_file, tensor_problem
 from grounder._track_smooth import quat_conj, quat_mul
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, shown
 
 if TYPE_CHECKING:
     from grounder._residual_joint import NumpyJointResidual
@@ -457,12 +456,12 @@ class ResidualMeta:
             raise GrounderError(f"{where}: expected a JSON object, got a JSON {_json_type(raw)}; {_RETRAIN}")
         if raw.get("format") != RESIDUAL_FORMAT or raw.get("version") != RESIDUAL_VERSION:
             raise GrounderError(
-                f"{where}: not an {RESIDUAL_FORMAT} v{RESIDUAL_VERSION} file (format={_shown(raw.get('format'))}, "
-                f"version={_shown(raw.get('version'))}); {_RETRAIN}"
+                f"{where}: not an {RESIDUAL_FORMAT} v{RESIDUAL_VERSION} file (format={shown(raw.get('format'))}, "
+                f"version={shown(raw.get('version'))}); {_RETRAIN}"
             )
         space = raw.get("space", "free")
         if space not in ("free", "joint"):
-            raise GrounderError(f"{where}: unknown residual space {_shown(space)}; {_RETRAIN}")
+            raise GrounderError(f"{where}: unknown residual space {shown(space)}; {_RETRAIN}")
         field = _MetaFields(raw, where)
         features, outputs = field.names("features"), field.names("outputs")
         if space == "free" and (features != FEATURE_NAMES or outputs != OUTPUT_NAMES):
@@ -522,15 +521,6 @@ def _json_type(value: Any) -> str:
     return "null" if value is None else names.get(type(value), type(value).__name__)
 
 
-def _shown(value: Any) -> str:
-    """A value from an untrusted JSON file for a one-line message: as JSON writes it, at most 40 characters."""
-    try:
-        text = json.dumps(value, ensure_ascii=True)
-    except (TypeError, ValueError, RecursionError):
-        text = repr(value)
-    return text if len(text) <= 40 else text[:37] + "..."
-
-
 class _MetaFields:
     """Typed reads of one JSON object of ``residual.json``; each failure is one GrounderError line naming the field."""
 
@@ -538,7 +528,7 @@ class _MetaFields:
         self.raw, self.where, self.prefix = raw, where, prefix
 
     def bad(self, key: str, value: Any, expected: str) -> GrounderError:
-        return GrounderError(f"{self.where}: {self.prefix}{key} is {_shown(value)}, expected {expected}; {_RETRAIN}")
+        return GrounderError(f"{self.where}: {self.prefix}{key} is {shown(value)}, expected {expected}; {_RETRAIN}")
 
     def value(self, key: str, kind: type | tuple[type, ...], expected: str) -> Any:
         if key not in self.raw:
@@ -1058,36 +1048,6 @@ def has_residual_files(scene_dir: Path) -> bool:
     return scene_dir.is_dir() and (scene_dir / META_FILE).is_file() and (scene_dir / WEIGHTS_FILE).is_file()
 
 
-@contextmanager
-def quiet_pickle_protocol_warning() -> Iterator[None]:
-    """Around ``torch.load(..., weights_only=True)`` of an untrusted file: silences the two-line UserWarning torch
-    prints for a pickle protocol other than its own (a plain pickle, not a ``torch.save`` file), just before it
-    fails on such a file; the caller's one-line error says all there is to say."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=r"Detected pickle protocol", category=UserWarning)
-        yield
-
-
-def load_weights_file(path: Path, remedy: str) -> Any:
-    """``torch.load`` of an untrusted weights file (``weights_only=True``, on the CPU), without torch's warnings.
-
-    Args:
-        path: The file.
-        remedy: What the user should do when it is not a weights file (the end of the error line).
-
-    Raises:
-        GrounderError: one line, ``"{path}: not a valid weights file (<error type>); {remedy}"``. Not torch's own
-            text: it runs over several lines and suggests ``weights_only=False``, unsafe for a file of unknown origin.
-    """
-    import torch
-
-    try:
-        with quiet_pickle_protocol_warning():
-            return torch.load(path, weights_only=True, map_location="cpu")
-    except Exception as exc:  # torch raises many types for corrupt or unsafe files
-        raise GrounderError(f"{path}: not a valid weights file ({type(exc).__name__}); {remedy}") from exc
-
-
 def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.ndarray]:
     """``residual.pt``'s tensors as float64 arrays, each checked against the metadata first.
 
@@ -1137,23 +1097,18 @@ def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.
     )
     missing = [name for name in expected if name not in state]
     if missing:
-        raise GrounderError(f"{where}: missing tensor {_shown(missing[0])} ({META_FILE}: {sizes}); {_RETRAIN}")
+        raise GrounderError(f"{where}: missing tensor {shown(missing[0])} ({META_FILE}: {sizes}); {_RETRAIN}")
     extra = [name for name in state if name not in expected]
     if extra:
-        raise GrounderError(f"{where}: unexpected tensor {_shown(extra[0])} ({META_FILE}: {sizes}); {_RETRAIN}")
+        raise GrounderError(f"{where}: unexpected tensor {shown(extra[0])} ({META_FILE}: {sizes}); {_RETRAIN}")
     arrays: dict[str, np.ndarray] = {}
     for name, shape in expected.items():
         tensor = state[name]
-        problem = None
-        if not isinstance(tensor, torch.Tensor):
-            problem = f"is a {type(tensor).__name__}, not a tensor"
-        elif tensor.is_nested or tensor.layout != torch.strided or tensor.device.type != "cpu":
-            problem = f"is not a dense tensor (layout {tensor.layout}, device {tensor.device.type})"
-        elif name == "speed_columns" and (tensor.dtype.is_floating_point or tensor.dtype.is_complex):
-            problem = f"has dtype {tensor.dtype}, expected an integer one"
-        elif name != "speed_columns" and not tensor.dtype.is_floating_point:  # complex is not floating point
-            problem = f"has dtype {tensor.dtype}, expected a real floating-point one"
-        elif tuple(tensor.shape) != shape:
+        problem = tensor_problem(tensor)
+        if problem is None and tensor.dtype.is_floating_point == (name == "speed_columns"):
+            wanted = "an integer" if name == "speed_columns" else "a floating-point"
+            problem = f"has dtype {tensor.dtype}, expected {wanted} one"
+        if problem is None and tuple(tensor.shape) != shape:
             problem = f"has shape {tuple(tensor.shape)}, expected {shape} ({META_FILE}: {sizes})"
         if problem is None:
             try:
@@ -1222,8 +1177,8 @@ def load_residual(
         check_joint_meta(meta, space, str(meta_path))
         if meta.output_names != space.output_names:
             raise GrounderError(
-                f"{meta_path}: outputs {_shown(list(meta.output_names))} are not the scene's joints' "
-                f"{_shown(list(space.output_names))}; retrain it on this scene"
+                f"{meta_path}: outputs {shown(list(meta.output_names))} are not the scene's joints' "
+                f"{shown(list(space.output_names))}; retrain it on this scene"
             )
         bodies: list[FreeBody] = []
     else:

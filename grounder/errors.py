@@ -1,5 +1,7 @@
 """Errors raised by the user-facing pipeline (trajectories, calibration, diagnosis, CLI)."""
 
+import json
+
 
 class GrounderError(Exception):
     """Base class for everything the grounder rejects; the CLI prints it as one line and exits with code 2."""
@@ -7,3 +9,13 @@ class GrounderError(Exception):
 
 class TrajectoryError(GrounderError):
     """A trajectory file or directory does not follow the project's trajectory format."""
+
+
+def shown(value: object, limit: int = 60) -> str:
+    """A value read from a user's file (JSON, YAML, metadata) for a one-line error: as JSON writes it (so a file's
+    `"4"` shows as `"4"`, its `null` as `null`, a NaN as `NaN`), otherwise as Python does, cut to `limit` characters."""
+    try:
+        text = json.dumps(value, ensure_ascii=True)
+    except (TypeError, ValueError, RecursionError):
+        text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."

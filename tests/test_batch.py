@@ -292,7 +292,7 @@ def test_output_folder_batch_did_not_write_is_refused(tmp_path: Path, traj_dir: 
         pytest.param(b"jobs: [{scene: [a.xml], trajectories: d}]\n", "jobs[0]: scene", id="scene-list"),
         pytest.param(
             b"jobs: [{scene: a.xml, trajectories: d, format: nosuch}]\n",
-            "jobs[0]: unknown trajectory format 'nosuch'",
+            'jobs[0]: unknown trajectory format "nosuch"',
             id="format-unknown",
         ),
         pytest.param(

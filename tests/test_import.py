@@ -97,7 +97,10 @@ def test_unusual_tensors_are_one_error(kind: str, tmp_path: Path) -> None:
     }[kind]()
     (tmp_path / "tosses").mkdir()
     torch.save(tensor, tmp_path / "tosses" / "1.pt")
-    with pytest.raises(GrounderError, match=rf"1\.pt: a {re.escape(kind)} tensor; expected a dense real tensor"):
+    with pytest.raises(
+        GrounderError,
+        match=rf"1\.pt: the toss is a {re.escape(kind)} tensor, not a dense real one; expected a dense real tensor",
+    ):
         load_dair_pll_cube(tmp_path)
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -406,6 +407,33 @@ def test_weights_metadata_is_checked_against_the_tensors_before_building(
     for field, value in (("embed_dim", "16"), ("target_std", [1.0] * 5), ("spread_scale", [1.0] * 5 + [-1.0])):
         with pytest.raises(PropertyModelError, match=field):
             load_property_model(_copied_weights(tmp_path / f"bad_{field}", **{field: value}))
+
+
+@pytest.mark.parametrize("kind", ["sparse", "meta (no data)", "complex", "integer"])
+def test_weights_that_are_not_plain_real_tensors_are_refused(tmp_path: Path, kind: str) -> None:
+    """torch loads these safely; before, a sparse or meta tensor failed in the network with a traceback (or an error
+    naming no tensor), and complex or integer weights were copied into the network as their real part or as whole
+    numbers, with only a warning."""
+    import torch
+
+    from grounder._properties import PropertyModelError
+    from grounder._properties_model import WEIGHTS_FILE, load
+
+    weights = _copied_weights(tmp_path / "w")
+    state = torch.load(weights / WEIGHTS_FILE, weights_only=True)
+    load(weights)  # the control: the shipped tensors load
+    key = "z_head.weight"
+    state[key] = {
+        "sparse": lambda t: t.to_sparse(),
+        "meta (no data)": lambda t: t.to("meta"),
+        "complex": lambda t: t.to(torch.complex128) * (1 + 1e-3j),
+        "integer": lambda t: (t * 1000).to(torch.int64),
+    }[kind](state[key])
+    torch.save(state, weights / WEIGHTS_FILE)
+    expected = "has dtype torch.int64, expected torch.float32" if kind == "integer" else f"is a {kind} tensor"
+    for loader in (load, load_property_model):
+        with pytest.raises(PropertyModelError, match=rf"tensor {re.escape(key)} {re.escape(expected)}[;,]"):
+            loader(weights)
 
 
 def test_non_finite_normalisation_is_refused_by_evaluate(tmp_path: Path) -> None:

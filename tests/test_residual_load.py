@@ -197,8 +197,8 @@ BROKEN: list[tuple[str, Callable[[Path], None], str, str]] = [
     # residual.pt: every tensor dense, real floating point, of the expected shape, finite
     ("pt-shape", _set_tensor("feat_mean", lambda t: torch.zeros(1, 10, dtype=t.dtype)), W, "'feat_mean' has shape"),
     ("pt-flat", _edit_state(lambda s: {k: v.flatten() for k, v in s.items()}), W, "'feat_mean' has shape (11,)"),
-    ("pt-sparse", _set_tensor("feat_mean", lambda t: t.to_sparse()), W, "'feat_mean' is not a dense tensor"),
-    ("pt-complex", _set_tensor("feat_mean", lambda t: t.to(torch.complex128)), W, "dtype torch.complex128"),
+    ("pt-sparse", _set_tensor("feat_mean", lambda t: t.to_sparse()), W, "'feat_mean' is a sparse tensor"),
+    ("pt-complex", _set_tensor("feat_mean", lambda t: t.to(torch.complex128)), W, "'feat_mean' is a complex tensor"),
     ("pt-integer", _set_tensor("out_gain", lambda t: t.to(torch.int64)), W, "'out_gain' has dtype torch.int64"),
     ("pt-nan-weight", _set_tensor("nets.0.0.weight", _with_value(float("nan"), (0, 0))), W, "NaN or infinite"),
     ("pt-inf-bound", _set_tensor("out_bound", _with_value(float("inf"), (0, 3))), W, "'out_bound' holds NaN"),
