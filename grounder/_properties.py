@@ -486,6 +486,12 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
             f"{manifest_path}: not valid JSON ({type(exc).__name__}); re-run `image2sim ground` to rewrite it"
         ) from exc
     objects = _checked_objects(manifest, manifest_path)
+    try:
+        mujoco.MjSpec.from_file(str(xml_path))
+    except ValueError as exc:  # MuJoCo's message spans lines
+        raise GrounderError(
+            f"{xml_path}: MuJoCo cannot load it ({' '.join(str(exc).split())}); re-run `image2sim ground` to rewrite it"
+        ) from exc
     rng = np.random.default_rng(seed)
     out: list[tuple[mujoco.MjSpec, dict[str, Any]]] = []
     for _ in range(n):

@@ -8,6 +8,7 @@ into a real network or array loses its imaginary part with only a warning.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -67,4 +68,14 @@ def tensor_problem(tensor: object) -> str | None:
         return f"is a {kind} tensor, not a dense real one"
     if tensor.device.type != "cpu":  # map_location="cpu" moves what it can; a custom device type stays
         return f"is on device {tensor.device.type}, not the CPU"
+    if not (tensor.dtype.is_floating_point or tensor.dtype in _integer_dtypes()):  # bits16, uint1, float4, ...
+        return f"has dtype {tensor.dtype}, which holds no numbers to read"
     return None
+
+
+@functools.cache
+def _integer_dtypes() -> frozenset[Any]:
+    import torch
+
+    names = ("bool", "uint8", "int8", "int16", "int32", "int64", "uint16", "uint32", "uint64")
+    return frozenset(getattr(torch, name) for name in names if hasattr(torch, name))

@@ -351,7 +351,7 @@ def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[Pi
         intr = json.loads(rec_json.read_text(encoding="utf-8"))["intrinsics"]
         keys = ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px")
         values = [float(intr[k]) for k in keys] + [float(intr.get(k, 0.0)) for k in ("k1", "k2")]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
         raise TrackError(
             f"{rec_json}: no readable camera intrinsics ({type(exc).__name__}: {exc}); re-run `image2sim ground` for "
             "this scene, or pass the clip's intrinsics (--intrinsics FX FY CX CY)"
@@ -398,7 +398,7 @@ def load_scan(
         world_from_objects = [pose_matrix(objects[n]["pos_m"], objects[n]["quat_wxyz"]) for n in names]
         if not all(np.isfinite(pose).all() for pose in world_from_objects):
             raise ValueError(f"{manifest}: an object's pos_m or quat_wxyz is not finite")
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
         log.warning("scan frames not used for the feature models: %s", exc)
         return None
     picks = np.unique(np.linspace(0, len(rows) - 1, min(len(rows), options.scan_feature_frames)).round().astype(int))
@@ -417,7 +417,10 @@ def load_scan(
         gray = cv2.cvtColor(undistort(image), cv2.COLOR_BGR2GRAY)
         # transforms.json: nerfstudio's camera-to-world with OpenGL camera axes (y up, z back).
         try:
-            world_from_cam = np.asarray(rows[k]["transform_matrix"], float) @ np.diag([1.0, -1.0, -1.0, 1.0])
+            transform = np.asarray(rows[k]["transform_matrix"], float)
+            if transform.shape != (4, 4) or not np.isfinite(transform).all():  # (2, 4, 4) would broadcast below
+                raise ValueError(f"transform_matrix is not a finite 4 x 4 matrix (shape {transform.shape})")
+            world_from_cam = transform @ np.diag([1.0, -1.0, -1.0, 1.0])
         except (KeyError, ValueError, TypeError) as exc:
             log.warning("scan frames not used for the feature models: %s frame %d: %s", transforms, k, exc)
             return None

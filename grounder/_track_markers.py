@@ -42,7 +42,7 @@ import numpy as np
 
 from grounder._track_render import PinholeCamera
 from grounder._track_smooth import pose_matrix, quat_from_matrix, rotation_angle_deg
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, shown
 
 log = logging.getLogger(__name__)
 
@@ -132,12 +132,19 @@ class ObjectMarker:
     origin: str = "layout"
 
 
+def _marker_id(value: object) -> int:
+    """A marker id from a JSON value: a whole number (2 or 2.0; not 2.9, which `int` would make 2, nor a bool)."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not float(value).is_integer():
+        raise ValueError(f"id must be a whole number, got {shown(value)}")
+    return int(value)
+
+
 def _marker_from_row(row: object, where: str, origin: str) -> ObjectMarker:
     """One layout entry (module docstring) -> ObjectMarker; GrounderError, one line, on anything malformed."""
     if not isinstance(row, dict):
         raise GrounderError(f"{where}: expected an object with id and size_m")
     try:
-        marker_id, size_m = int(row["id"]), float(row["size_m"])
+        marker_id, size_m = _marker_id(row["id"]), float(row["size_m"])
         name = None if row.get("object") is None else str(row["object"])
     except (KeyError, TypeError, ValueError) as exc:
         raise GrounderError(f"{where}: needs id and size_m (optionally object, pos_m, quat_wxyz): {exc}") from exc
@@ -167,8 +174,10 @@ def load_object_markers(path: Path) -> tuple[ObjectMarker, ...]:
     path = Path(path)
     try:
         payload = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise GrounderError(f"{path}: cannot read the marker layout ({exc}); pass a JSON file as documented") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise GrounderError(
+            f"{path}: cannot read the marker layout ({type(exc).__name__}: {exc}); pass a JSON file as documented"
+        ) from exc
     rows = payload.get("markers") if isinstance(payload, dict) else None
     if not isinstance(rows, list) or not rows:
         raise GrounderError(f'{path}: expected {{"markers": [...]}} with at least one marker')
@@ -186,11 +195,11 @@ def scene_markers(scene_json: Path) -> tuple[ObjectMarker, ...]:
         return ()
     try:
         rows = json.loads(path.read_text()).get("object_markers") or []
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError) as exc:
-        raise GrounderError(f"{path}: cannot read it ({exc}); ground the scene again") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError, RecursionError) as exc:
+        raise GrounderError(f"{path}: cannot read it ({type(exc).__name__}: {exc}); ground the scene again") from exc
     if not isinstance(rows, list):
         raise GrounderError(
-            f"{path}: 'object_markers' is {type(rows).__name__} {rows!r:.40}, not a list of markers; ground the "
+            f"{path}: 'object_markers' is {type(rows).__name__} {shown(rows)}, not a list of markers; ground the "
             "scene again"
         )
     return tuple(_marker_from_row(row, f"{path}: object marker {k}", "scan") for k, row in enumerate(rows))

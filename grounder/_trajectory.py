@@ -42,7 +42,7 @@ _NUMERIC_KINDS = "iuf"
 QUAT_NORM_TOL = 1e-3
 """Largest accepted ``| |quat| - 1 |`` for free- and ball-joint quaternions in a trajectory."""
 MAX_STATE_VALUE = 1e10
-"""Largest |qpos|, |qvel| or |ctrl| a trajectory may hold: MuJoCo's ``mjMAXVAL``, beyond which it stops a
+"""Largest |time|, |qpos|, |qvel| or |ctrl| a trajectory may hold: MuJoCo's ``mjMAXVAL``, beyond which it stops a
 simulation as unstable at its first step."""
 
 
@@ -113,11 +113,12 @@ def _checked_arrays(
                 f"{label}: '{file_keys[field]}' must be finite, but {where}={arr[tuple(bad)]} (row {row}); "
                 f"fill or drop the bad samples"
             )
-        beyond = np.abs(arr) > MAX_STATE_VALUE
-        if field != "time_s" and beyond.any():
+        beyond = np.abs(arr) > MAX_STATE_VALUE  # times too: a step count from 1e300 s does not fit an integer
+        if beyond.any():
             bad = np.argwhere(beyond)[0]
+            where = ", ".join(str(int(i)) for i in bad)
             raise TrajectoryError(
-                f"{label}: '{file_keys[field]}[{bad[0]}, {bad[1]}]' is {arr[tuple(bad)]:.3g}, beyond the "
+                f"{label}: '{file_keys[field]}[{where}]' is {arr[tuple(bad)]:.3g}, beyond the "
                 f"{MAX_STATE_VALUE:g} MuJoCo can simulate; fix or drop the bad samples"
             )
     time_arr = out["time_s"]
@@ -318,6 +319,11 @@ def load_trajectory(path: str | os.PathLike[str]) -> Trajectory:
                 raise TrajectoryError(
                     f"{path}: '{key}' is corrupt ({type(exc).__name__}: {exc}); re-export the trajectory"
                 ) from exc
+            except (RuntimeError, NotImplementedError) as exc:  # zipfile: an encrypted member, an unknown compression
+                raise TrajectoryError(
+                    f"{path}: '{key}' cannot be read ({' '.join(str(exc).split())}); write it unencrypted with "
+                    "numpy.savez or savez_compressed"
+                ) from exc
     time_s, qpos, qvel, ctrl = _checked_arrays(
         str(path), arrays["time"], arrays["qpos"], arrays["qvel"], arrays.get("ctrl")
     )
@@ -333,8 +339,11 @@ def _check_member_size(path: Path, archive: np.lib.npyio.NpzFile, key: str) -> N
         ValueError, OSError, zipfile.BadZipFile, zlib.error: an unreadable header (the caller words them).
     """
     zip_file = archive.zip
-    member = zip_file.NameToInfo.get(f"{key}.npy") if zip_file is not None else None
-    if zip_file is None or member is None:
+    if zip_file is None:
+        return
+    # The member numpy reads for `archive[key]`: one named `key` itself first, else `key.npy`.
+    member = zip_file.NameToInfo.get(key) or zip_file.NameToInfo.get(f"{key}.npy")
+    if member is None:
         return
     if member.file_size > _MAX_ARRAY_BYTES:
         raise TrajectoryError(

@@ -83,10 +83,10 @@ def test_bad_input(tmp_path: Path) -> None:
 
 
 @pytest.mark.filterwarnings("ignore::UserWarning")  # torch: nested and quantized tensors are prototype or deprecated
-@pytest.mark.parametrize("kind", ["sparse", "nested", "meta (no data)", "quantized", "complex"])
+@pytest.mark.parametrize("kind", ["sparse", "nested", "meta (no data)", "quantized", "complex", "bits16"])
 def test_unusual_tensors_are_one_error(kind: str, tmp_path: Path) -> None:
     """Tensors torch loads safely but that are not plain data: before, a traceback from .numpy() (sparse, nested,
-    meta, quantized) or, for complex values, the imaginary part dropped with only a warning and exit 0."""
+    meta, quantized, bits16) or, for complex values, the imaginary part dropped with only a warning and exit 0."""
     good = _toss(5, 0)
     tensor = {
         "sparse": lambda: good.to_sparse(),
@@ -94,12 +94,14 @@ def test_unusual_tensors_are_one_error(kind: str, tmp_path: Path) -> None:
         "meta (no data)": lambda: good.to("meta"),
         "quantized": lambda: torch.quantize_per_tensor(good.float(), 0.1, 0, torch.qint8),
         "complex": lambda: good.to(torch.complex128) * (1 + 1e-3j),
+        "bits16": lambda: torch.zeros(10, 26, dtype=torch.uint8).view(torch.bits16),
     }[kind]()
     (tmp_path / "tosses").mkdir()
     torch.save(tensor, tmp_path / "tosses" / "1.pt")
     with pytest.raises(
         GrounderError,
-        match=rf"1\.pt: the toss is a {re.escape(kind)} tensor, not a dense real one; expected a dense real tensor",
+        match=rf"1\.pt: the toss (is a {re.escape(kind)} tensor, not a dense real one|has dtype torch\.{kind}, which "
+        "holds no numbers to read); expected a dense real tensor",
     ):
         load_dair_pll_cube(tmp_path)
 

@@ -363,6 +363,14 @@ def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Pa
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert proc.stderr.count("\n") == 1 and "objects.object_0.density_kg_m3" in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "out").exists()
+    # A scene.xml MuJoCo rejects (well-formed XML, an unknown geom type) was a ValueError traceback.
+    xml = bad / "scene.xml"
+    xml.write_text(xml.read_text().replace('type="box"', 'type="bogus"', 1))
+    assert 'type="bogus"' in xml.read_text()
+    (bad / "scene.json").write_text(json.dumps({"objects": {"object_0": _entry()}}))
+    proc = run_cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert proc.stderr.count("\n") == 1 and "scene.xml: MuJoCo cannot load it (XML Error" in proc.stderr, proc.stderr
 
 
 def _copied_weights(folder: Path, **changes: object) -> Path:

@@ -288,6 +288,33 @@ def test_staged_output_dir_edge_paths(tmp_path: Path, monkeypatch: pytest.Monkey
         pass
 
 
+@pytest.mark.parametrize("side_px", [10_000, 20_000])
+def test_image_bombs_beyond_pillows_limits_are_one_error(tmp_path: Path, side_px: int) -> None:
+    """A PNG header of 20000 x 20000 px (over Pillow's own error limit, 179 Mpx) was a DecompressionBombError
+    traceback; one of 10000 x 10000 (over its warning limit, 89 Mpx) printed Pillow's two-line warning before the
+    refusal. Both are now the one refusal of a frame over 50 Mpx, and nothing else."""
+    import struct
+    import warnings
+    import zlib
+
+    from reconstruction._frames import read_frames
+    from reconstruction.errors import InputError
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    header = struct.pack(">IIBBBBB", side_px, side_px, 8, 2, 0, 0, 0)
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b"")
+    (folder / "0.png").write_bytes(png)  # a few dozen bytes
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(InputError, match=r"0\.png is (10000x10000 px, more|larger) than the 50 Mpx a frame may"):
+            read_frames(folder)
+    assert not caught, [str(w.message) for w in caught]
+
+
 def test_read_frames_bounds_memory_and_refuses_image_bombs(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A long video used to be decoded whole before --max-frames applied (4 GB for 20 s of 1080p), and a 0.9 MB PNG
     of 30000 x 30000 px was decoded (10.8 GB). Now the frames kept stay within the byte budget, evenly spread with

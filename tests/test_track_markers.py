@@ -201,12 +201,19 @@ def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
             "unit quaternion"
         ),
         '{"markers": [{"id": 1, "size_m": 0.05}, {"id": 1, "size_m": 0.04}]}': "repeat",
+        # an OverflowError traceback, and marker 2 read from 2.9 without a word
+        '{"markers": [{"id": Infinity, "size_m": 0.05}]}': "id must be a whole number, got Infinity",
+        '{"markers": [{"id": 2.9, "size_m": 0.05}]}': "id must be a whole number, got 2.9",
+        '{"markers": [{"id": true, "size_m": 0.05}]}': "id must be a whole number, got true",
+        "[" * 100_000: r"cannot read the marker layout \(RecursionError",  # was a RecursionError traceback
     }
     for text, expected in cases.items():
         path.write_text(text)
         with pytest.raises(GrounderError, match=expected) as info:
             load_object_markers(path)
         assert "\n" not in str(info.value)
+    path.write_text('{"markers": [{"id": 2.0, "size_m": 0.05}]}')  # the control: a whole number written as a float
+    assert load_object_markers(path)[0].marker_id == 2
     box = ObjectMarker(marker_id=1, size_m=0.05, object_name="box")
     check_markers([box], ["box", "can"], "DICT_4X4_50", 0)
     for bad, expected in [
@@ -227,6 +234,9 @@ def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
 
     (tmp_path / "scene.json").write_text('{"object_markers": 5}')
     with pytest.raises(GrounderError, match=r"'object_markers' is int 5, not a list of markers; ground the scene"):
+        scene_markers(tmp_path / "scene.json")
+    (tmp_path / "scene.json").write_text('{"object_markers": ' + "[" * 100_000)
+    with pytest.raises(GrounderError, match=r"scene\.json: cannot read it \(RecursionError"):
         scene_markers(tmp_path / "scene.json")
 
 

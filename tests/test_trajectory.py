@@ -259,6 +259,8 @@ FILE_ERRORS = {
     "string_dtype": (_set("qpos", np.full((4, NQ), "1.0")), "'qpos' must hold real numbers"),
     "bool_dtype": (_set("ctrl", np.ones((4, NU), dtype=bool)), "'ctrl' must hold real numbers"),
     "complex_dtype": (_set("qvel", np.ones((4, NV), dtype=complex)), "'qvel' must hold real numbers"),
+    # was a traceback from an integer cast of the step count, deep in the simulation
+    "time_beyond_1e10": (_set("time", [0.0, 0.1, 0.2, 1e300]), "'time[3]' is 1e+300, beyond the 1e+10"),
 }
 
 
@@ -370,6 +372,38 @@ def test_corrupt_or_lying_members_are_one_error_without_allocating(tmp_path: Pat
         patch.setattr(trajectory, "_MAX_ARRAY_BYTES", 64)
         with pytest.raises(TrajectoryError, match=r"big\.npz: 'time' is .* GB uncompressed.*split the recording"):
             load_trajectory(tmp_path / "big.npz")
+
+
+def test_members_numpy_reads_by_another_name_or_cannot_read_are_one_error(tmp_path: Path) -> None:
+    """A member named `time` (no .npy) is what numpy reads for 'time': its header claimed 8 TB and the size check,
+    which looked for `time.npy` only, let numpy try to allocate it. An encrypted member, or one compressed by a
+    method zipfile does not know, was a traceback (RuntimeError, NotImplementedError)."""
+    import io
+    import struct
+
+    arrays = raw_arrays()
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
+    no_suffix = _npz_with_member(tmp_path / "nosuffix.npz", "time", header.getvalue() + b"\0" * 8, arrays)
+    with pytest.raises(TrajectoryError, match=r"nosuffix\.npz: 'time' claims shape \(1000000000000,\).*corrupt"):
+        load_trajectory(no_suffix)
+
+    np.savez(tmp_path / "plain.npz", **arrays)
+    load_trajectory(tmp_path / "plain.npz")  # the control: the archive before its flags are changed
+    for name, (local_at, central_at, patch) in {
+        "encrypted": (6, 8, lambda flags: flags | 1),  # the general-purpose flags' bit 0
+        "method": (8, 10, lambda _: 99),  # the compression method
+    }.items():
+        raw = bytearray((tmp_path / "plain.npz").read_bytes())
+        for signature, at in ((b"PK\x03\x04", local_at), (b"PK\x01\x02", central_at)):
+            start = raw.find(signature)
+            while start >= 0:
+                (value,) = struct.unpack_from("<H", raw, start + at)
+                struct.pack_into("<H", raw, start + at, patch(value))
+                start = raw.find(signature, start + 4)
+        (tmp_path / f"{name}.npz").write_bytes(bytes(raw))
+        with pytest.raises(TrajectoryError, match=rf"{name}\.npz: 'time' cannot be read \(.*\); write it unencrypted"):
+            load_trajectory(tmp_path / f"{name}.npz")
 
 
 @pytest.mark.parametrize(
