@@ -44,7 +44,7 @@ import secrets
 import shutil
 import time
 import traceback
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -110,6 +110,11 @@ def _options_fields() -> set[str]:
     return {f.name for f in fields(CalibrateOptions)}
 
 
+def _keys(keys: Iterable[object]) -> str:
+    """Keys read from a user's file for an error line: sorted by their text (a file may mix ``1`` and ``a``)."""
+    return ", ".join(shown(k) for k in sorted(keys, key=str))
+
+
 def _check_settings(where: str, settings: object) -> dict[str, Any]:
     if settings is None:
         return {}
@@ -117,7 +122,9 @@ def _check_settings(where: str, settings: object) -> dict[str, Any]:
         raise GrounderError(f"{where}: settings must be a mapping of calibrate options, got {type(settings).__name__}")
     unknown = set(settings) - _options_fields()
     if unknown:
-        raise GrounderError(f"{where}: unknown setting(s) {sorted(unknown)}; known: {sorted(_options_fields())}")
+        raise GrounderError(
+            f"{where}: unknown setting(s) {_keys(unknown)}; known: {', '.join(sorted(_options_fields()))}"
+        )
     return dict(settings)
 
 
@@ -130,8 +137,8 @@ def options_from_settings(settings: Mapping[str, Any]) -> Any:
         values["params"] = tuple(p for p in values["params"].split(",") if p)
     try:
         return CalibrateOptions(**values)
-    except TypeError as exc:
-        raise GrounderError(f"invalid settings {dict(settings)}: {exc}") from exc
+    except (TypeError, ValueError) as exc:  # a value of the wrong type that the checks compare or measure
+        raise GrounderError(f"invalid settings {shown(dict(settings), limit=200)}: {exc}") from exc
 
 
 def _slug(text: str) -> str:
@@ -148,7 +155,12 @@ def _list(where: str, value: object, what: str) -> list[Any]:
 def _path(where: str, value: object, root: Path) -> Path:
     if not isinstance(value, str) or not value:
         raise GrounderError(f"{where} must be a path (text), got {type(value).__name__} {shown(value)}")
-    return (root / value).resolve()
+    if "\0" in value:  # no file name can hold one; Path.resolve would raise ValueError
+        raise GrounderError(f"{where} contains a NUL character: {shown(value)}; write the path without it")
+    try:
+        return (root / value).resolve()
+    except (OSError, RuntimeError) as exc:  # a symbolic link loop (RuntimeError before Python 3.13)
+        raise GrounderError(f"{where}: {shown(value)} cannot be resolved ({exc}); fix the path") from exc
 
 
 def _check_format(where: str, fmt: object) -> str | None:
@@ -171,12 +183,46 @@ def _dataset(where: str, entry: object, root: Path) -> tuple[Path, str | None]:
     raise GrounderError(f"{where}: a dataset is a path or {{path: ..., format: ...}}, got {shown(entry)}")
 
 
+class _DuplicateKey(Exception):
+    """A mapping of the jobs file has the same key twice (``line``: 1-based; ``first_line``: the first one)."""
+
+    def __init__(self, key: object, line: int, first_line: int) -> None:
+        super().__init__(key, line, first_line)
+        self.key, self.line, self.first_line = key, line, first_line
+
+
+def _yaml_loader() -> type:
+    """A `yaml.SafeLoader` that refuses a key repeated in one mapping (PyYAML keeps the last one silently).
+
+    Checked on the composed nodes, before merge keys (``<<: *base``) are expanded, so a key that overrides a merged
+    one is not a repetition.
+    """
+    import yaml
+
+    class JobsLoader(yaml.SafeLoader):
+        def compose_mapping_node(self, anchor: Any) -> Any:
+            node = super().compose_mapping_node(anchor)
+            first: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # a list or mapping as key: SafeLoader refuses it (unhashable)
+                key = self.construct_object(key_node)
+                line = key_node.start_mark.line + 1
+                if key in first:
+                    raise _DuplicateKey(key, line, first[key])
+                first[key] = line
+            return node
+
+    return JobsLoader
+
+
 def load_jobs(path: Path) -> list[Job]:
     """Reads and validates a jobs file (module docstring); relative paths are resolved against its folder.
 
     Raises:
-        GrounderError: the file is missing or not YAML text, has unknown keys, fields of the wrong type, unknown
-            settings or trajectory formats, no job, or repeated ids.
+        GrounderError: the file is missing or not YAML text (or nested too deeply), repeats a key in a mapping, has
+            unknown keys, fields of the wrong type, unknown settings or trajectory formats, no job, or repeated ids;
+            or a job's settings (defaults merged in) are refused by `CalibrateOptions`.
     """
     import yaml
 
@@ -184,16 +230,23 @@ def load_jobs(path: Path) -> list[Job]:
     if not path.is_file():
         raise GrounderError(f"{path}: jobs file does not exist")
     try:
-        data = yaml.safe_load(path.read_bytes().decode("utf-8"))
+        data = yaml.load(path.read_bytes().decode("utf-8"), Loader=_yaml_loader())  # a yaml.SafeLoader
     except UnicodeDecodeError as exc:
         raise GrounderError(f"{path}: not a YAML text file (not UTF-8: {exc}); pass a jobs file (YAML)") from exc
+    except _DuplicateKey as exc:
+        raise GrounderError(
+            f"{path}: line {exc.line}: key {shown(exc.key)} appears twice in one mapping (first on line "
+            f"{exc.first_line}); keep one of them"
+        ) from exc
+    except RecursionError as exc:
+        raise GrounderError(f"{path}: not a readable YAML file (nested too deeply); pass a jobs file (YAML)") from exc
     except (OSError, yaml.YAMLError) as exc:
         raise GrounderError(f"{path}: not a readable YAML file ({exc})".replace("\n", " ")) from exc
     if not isinstance(data, Mapping):
         raise GrounderError(f"{path}: expected a mapping with 'jobs' and/or 'matrix', got {type(data).__name__}")
     unknown = set(data) - _TOP_KEYS
     if unknown:
-        raise GrounderError(f"{path}: unknown key(s) {sorted(map(str, unknown))}; expected {sorted(_TOP_KEYS)}")
+        raise GrounderError(f"{path}: unknown key(s) {_keys(unknown)}; expected {', '.join(sorted(_TOP_KEYS))}")
     root = path.parent.resolve()
     defaults = _check_settings(f"{path}: defaults", data.get("defaults"))
     jobs: list[Job] = []
@@ -204,7 +257,7 @@ def load_jobs(path: Path) -> list[Job]:
             raise GrounderError(f"{where}: a job needs 'scene' and 'trajectories'")
         if set(entry) - _JOB_KEYS:
             raise GrounderError(
-                f"{where}: unknown key(s) {sorted(map(str, set(entry) - _JOB_KEYS))}; expected {sorted(_JOB_KEYS)}"
+                f"{where}: unknown key(s) {_keys(set(entry) - _JOB_KEYS)}; expected {', '.join(sorted(_JOB_KEYS))}"
             )
         scene = _path(f"{where}: scene", entry["scene"], root)
         trajectories, fmt = _dataset(where, entry["trajectories"], root)
@@ -218,8 +271,8 @@ def load_jobs(path: Path) -> list[Job]:
             raise GrounderError(f"{path}: matrix needs 'scenes' and 'trajectories' lists (and optional 'settings')")
         if set(matrix) - _MATRIX_KEYS:
             raise GrounderError(
-                f"{path}: matrix: unknown key(s) {sorted(map(str, set(matrix) - _MATRIX_KEYS))}; "
-                f"expected {sorted(_MATRIX_KEYS)}"
+                f"{path}: matrix: unknown key(s) {_keys(set(matrix) - _MATRIX_KEYS)}; "
+                f"expected {', '.join(sorted(_MATRIX_KEYS))}"
             )
         scenes = [
             _path(f"{path}: matrix.scenes[{k}]", s, root)
@@ -240,7 +293,9 @@ def load_jobs(path: Path) -> list[Job]:
                     )
                 name = str(s.get("name", f"s{k}"))
                 if name in named:
-                    raise GrounderError(f"{path}: matrix.settings name {name!r} appears twice; give distinct names")
+                    raise GrounderError(
+                        f"{path}: matrix.settings name {shown(name)} appears twice; give distinct names"
+                    )
                 named[name] = {kk: v for kk, v in s.items() if kk != "name"}
         elif isinstance(raw_settings, Mapping):
             named = {str(k): v for k, v in raw_settings.items()}
@@ -261,13 +316,13 @@ def load_jobs(path: Path) -> list[Job]:
     seen: set[str] = set()
     for job in jobs:
         if not _ID_RE.match(job.id):
-            raise GrounderError(f"{path}: job id {job.id!r} is not a safe file name; use letters, digits, _ . -")
+            raise GrounderError(f"{path}: job id {shown(job.id)} is not a safe file name; use letters, digits, _ . -")
         if job.id in seen:
-            raise GrounderError(f"{path}: job id {job.id!r} appears twice; give the jobs distinct ids")
+            raise GrounderError(f"{path}: job id {shown(job.id)} appears twice; give the jobs distinct ids")
         seen.add(job.id)
-        try:
-            options_from_settings(job.settings)  # fail before any work starts
-        except GrounderError as exc:
+        try:  # fail before any work starts; the merged settings (defaults, then the job's or the matrix's)
+            options_from_settings(job.settings)
+        except (GrounderError, TypeError, ValueError) as exc:
             raise GrounderError(f"{path}: job {job.id}: {exc}") from exc
     return jobs
 
@@ -343,6 +398,8 @@ def _load_result(out_dir: Path, job_id: str) -> tuple[dict[str, Any] | None, str
         data = json.loads(text)
     except ValueError as exc:
         return None, f"not JSON ({exc})"
+    except RecursionError:
+        return None, "not a result record (JSON nested too deeply)"
     problem = _record_problem(data, job_id)
     return (None, problem) if problem else (data, None)
 
@@ -362,7 +419,7 @@ def _is_marker(path: Path) -> bool:
         return False
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # RecursionError: JSON nested too deeply
         return False
     return isinstance(data, dict) and data.get("format") == MARKER_FORMAT
 

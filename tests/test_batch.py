@@ -308,6 +308,45 @@ def test_output_folder_batch_did_not_write_is_refused(tmp_path: Path, traj_dir: 
         pytest.param(
             b"jobs: [{scene: a.xml, trajectories: d, settings: {mode: bogus}}]\n", "mode must be", id="bad-mode"
         ),
+        pytest.param(
+            b"jobs: [{scene: a.xml, trajectories: d, settings: {popsize: 0}}]\n", "job a__d__0: ", id="popsize-0"
+        ),
+        pytest.param(
+            b"defaults: {1: 2, a: 3}\njobs: [{scene: a.xml, trajectories: d}]\n",
+            'defaults: unknown setting(s) 1, "a"; known: ',
+            id="settings-mixed-key-types",
+        ),
+        pytest.param(
+            b"jobs: [{scene: a.xml, trajectories: d, x: 1, 2: 3}]\n",
+            'jobs[0]: unknown key(s) 2, "x"; expected ',
+            id="job-mixed-key-types",
+        ),
+        pytest.param(
+            b'jobs: [{scene: "a\\0b", trajectories: d}]\n',
+            'jobs[0]: scene contains a NUL character: "a\\u0000b"',
+            id="scene-nul",
+        ),
+        pytest.param(
+            b'matrix: {scenes: [a.xml], trajectories: [{path: "d\\0", format: dair-pll-cube}]}\n',
+            "matrix.trajectories[0]: trajectories.path contains a NUL character",
+            id="matrix-data-nul",
+        ),
+        pytest.param(b"jobs: " + b"[" * 5000 + b"]" * 5000 + b"\n", "nested too deeply", id="deep-yaml"),
+        pytest.param(
+            b"jobs: [{scene: a.xml, trajectories: d}]\njobs: [{scene: b.xml, trajectories: d}]\n",
+            'line 2: key "jobs" appears twice in one mapping (first on line 1)',
+            id="duplicate-top-key",
+        ),
+        pytest.param(
+            b"jobs:\n  - scene: a.xml\n    trajectories: d\n    scene: b.xml\n",
+            'line 4: key "scene" appears twice in one mapping (first on line 2)',
+            id="duplicate-job-key",
+        ),
+        pytest.param(
+            b"defaults: {seed: 1}\njobs: [{scene: a.xml, trajectories: d, settings: {seed: 1, 'seed': 2}}]\n",
+            'line 2: key "seed" appears twice',
+            id="duplicate-settings-key",
+        ),
     ],
 )
 def test_jobs_file_of_wrong_types_is_one_line(tmp_path: Path, content: bytes, field: str) -> None:
@@ -338,3 +377,98 @@ def test_corrupt_result_record_is_run_again(tmp_path: Path, traj_dir: Path, capl
     record_file.write_text("{not json")
     assert read_result(out, "job") is None
     assert json.loads((out / "batch.json").read_text())["format"] == "image2sim-batch/1"  # the resumable output
+
+
+def test_merged_settings_are_checked_when_loading(tmp_path: Path) -> None:
+    """Defaults + a job's (or a matrix entry's) settings build `CalibrateOptions` at load: the merge is checked."""
+    import yaml
+
+    jobs_file = tmp_path / "jobs.yaml"
+
+    def write(data: dict) -> Path:
+        jobs_file.write_text(yaml.safe_dump(data))
+        return jobs_file
+
+    # Each piece is valid alone; together they are not (separate_bodies is raw mode only).
+    write({"defaults": {"separate_bodies": True}, "jobs": [{"id": "one", "scene": "a.xml", "trajectories": "d"}]})
+    assert [j.id for j in load_jobs(jobs_file)] == ["one"]
+    write(
+        {
+            "defaults": {"separate_bodies": True},
+            "jobs": [
+                {"id": "one", "scene": "a.xml", "trajectories": "d"},
+                {"id": "two", "scene": "a.xml", "trajectories": "d", "settings": {"mode": "embedding"}},
+            ],
+        }
+    )
+    with pytest.raises(GrounderError, match=r"job two: .*separate_bodies applies to raw mode only"):
+        load_jobs(jobs_file)
+    _one_error_line(_cli(["batch", str(jobs_file), "--inline"]), str(jobs_file), "job two: ", "separate_bodies")
+    assert not (tmp_path / "jobs_results").exists()
+
+    # Defaults invalid alone, valid once each job overrides them: the jobs load, with their ids and count.
+    write(
+        {
+            "defaults": {"separate_bodies": True, "mode": "embedding"},
+            "jobs": [{"id": "one", "scene": "a.xml", "trajectories": "d", "settings": {"mode": "raw"}}],
+            "matrix": {"scenes": ["a.xml"], "trajectories": ["d"], "settings": {"r": {"mode": "raw"}}},
+        }
+    )
+    assert [(j.id, j.settings["mode"]) for j in load_jobs(jobs_file)] == [("one", "raw"), ("a__d__r", "raw")]
+
+    # A matrix entry: the job named is the one whose merged settings fail; a wrong type fails there too.
+    matrix = {"scenes": ["a.xml"], "trajectories": ["d"], "settings": {"ok": {}, "bad": {"popsize": 0}}}
+    write({"defaults": {"popsize": 2}, "matrix": matrix})
+    with pytest.raises(GrounderError, match=r"job a__d__bad: .*popsize"):
+        load_jobs(jobs_file)
+    write({"defaults": {"popsize": 2}, "matrix": {**matrix, "settings": {"ok": {}, "bad": {"popsize": "x"}}}})
+    with pytest.raises(GrounderError, match=r"job a__d__bad: .*popsize"):
+        load_jobs(jobs_file)
+    _one_error_line(_cli(["batch", str(jobs_file), "--inline"]), str(jobs_file), "job a__d__bad: ", "popsize")
+    assert not (tmp_path / "jobs_results").exists()
+
+
+def test_yaml_merge_keys_are_not_duplicate_keys(tmp_path: Path) -> None:
+    """A key that overrides one merged in with ``<<: *anchor`` is YAML's override, not a repeated key."""
+    jobs_file = tmp_path / "jobs.yaml"
+    jobs_file.write_text(
+        "defaults: &base {generations: 1, popsize: 2}\n"
+        "jobs:\n"
+        "  - {id: one, scene: a.xml, trajectories: d, settings: {<<: *base, popsize: 3}}\n"
+        "  - {id: two, scene: a.xml, trajectories: d, settings: *base}\n"
+    )
+    jobs = load_jobs(jobs_file)
+    assert [(j.id, dict(j.settings)) for j in jobs] == [
+        ("one", {"generations": 1, "popsize": 3}),
+        ("two", {"generations": 1, "popsize": 2}),
+    ]
+
+
+def test_deeply_nested_marker_or_record_is_not_trusted(
+    tmp_path: Path, traj_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """JSON nested past the recursion limit in batch.json or results/<id>.json: not a marker, not a record."""
+    deep = "[" * 5000 + "]" * 5000
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml", [{"id": "job", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}]
+    )
+    jobs = load_jobs(jobs_file)
+
+    marked = tmp_path / "marked"
+    marked.mkdir()
+    (marked / "batch.json").write_text(deep)
+    _one_error_line(_cli(["batch", str(jobs_file), "--inline", "-o", str(marked)]), str(marked), "no valid batch.json")
+    with pytest.raises(GrounderError, match=r"no valid batch\.json"):
+        run_batch(jobs, marked, inline=True)
+    assert sorted(p.name for p in marked.iterdir()) == ["batch.json"]
+
+    out = tmp_path / "out"
+    (out / "results").mkdir(parents=True)
+    (out / "batch.json").write_text(json.dumps({"format": "image2sim-batch/1"}))
+    (out / "results" / "job.json").write_text(deep)
+    assert read_result(out, "job") is None
+    with caplog.at_level("WARNING", logger="grounder._batch"):
+        summary = run_batch(jobs, out, inline=True)
+    assert summary.skipped == () and summary.ran == ("job",) and summary.failed == ()
+    assert any("job.json" in r.getMessage() and "nested too deeply" in r.getMessage() for r in caplog.records)
+    assert (read_result(out, "job") or {}).get("status") == "ok"
