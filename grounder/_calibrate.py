@@ -42,11 +42,12 @@ from __future__ import annotations
 import json
 import logging
 import math
+import numbers
 import os
 import secrets
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
@@ -62,9 +63,10 @@ from grounder._calibrate_params import (
     body_size_m,
     resolve_parameters,
 )
+from grounder._report import write_text_atomic
 from grounder._residual import RESIDUAL_FILES
 from grounder._trajectory import Trajectory, _natural_key, validate_against_model
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, shown
 
 log = logging.getLogger(__name__)
 
@@ -128,26 +130,80 @@ class CalibrateOptions:
     robust_scale: float | None = None
 
     def __post_init__(self) -> None:
+        # Options come from the CLI, a batch file's settings and Python callers: each field is checked for type and
+        # range here, as a NaN weight or a float generation count would otherwise run a calibration that means nothing.
+        def bad(name: str, expected: str) -> GrounderError:
+            return GrounderError(f"calibrate option {name} must be {expected}, got {shown(getattr(self, name))}")
+
+        def count(name: str, least: int, *, optional: bool = False) -> None:
+            value = getattr(self, name)
+            if optional and value is None:
+                return
+            if not (_is_integer(value) and value >= least):
+                raise bad(name, f"an integer >= {least}" + (" or null" if optional else ""))
+
+        def number(name: str, expected: str, ok: Callable[[float], bool], *, optional: bool = False) -> None:
+            value = getattr(self, name)
+            if optional and value is None:
+                return
+            if not (_is_finite_number(value) and ok(float(value))):
+                raise bad(name, expected + (" or null" if optional else ""))
+
+        if self.mode not in ("raw", "embedding"):
+            raise bad("mode", "'raw' or 'embedding'")
+        if isinstance(self.params, str) or not isinstance(self.params, Sequence):
+            raise bad("params", "a list of parameter names (NAME or NAME=LOW:HIGH)")
+        if not all(isinstance(p, str) for p in self.params):
+            raise bad("params", "a list of parameter names (text: NAME or NAME=LOW:HIGH)")
+        object.__setattr__(self, "params", tuple(self.params))
+        number("validation_fraction", "a number in [0, 1)", lambda v: 0.0 <= v < 1.0)
+        count("split_seed", 0)
+        count("max_train_trajectories", 1, optional=True)
+        number("rotation_weight", "a finite number >= 0 (percent of size per degree)", lambda v: v >= 0.0)
+        if self.view_point_m is not None:
+            point = self.view_point_m
+            if isinstance(point, str) or not isinstance(point, Sequence | np.ndarray) or len(point) != 3:
+                raise bad("view_point_m", "3 finite numbers (x, y, z in metres) or null")
+            if not all(_is_finite_number(v) for v in point):
+                raise bad("view_point_m", "3 finite numbers (x, y, z in metres) or null")
+            object.__setattr__(self, "view_point_m", tuple(float(v) for v in point))
+        number("along_view_weight", "a number in (0, 1]", lambda v: 0.0 < v <= 1.0)
+        count("popsize", 1)
+        count("generations", 0)
+        count("local_iterations", 0)
+        number("fd_step", "a number in (0, 1) (a step in the unit search box)", lambda v: 0.0 < v < 1.0)
+        number("interval_level", "a number in (0, 1)", lambda v: 0.0 < v < 1.0)
+        count("seed", 0)
+        count("nthread", 1, optional=True)
+        number("max_batch_mb", "a finite number > 0 (MiB)", lambda v: v > 0.0)
+        if not isinstance(self.initial, Mapping) or not all(
+            isinstance(k, str) and _is_finite_number(v) for k, v in self.initial.items()
+        ):
+            raise bad("initial", "a mapping of parameter names to finite numbers")
+        object.__setattr__(self, "initial", {k: float(v) for k, v in self.initial.items()})
+        if not isinstance(self.separate_bodies, bool | np.bool_):
+            raise bad("separate_bodies", "true or false")
+        object.__setattr__(self, "separate_bodies", bool(self.separate_bodies))
+        number("robust_scale", "a finite number > 0", lambda v: v > 0.0, optional=True)
         if self.separate_bodies and self.mode != "raw":
             raise GrounderError("separate_bodies applies to raw mode only")
-        if self.mode not in ("raw", "embedding"):
-            raise GrounderError(f"mode must be 'raw' or 'embedding', got {self.mode!r}")
-        if not 0.0 <= self.validation_fraction < 1.0:
-            raise GrounderError(f"validation_fraction must be in [0, 1), got {self.validation_fraction}")
-        if self.max_train_trajectories is not None and self.max_train_trajectories < 1:
-            raise GrounderError("max_train_trajectories must be >= 1")
-        if self.popsize < 1 or self.generations < 0 or self.local_iterations < 0:
-            raise GrounderError("popsize must be >= 1, generations and local_iterations >= 0")
-        if not 0.0 < self.along_view_weight <= 1.0:
-            raise GrounderError(f"along_view_weight must be in (0, 1], got {self.along_view_weight}")
-        if self.view_point_m is not None and len(self.view_point_m) != 3:
-            raise GrounderError(f"view_point_m must be 3 numbers (x, y, z in metres), got {self.view_point_m}")
-        if not 0.0 < self.interval_level < 1.0:
-            raise GrounderError(f"interval_level must be in (0, 1), got {self.interval_level}")
-        if self.robust_scale is not None and not self.robust_scale > 0.0:
-            raise GrounderError(f"robust_scale must be > 0 or None, got {self.robust_scale}")
         if self.robust_scale is not None and self.mode != "raw":
             raise GrounderError("robust_scale applies to raw mode only (embedding mode weighs its prior by the misfit)")
+
+
+def _is_integer(value: object) -> bool:
+    """An integer (Python's or NumPy's), not a bool and not a float that happens to be whole."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
+
+
+def _is_finite_number(value: object) -> bool:
+    """A real number (Python's or NumPy's), not a bool, finite as a float (a huge integer is not)."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool | np.bool_):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -850,6 +906,9 @@ def calibrate(
         if out.exists() and (not out.is_dir() or any(out.iterdir())):
             raise GrounderError(f"{out}: output folder exists and is not empty; choose a new folder")
     spec, base = load_scene(scene)
+    if out is not None:
+        _check_manifest(scene)
+        sim.check_links_stay_inside(scene, NOT_COPIED)
     _check_trajectories(base, trajs)
     by_name = {t.name: t for t in trajs}
     train_names, val_names = split_names(list(by_name), options.validation_fraction, options.split_seed)
@@ -938,13 +997,41 @@ def calibrate(
 NOT_COPIED = ("scene.xml", "calibration.json", "report.html", "reconstruction", *RESIDUAL_FILES)
 
 
+def _check_manifest(scene: Path) -> None:
+    """A scene folder's ``scene.json``, which the calibrated folder carries with a note (`_note_in_manifest`), must be
+    readable JSON: found before the calibration runs, not after.
+
+    Raises:
+        GrounderError: scene.json cannot be read or parsed (including nesting deeper than the parser allows).
+    """
+    manifest = Path(scene) / "scene.json"
+    if not Path(scene).is_dir() or not manifest.is_file():
+        return
+    try:
+        json.loads(manifest.read_text(encoding="utf-8"))
+    except RecursionError:
+        reason = "nested deeper than a JSON parser allows"
+    except (OSError, ValueError) as exc:
+        reason = " ".join(str(exc).split())
+    else:
+        return
+    raise GrounderError(
+        f"{manifest}: unreadable scene.json ({reason}); restore it (re-run `image2sim ground` for this scene) "
+        "or remove it from the scene folder"
+    )
+
+
 def _note_in_manifest(manifest: Path, result: CalibrationResult) -> None:
-    """Records in a copied ``scene.json`` that scene.xml was calibrated, and with which values."""
+    """Records in a copied ``scene.json`` that scene.xml was calibrated, and with which values.
+
+    The file is replaced (a temporary file renamed over it), never written through: a copied link would otherwise
+    lead the write to the file it points at, outside the output folder.
+    """
     if not manifest.is_file():
         return
     try:
-        data = json.loads(manifest.read_text())
-    except (OSError, ValueError):
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):  # checked by calibrate() first; changed since: copied as it is
         return
     if isinstance(data, dict):
         data["calibration"] = {
@@ -953,7 +1040,7 @@ def _note_in_manifest(manifest: Path, result: CalibrationResult) -> None:
             "parameters": result.values,
             "note": "scene.xml holds the calibrated values; per-object entries above are from before calibration",
         }
-        manifest.write_text(json.dumps(data, indent=1) + "\n")
+        write_text_atomic(manifest, json.dumps(data, indent=1) + "\n")
 
 
 def write_calibrated_scene(

@@ -29,10 +29,16 @@ import mujoco
 import numpy as np
 
 from grounder._calibrate_params import Parameter, resolve_parameter
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, shown
 
 Decoder = Callable[[np.ndarray], Mapping[str, Any]]
 W_BOUND = 3.0
+# What a scene.json may hold for an object's prior. The shipped property model's encoder gives |embedding| ~ 1 and
+# std < 1. Its decoder, along each axis of z (measured): at |z| = 60 sliding friction 0.19-0.88, density 6-24000
+# kg/m^3; at 1000 friction up to 5e4 and density 1e28; overflow by 1e4. The search reaches embedding +- W_BOUND std,
+# so with both bounded it stays within |z| <= 60.
+MAX_ABS_EMBEDDING = 30.0
+MAX_EMBEDDING_STD = 10.0
 _FIELDS = ("mass", "friction.sliding", "friction.torsional", "friction.rolling", "solref.timeconst", "solref.dampratio")
 
 
@@ -54,17 +60,27 @@ def embedding_decoder() -> Decoder:
 
 def scene_manifest(scene: Path) -> dict[str, Any]:
     """The scene's ``scene.json`` (next to ``scene.xml``)."""
-    scene = Path(scene)
-    manifest = scene / "scene.json" if scene.is_dir() else scene.parent / "scene.json"
+    manifest = manifest_path(scene)
     if not manifest.is_file():
         raise GrounderError(f"{scene}: scene has no property embedding (no scene.json next to it); use --mode raw")
+    redo = "re-run `image2sim ground` for this scene, or use --mode raw"
     try:
-        data = json.loads(manifest.read_text())
+        data = json.loads(manifest.read_text(encoding="utf-8"))
+    except RecursionError as exc:
+        raise GrounderError(
+            f"{manifest}: unreadable scene.json (nested deeper than a JSON parser allows); {redo}"
+        ) from exc
     except (OSError, ValueError) as exc:
-        raise GrounderError(f"{manifest}: unreadable scene.json ({exc})") from exc
+        raise GrounderError(f"{manifest}: unreadable scene.json ({' '.join(str(exc).split())}); {redo}") from exc
     if not isinstance(data, dict):
-        raise GrounderError(f"{manifest}: expected a JSON object")
+        raise GrounderError(f"{manifest}: expected a JSON object; {redo}")
     return data
+
+
+def manifest_path(scene: Path) -> Path:
+    """Where the scene's ``scene.json`` is: in a scene folder, or next to a lone MJCF."""
+    scene = Path(scene)
+    return scene / "scene.json" if scene.is_dir() else scene.parent / "scene.json"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -145,12 +161,26 @@ def embedding_space(scene: Path, model: mujoco.MjModel, decoder: Decoder | None 
             std = np.asarray(props.get("embedding_std", np.ones_like(emb)), dtype=np.float64)
             density0 = entry.get("density_kg_m3")
             density0_kg_m3 = float(density0) if density0 else math.nan
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, OverflowError) as exc:
             raise GrounderError(
                 f"scene.json: object {body!r} has a non-numeric embedding or density ({exc}); {redo}"
             ) from exc
-        if emb.ndim != 1 or emb.shape != std.shape or not np.isfinite(emb).all() or not (std > 0).all():
-            raise GrounderError(f"scene.json: object {body!r} has a malformed embedding / embedding_std; {redo}")
+        where = f"{manifest_path(scene)}: object {shown(body)}"
+        if emb.ndim != 1 or emb.shape != std.shape:
+            raise GrounderError(
+                f"{where} has a malformed embedding / embedding_std (shapes {emb.shape} and {std.shape}, expected "
+                f"two lists of the same length); {redo}"
+            )
+        if not (np.isfinite(emb).all() and (np.abs(emb) <= MAX_ABS_EMBEDDING).all()):
+            raise GrounderError(
+                f"{where}: properties.embedding must be finite numbers within +-{MAX_ABS_EMBEDDING:g}, "
+                f"got {shown(props['embedding'])}; {redo}"
+            )
+        if not (np.isfinite(std).all() and (std > 0).all() and (std <= MAX_EMBEDDING_STD).all()):
+            raise GrounderError(
+                f"{where}: properties.embedding_std must be finite numbers in (0, {MAX_EMBEDDING_STD:g}], "
+                f"got {shown(props.get('embedding_std'))}; {redo}"
+            )
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
         if bid <= 0:
             raise GrounderError(f"scene.json names object {body!r} but the MJCF has no such body")

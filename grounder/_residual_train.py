@@ -51,7 +51,15 @@ from grounder._residual_joint import (
     joint_targets,
 )
 from grounder._residual_report import ResidualReport, RolloutErrors, rollout_errors, write_residual_report
-from grounder._simulate import SCENE_XML, copy_scene_files, free_joints, quat_angle_rad, scene_xml_path, step_indices
+from grounder._simulate import (
+    SCENE_XML,
+    check_links_stay_inside,
+    copy_scene_files,
+    free_joints,
+    quat_angle_rad,
+    scene_xml_path,
+    step_indices,
+)
 from grounder._simulator import Simulator
 from grounder._trajectory import Trajectory, validate_against_model
 from grounder.errors import GrounderError
@@ -472,6 +480,7 @@ def train_residual(
     if not trajs:
         raise GrounderError("no trajectories to train on; pass a folder of .npz trajectories")
     scene_xml = scene_xml_path(Path(scene))
+    check_links_stay_inside(Path(scene), (*RESIDUAL_FILES, SCENE_XML))  # before the training, not at the copy
     report = progress or (lambda _s, _d, _t: None)
     prev_threads = torch.get_num_threads()
     torch.set_num_threads(options.num_threads)

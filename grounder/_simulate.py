@@ -51,17 +51,20 @@ def scene_xml_path(scene: Path) -> Path:
     return xml
 
 
+_READ_WHILE_PARSING = ("include", "model", "flexcomp")  # MJCF elements whose file MuJoCo reads as it parses
+
+
 def scene_files(xml: Path) -> list[Path]:
-    """The files an MJCF includes or loads (meshes, textures, height fields, skins), each as a path relative to the
-    MJCF's folder, checked to lie inside that folder.
+    """The files an MJCF includes or loads (included and attached MJCF, meshes, flexcomp meshes, textures, height
+    fields, skins), each as a path relative to the MJCF's folder, checked to lie inside that folder.
 
     A scene is self-contained: it may be someone else's file, and what it names is read, and copied into the
     outputs of `calibrate` and `residual train`. A path that leaves the folder (``../``, an absolute path, or a link
-    that resolves outside) is refused rather than followed. An MJCF that does not parse is left to the loader,
-    which reports MuJoCo's own message.
+    that resolves outside) is refused rather than followed. An MJCF that parses as XML but not as MJCF is left to
+    the loader, which reports MuJoCo's own message.
 
     Raises:
-        GrounderError: a file named by the MJCF lies outside its folder.
+        GrounderError: a file named by the MJCF lies outside its folder, or the MJCF is not well-formed XML.
     """
     import xml.etree.ElementTree as ET  # expat >= 2.4.1 refuses entity expansion attacks; no external entities
 
@@ -76,19 +79,33 @@ def scene_files(xml: Path) -> list[Path]:
             )
         return target.relative_to(folder)
 
+    # MuJoCo reads some files while it parses, before a spec exists to list them: <include>d MJCF, <model> assets
+    # (attached MJCF) and <flexcomp> meshes. Those are found in the XML itself (and in each MJCF it pulls in), so
+    # each is checked before MuJoCo reads it; an XML that does not parse as XML cannot be checked, and is refused
+    # (MuJoCo's own parser accepts some that expat does not, such as an undefined entity).
     files: list[Path] = []
-    pending, seen = [xml.resolve()], set()
-    while pending:  # <include> is resolved by MuJoCo before anything else: check each before it is read
+    pending, seen, meshdir = [xml.resolve()], set(), ""
+    while pending:
         current = pending.pop()
         seen.add(current)
         try:
             tree = ET.parse(current)
-        except (ET.ParseError, OSError):
-            break  # the loader reports it
-        for element in tree.iter("include"):
-            rel = inside(element.get("file", ""))
+        except ET.ParseError as exc:
+            raise GrounderError(
+                f"{current}: not well-formed XML ({exc}); fix it (a scene's files are checked in its XML before "
+                "MuJoCo reads them)"
+            ) from exc
+        except OSError:
+            continue  # a missing include: MuJoCo's loader names it
+        for compiler in tree.iter("compiler"):
+            meshdir = compiler.get("meshdir", compiler.get("assetdir", meshdir))
+        for element in tree.iter():
+            name = element.get("file", "")
+            if not name or element.tag not in _READ_WHILE_PARSING:
+                continue
+            rel = inside(name, meshdir if element.tag == "flexcomp" else "")
             files.append(rel)
-            if (folder / rel) not in seen and (folder / rel).is_file():
+            if element.tag != "flexcomp" and (folder / rel) not in seen and (folder / rel).is_file():
                 pending.append(folder / rel)
     try:
         spec = mujoco.MjSpec.from_file(str(xml))
@@ -107,11 +124,36 @@ def scene_files(xml: Path) -> list[Path]:
     return files
 
 
+def check_links_stay_inside(scene: Path, skip: Sequence[str] = ()) -> None:
+    """Refuses a link in a scene folder whose copy (`copy_scene_files`) would lead out of the output folder: an
+    absolute link, or a relative one that resolves outside the scene folder. A later write to its name in the output
+    would land in the link's target, a file of the user's. Commands call it before their work, and the copy again.
+
+    Raises:
+        GrounderError: naming the link and what to do.
+    """
+    if not scene.is_dir():
+        return
+    top = scene.resolve()
+    for folder, dirs, names in os.walk(scene):  # links to folders are listed in dirs, and not followed
+        at_top = Path(folder).resolve() == top
+        for name in [*dirs, *names]:
+            path = Path(folder) / name
+            if (at_top and name in skip) or not path.is_symlink():
+                continue
+            if os.path.isabs(os.readlink(path)) or not path.resolve().is_relative_to(top):
+                raise GrounderError(
+                    f"{path}: a link to {os.readlink(path)}, which its copy would follow out of the output folder; "
+                    "replace it with the file it points to, or a link relative to the scene folder"
+                )
+
+
 def copy_scene_files(scene: Path, stage: Path, *, skip: Sequence[str] = ()) -> None:
     """Copies what a scene's MJCF needs into ``stage``, at the same relative paths: a scene folder's files (not
     the top-level entries named in ``skip``, not ``stage`` itself when it lies inside the folder; links are copied
-    as links), or a lone MJCF's included and loaded files (`scene_files`) and nothing else of its folder. The MJCF
-    itself is left to the caller, which writes its own ``scene.xml``.
+    as links; one that would lead out of the copy is refused), or a lone MJCF's included and loaded files
+    (`scene_files`) and nothing else of its folder. The MJCF itself is left to the caller, which writes its own
+    ``scene.xml``.
     """
     stage_resolved, top = stage.resolve(), scene.resolve()
     if scene.is_dir():
@@ -120,6 +162,7 @@ def copy_scene_files(scene: Path, stage: Path, *, skip: Sequence[str] = ()) -> N
             at_top = Path(folder).resolve() == top
             return [n for n in names if (at_top and n in skip) or (Path(folder) / n).resolve() == stage_resolved]
 
+        check_links_stay_inside(scene, skip)
         shutil.copytree(scene, stage, symlinks=True, ignore=ignore, dirs_exist_ok=True)
         return
     for rel in scene_files(scene):

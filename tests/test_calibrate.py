@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import mujoco
 import numpy as np
@@ -228,10 +229,40 @@ def test_embedding_mode_needs_an_embedding(synthetic) -> None:
         ([1, 2], "'objects' is not a mapping"),
         ({"cube": {"properties": {"embedding": ["a", "b"]}}}, "non-numeric embedding"),
         ({"cube": {"density_kg_m3": "heavy", "properties": {"embedding": [0.0, 0.0]}}}, "non-numeric embedding"),
-        ({"cube": {"properties": {"embedding": [0.0, float("nan")]}}}, "malformed embedding"),
+        ({"cube": {"properties": {"embedding": [0.0, float("nan")]}}}, r"properties\.embedding must be finite"),
         ({"cube": {"properties": {"embedding": [0.0, 0.0, 0.0]}}}, "does not fit this property model"),
+        (
+            {"cube": {"properties": {"embedding": [0.0, 0.0], "embedding_std": [0.5]}}},
+            "malformed embedding / embedding_std",
+        ),
+        # Each of these decoded to NaN or overflowed in the search (NumPy warnings, then "z.shape=(16,) but expected
+        # (16,) finite numbers", naming neither the file nor the field).
+        (
+            {"cube": {"properties": {"embedding": [0.0, 0.0], "embedding_std": [float("inf"), 0.2]}}},
+            r"properties\.embedding_std must be finite numbers in \(0, 10\], got \[Infinity, 0\.2\]",
+        ),
+        (
+            {"cube": {"properties": {"embedding": [1e300, 0.0], "embedding_std": [0.2, 0.2]}}},
+            r"properties\.embedding must be finite numbers within \+-30, got \[1e\+300, 0\.0\]",
+        ),
+        (
+            {"cube": {"properties": {"embedding": [0.0, 0.0], "embedding_std": [1e300, 0.2]}}},
+            r"properties\.embedding_std must be finite numbers in \(0, 10\]",
+        ),
+        ({"cube": {"properties": {"embedding": [10**400, 0.0]}}}, "non-numeric embedding"),
     ],
-    ids=["objects-list", "text-embedding", "text-density", "nan", "wrong-size"],
+    ids=[
+        "objects-list",
+        "text-embedding",
+        "text-density",
+        "nan",
+        "wrong-size",
+        "std-shape",
+        "infinite-std",
+        "huge-embedding",
+        "huge-std",
+        "integer-overflow",
+    ],
 )
 def test_embedding_mode_malformed_scene_json_is_one_error(objects: object, needle: str, tmp_path: Path) -> None:
     """scene.json comes with the scene: each of these was a traceback (TypeError, AttributeError, ValueError) or an
@@ -582,8 +613,9 @@ def test_lone_mjcf_output_carries_what_it_loads_and_nothing_else(synthetic, tmp_
     folder = tmp_path / "scene"
     _write_cube_obj(folder / "assets" / "cube.obj")
     (folder / "scene.xml").write_text(_mesh_cube_xml("assets/cube.obj"))
-    (tmp_path / "secret.txt").write_text("outside")
-    (folder / "notes.txt").symlink_to(tmp_path / "secret.txt")
+    (folder / "docs").mkdir()
+    (folder / "docs" / "notes.txt").write_text("inside")
+    (folder / "notes.txt").symlink_to(Path("docs") / "notes.txt")  # a link out of the folder is refused
     calibrate(folder, trajs[:2], options=options, out=folder / "calibrated")
     out = folder / "calibrated"
     assert (out / "notes.txt").is_symlink() and (out / "assets" / "cube.obj").is_file()
@@ -656,3 +688,193 @@ def test_cli_overwrite_of_a_folder_inside_the_scene_is_refused(
     (scene / "calibrated").mkdir()
     (scene / "calibrated" / "calibration.json").write_text("{}")
     check_output_dir(scene / "calibrated", overwrite=True, inputs=(scene,))
+
+
+# ----------------------------------------------------------------------------------------------- options, scene.json
+
+
+@pytest.mark.parametrize(
+    ("settings", "needle"),
+    [
+        # A NaN weight made every loss NaN, hence 1e6, hence every candidate equal: "success" at the nominal values.
+        (
+            {"rotation_weight": float("nan")},
+            "rotation_weight must be a finite number >= 0 (percent of size per degree), got NaN",
+        ),
+        ({"rotation_weight": float("inf")}, "rotation_weight must be a finite number >= 0"),
+        ({"rotation_weight": -1.0}, "rotation_weight must be a finite number >= 0"),
+        (
+            {"rotation_weight": "1"},
+            'rotation_weight must be a finite number >= 0 (percent of size per degree), got "1"',
+        ),
+        ({"generations": 2.5}, "generations must be an integer >= 0, got 2.5"),
+        ({"generations": True}, "generations must be an integer >= 0, got true"),
+        ({"popsize": 0}, "popsize must be an integer >= 1, got 0"),
+        ({"local_iterations": "3"}, "local_iterations must be an integer >= 0"),
+        ({"seed": -1}, "seed must be an integer >= 0"),
+        ({"split_seed": 1.0}, "split_seed must be an integer >= 0"),
+        ({"nthread": 0}, "nthread must be an integer >= 1 or null"),
+        ({"max_train_trajectories": 0}, "max_train_trajectories must be an integer >= 1 or null"),
+        ({"params": "cube.friction.sliding"}, "params must be a list of parameter names"),
+        ({"params": ("cube.friction.sliding", 3)}, "params must be a list of parameter names"),
+        ({"validation_fraction": float("nan")}, "validation_fraction must be a number in [0, 1), got NaN"),
+        ({"along_view_weight": float("nan")}, "along_view_weight must be a number in (0, 1]"),
+        ({"view_point_m": (0.0, float("nan"), 1.0)}, "view_point_m must be 3 finite numbers"),
+        ({"view_point_m": (0.0, 1.0)}, "view_point_m must be 3 finite numbers"),
+        ({"fd_step": 0.0}, "fd_step must be a number in (0, 1)"),
+        ({"interval_level": float("nan")}, "interval_level must be a number in (0, 1)"),
+        ({"max_batch_mb": float("nan")}, "max_batch_mb must be a finite number > 0 (MiB), got NaN"),
+        ({"max_batch_mb": float("inf")}, "max_batch_mb must be a finite number > 0"),
+        ({"robust_scale": float("inf")}, "robust_scale must be a finite number > 0 or null, got Infinity"),
+        ({"initial": {"cube.friction.sliding": float("nan")}}, "initial must be a mapping of parameter names"),
+        ({"separate_bodies": "no"}, 'separate_bodies must be true or false, got "no"'),
+        ({"mode": "fast"}, "mode must be 'raw' or 'embedding', got \"fast\""),
+    ],
+    ids=lambda v: "-".join(v) if isinstance(v, dict) else "",
+)
+def test_options_are_checked(settings: dict, needle: str) -> None:
+    """Each field of `CalibrateOptions` is checked for type and range: one line naming it, the value and what is
+    expected, whether it came from Python or a batch file's settings."""
+    from grounder._batch import options_from_settings
+
+    with pytest.raises(GrounderError) as caught:
+        CalibrateOptions(**settings)
+    assert str(caught.value).startswith(f"calibrate option {needle}"), str(caught.value)
+    assert "\n" not in str(caught.value)
+    if not isinstance(settings.get("params"), str):  # a batch file's text params are comma-separated names
+        with pytest.raises(GrounderError, match="calibrate option"):
+            options_from_settings({k: list(v) if isinstance(v, tuple) else v for k, v in settings.items()})
+
+
+def test_valid_options_are_kept() -> None:
+    """NumPy numbers and lists are accepted and stored as plain Python values (calibration.json writes them)."""
+    default = CalibrateOptions()
+    assert (default.rotation_weight, default.generations, default.params, default.nthread) == (0.0, 20, (), None)
+    options = CalibrateOptions(
+        params=["cube.friction.sliding"],  # type: ignore[arg-type]
+        generations=np.int64(3),  # type: ignore[arg-type]
+        rotation_weight=np.float64(0.5),
+        view_point_m=np.array([0.0, -1.0, 0.5]),  # type: ignore[arg-type]
+        initial={"cube.friction.sliding": np.float64(0.3)},
+        robust_scale=1,
+        nthread=2,
+    )
+    assert options.params == ("cube.friction.sliding",) and options.generations == 3
+    assert options.view_point_m == (0.0, -1.0, 0.5) and type(options.view_point_m[0]) is float
+    assert options.initial == {"cube.friction.sliding": 0.3}
+    json.dumps({k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items() if k != "generations"})
+
+
+def test_cli_nan_rotation_weight_is_refused(traj_dir: Path, tmp_path: Path) -> None:
+    """`--rotation-weight nan` ran a calibration that fitted nothing and exited 0."""
+    result = _cli(
+        "calibrate", str(CUBE_XML), str(traj_dir), "-o", str(tmp_path / "o"),
+        "--params", "cube.friction.sliding", "--rotation-weight", "nan",
+        "--generations", "0", "--local-iterations", "0",
+    )  # fmt: skip
+    _assert_exit_2(result, "calibrate option rotation_weight must be a finite number >= 0")
+    assert "got NaN" in result.output
+    assert not (tmp_path / "o").exists()
+
+
+def test_note_replaces_a_linked_scene_json(tmp_path: Path) -> None:
+    """The calibration note replaces the output's scene.json; it used to be written through a copied link, into the
+    file the link points at (the user's own, outside the output folder)."""
+    from grounder._calibrate import _note_in_manifest
+
+    outside = tmp_path / "victim.json"
+    outside.write_text('{"objects": {}, "note": "the user\'s own file"}')
+    before = outside.read_bytes()
+    stage = tmp_path / "out"
+    stage.mkdir()
+    (stage / "scene.json").symlink_to(outside)
+    result = SimpleNamespace(mode="raw", values={"cube.friction.sliding": 0.4})
+    _note_in_manifest(stage / "scene.json", result)  # type: ignore[arg-type]
+    assert outside.read_bytes() == before
+    assert not (stage / "scene.json").is_symlink() and (stage / "scene.json").is_file()
+    manifest = json.loads((stage / "scene.json").read_text())
+    assert manifest["note"] == "the user's own file"
+    assert manifest["calibration"]["parameters"] == {"cube.friction.sliding": 0.4}
+    assert sorted(p.name for p in stage.iterdir()) == ["scene.json"]  # no temporary file left
+
+
+def test_calibrate_replaces_a_linked_scene_json(synthetic, tmp_path: Path) -> None:
+    """A scene folder whose scene.json is a link (inside the folder): the output's scene.json is a file of its own
+    with the note; the link's target, in the scene and in its copy, is left as it was."""
+    trajs, _ = synthetic
+    scene = tmp_path / "scene"
+    (scene / "meta").mkdir(parents=True)
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    (scene / "meta" / "manifest.json").write_text('{"objects": {}}\n')
+    (scene / "scene.json").symlink_to(Path("meta") / "manifest.json")
+    before = (scene / "meta" / "manifest.json").read_bytes()
+    options = CalibrateOptions(params=("cube.friction.sliding",), generations=0, local_iterations=0)
+    out = tmp_path / "out"
+    calibrate(scene, trajs[:2], options=options, out=out)
+    assert (scene / "meta" / "manifest.json").read_bytes() == before
+    assert (out / "meta" / "manifest.json").read_bytes() == before
+    assert (out / "scene.json").is_file() and not (out / "scene.json").is_symlink()
+    assert set(json.loads((out / "scene.json").read_text())["calibration"]["parameters"]) == {"cube.friction.sliding"}
+
+
+def test_scene_json_linking_out_of_the_folder_is_refused_before_the_work(synthetic, tmp_path: Path) -> None:
+    """A scene.json that links to a file of the user's outside the scene folder: calibrate copied the link and then
+    wrote its note through it into that file. Now the link is refused before the first step; the file is untouched."""
+    trajs, _ = synthetic
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    (tmp_path / "users.json").write_text('{"objects": {}}\n')
+    (scene / "scene.json").symlink_to(tmp_path / "users.json")
+    steps: list[str] = []
+    options = CalibrateOptions(params=("cube.friction.sliding",), generations=0, local_iterations=0)
+    with pytest.raises(GrounderError, match=r"scene\.json: a link to .*users\.json, which its copy would follow out"):
+        calibrate(scene, trajs[:2], options=options, out=tmp_path / "out", progress=lambda s, _d, _t: steps.append(s))
+    assert steps == [] and not (tmp_path / "out").exists()
+    assert (tmp_path / "users.json").read_text() == '{"objects": {}}\n'
+
+
+def test_deeply_nested_scene_json_is_refused_before_the_work(synthetic, tmp_path: Path) -> None:
+    """A scene.json nested deeper than Python's JSON parser allows raised RecursionError (a traceback), and only
+    once the whole calibration had run; now one error before the first step, in raw and embedding mode."""
+    from grounder._calibrate_embedding import embedding_space
+
+    trajs, _ = synthetic
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    (scene / "scene.json").write_text("[" * 100_000)
+    steps: list[str] = []
+    options = CalibrateOptions(params=("cube.friction.sliding",), generations=0, local_iterations=0)
+    with pytest.raises(GrounderError, match=r"scene\.json: unreadable scene\.json \(nested deeper"):
+        calibrate(scene, trajs[:2], options=options, out=tmp_path / "out", progress=lambda s, _d, _t: steps.append(s))
+    assert steps == [] and not (tmp_path / "out").exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+    with pytest.raises(GrounderError, match=r"nested deeper.*re-run `image2sim ground`"):
+        embedding_space(scene, mujoco.MjModel.from_xml_path(str(CUBE_XML)))
+    (scene / "scene.json").write_text("{not json")
+    with pytest.raises(GrounderError, match=r"scene\.json: unreadable scene\.json \(Expecting"):
+        calibrate(scene, trajs[:2], options=options, out=tmp_path / "out")
+    calibrate(scene, trajs[:2], options=options)  # no output folder: scene.json is not read
+
+
+def test_cli_embedding_mode_infinite_std_is_one_line(traj_dir: Path, tmp_path: Path) -> None:
+    """An infinite embedding_std printed NumPy warnings, then an error naming neither scene.json nor the field."""
+    import warnings
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    entry = {
+        "density_kg_m3": 500.0,
+        "properties": {"embedding": [0.1] * 16, "embedding_std": [float("inf")] + [0.2] * 15},
+    }
+    (scene / "scene.json").write_text(json.dumps({"objects": {"cube": entry}}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        result = _cli(
+            "calibrate", str(scene), str(traj_dir), "-o", str(tmp_path / "o"), "--mode", "embedding",
+            "--generations", "1", "--popsize", "1", "--local-iterations", "0",
+        )  # fmt: skip
+    _assert_exit_2(result, 'scene.json: object "cube": properties.embedding_std must be finite numbers in (0, 10]')
+    assert "re-run `image2sim ground`" in result.output and "Warning" not in result.output

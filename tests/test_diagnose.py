@@ -522,10 +522,10 @@ def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], t
         few = [Trajectory(time_s=t, qpos=np.zeros((11, 1)), qvel=np.zeros((11, 1)), name=f"t{i}") for i in range(3)]
         save_trajectories(few, tmp_path / "t")
         trajs, needle = tmp_path / "t", "at least 2"
-    elif problem == "scene":  # a scene folder whose MJCF MuJoCo rejects: its multi-line parse error on one line
+    elif problem == "scene":  # a scene folder whose MJCF MuJoCo rejects: its multi-line error on one line
         (tmp_path / "s").mkdir()
-        (tmp_path / "s" / "scene.xml").write_text("<mujoco")
-        scene, needle = tmp_path / "s", "scene.xml: MuJoCo cannot load it (XML parse error"
+        (tmp_path / "s" / "scene.xml").write_text('<mujoco><worldbody><geom type="bogus"/></worldbody></mujoco>')
+        scene, needle = tmp_path / "s", "scene.xml: MuJoCo cannot load it (XML Error: invalid keyword: 'bogus'"
     elif problem == "horizon":  # shorter than a sample: was a diagnosis of noise ('70% less' from velocity_lag)
         extra, needle = ["--horizon", "1e-9"], "shorter than the recordings' sample interval"
     else:

@@ -469,9 +469,9 @@ def test_cli_train(nominal_scene: Path, tmp_path: Path) -> None:
     assert "scene.xml" in result.output
     broken = tmp_path / "broken"
     broken.mkdir()
-    (broken / "scene.xml").write_text("<mujoco")  # MuJoCo's parse error spans lines; the user gets one
+    (broken / "scene.xml").write_text("<mujoco")  # not even XML: one line naming the file
     result = runner.invoke(app, ["residual", "train", str(broken), str(traj_dir), "-o", str(tmp_path / "y")])
-    assert result.exit_code == 2 and "MuJoCo cannot load it (XML parse error" in result.output
+    assert result.exit_code == 2 and "scene.xml: not well-formed XML (" in result.output
     assert len(result.output.strip().splitlines()) == 1 and not (tmp_path / "y").exists()
 
 

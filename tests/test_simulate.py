@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import mujoco
 import numpy as np
 import pytest
@@ -96,3 +98,67 @@ def test_a_time_column_too_long_to_simulate_is_refused_before_allocating() -> No
         GrounderError, match=r"trajectory 'toss' spans 1e\+09 s, 2000000000000 model steps.*time column"
     ):
         simulate(model, [traj])
+
+
+_CHILD = '<mujoco><worldbody><body name="b"><freejoint/><geom size=".05"/></body></worldbody></mujoco>'
+
+
+def _escaping_scene(tmp_path: Path, how: str, rel: str) -> Path:
+    """A scene.xml in tmp_path/scene that reads child.xml or box.obj from the folder ``rel`` (relative to it)."""
+    import trimesh
+
+    for folder in (tmp_path / "outside", tmp_path / "scene"):
+        folder.mkdir(exist_ok=True)
+        (folder / "child.xml").write_text(_CHILD)
+        trimesh.creation.box((0.1, 0.1, 0.1)).export(folder / "box.obj")
+    body = {
+        "undefined entity": f'<include file="{rel}/child.xml"/>',
+        "attached model": f'<asset><model name="child" file="{rel}/child.xml"/></asset>'
+        '<worldbody><attach model="child" prefix="c_"/></worldbody>',
+        "flexcomp mesh": f'<worldbody><flexcomp name="f" type="mesh" file="{rel}/box.obj" dim="2">'
+        '<edge equality="true"/></flexcomp></worldbody>',
+    }[how]
+    xml = tmp_path / "scene" / "scene.xml"
+    xml.write_text(f'<mujoco model="{"a&undefined;b" if how == "undefined entity" else "a"}">{body}</mujoco>')
+    return xml
+
+
+@pytest.mark.parametrize("how", ["undefined entity", "attached model", "flexcomp mesh"])
+def test_scene_files_refuses_what_mujoco_would_read_outside_the_folder(tmp_path: Path, how: str) -> None:
+    """Three ways an MJCF made MuJoCo read a file outside its folder past the check: an XML that expat cannot parse
+    but MuJoCo's parser accepts (an undefined entity) skipped the check of its <include>s; a <model> asset (attached
+    with <attach>) and a <flexcomp> mesh are read as MuJoCo parses, and were not checked at all."""
+    from grounder._simulate import scene_files
+
+    xml = _escaping_scene(tmp_path, how, "../outside")
+    mujoco.MjSpec.from_file(str(xml)).compile()  # MuJoCo reads the outside file without a word
+    with pytest.raises(GrounderError, match="not well-formed XML" if how == "undefined entity" else "outside the"):
+        scene_files(xml)
+    if how != "undefined entity":  # the control: the same MJCF reading the copy inside its folder is accepted
+        xml = _escaping_scene(tmp_path, how, ".")
+        assert scene_files(xml) == [Path("box.obj" if how == "flexcomp mesh" else "child.xml")]
+
+
+def test_scene_folder_links_that_lead_out_of_the_copy_are_refused(tmp_path: Path) -> None:
+    """A scene folder is copied whole into calibrate's output, links as links: a scene.json linking to a file of the
+    user's (by an absolute path, or a relative one out of the folder) was copied as that link, and calibrate's note
+    then written through it into the user's file. A relative link within the folder stays a link in the copy."""
+    import os
+
+    from grounder._simulate import copy_scene_files
+
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(FALLING_CUBE)
+    (scene / "real.json").write_text("{}")
+    (scene / "scene.json").symlink_to("real.json")  # the control: relative, inside
+    copy_scene_files(scene, tmp_path / "ok")
+    assert os.readlink(tmp_path / "ok" / "scene.json") == "real.json"
+    (tmp_path / "users.json").write_text("{}")
+    for target in (tmp_path / "users.json", Path("../users.json"), scene / "real.json"):
+        (scene / "scene.json").unlink()
+        (scene / "scene.json").symlink_to(target)
+        with pytest.raises(GrounderError, match=r"scene\.json: a link to .* out of the output folder"):
+            copy_scene_files(scene, tmp_path / "out")
+        assert not (tmp_path / "out").exists()
+    copy_scene_files(scene, tmp_path / "skipped", skip=("scene.json",))  # not copied: nothing to refuse
