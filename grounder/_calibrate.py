@@ -66,7 +66,7 @@ from grounder._calibrate_params import (
 from grounder._report import write_text_atomic
 from grounder._residual import RESIDUAL_FILES
 from grounder._trajectory import Trajectory, _natural_key, validate_against_model
-from grounder.errors import GrounderError, shown
+from grounder.errors import GrounderError, finite_number, shown
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +146,7 @@ class CalibrateOptions:
             value = getattr(self, name)
             if optional and value is None:
                 return
-            if not (_is_finite_number(value) and ok(float(value))):
+            if not (finite_number(value) and ok(float(value))):
                 raise bad(name, expected + (" or null" if optional else ""))
 
         if self.mode not in ("raw", "embedding"):
@@ -164,7 +164,7 @@ class CalibrateOptions:
             point = self.view_point_m
             if isinstance(point, str) or not isinstance(point, Sequence | np.ndarray) or len(point) != 3:
                 raise bad("view_point_m", "3 finite numbers (x, y, z in metres) or null")
-            if not all(_is_finite_number(v) for v in point):
+            if not all(finite_number(v) for v in point):
                 raise bad("view_point_m", "3 finite numbers (x, y, z in metres) or null")
             object.__setattr__(self, "view_point_m", tuple(float(v) for v in point))
         number("along_view_weight", "a number in (0, 1]", lambda v: 0.0 < v <= 1.0)
@@ -177,7 +177,7 @@ class CalibrateOptions:
         count("nthread", 1, optional=True)
         number("max_batch_mb", "a finite number > 0 (MiB)", lambda v: v > 0.0)
         if not isinstance(self.initial, Mapping) or not all(
-            isinstance(k, str) and _is_finite_number(v) for k, v in self.initial.items()
+            isinstance(k, str) and finite_number(v) for k, v in self.initial.items()
         ):
             raise bad("initial", "a mapping of parameter names to finite numbers")
         object.__setattr__(self, "initial", {k: float(v) for k, v in self.initial.items()})
@@ -194,16 +194,6 @@ class CalibrateOptions:
 def _is_integer(value: object) -> bool:
     """An integer (Python's or NumPy's), not a bool and not a float that happens to be whole."""
     return isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
-
-
-def _is_finite_number(value: object) -> bool:
-    """A real number (Python's or NumPy's), not a bool, finite as a float (a huge integer is not)."""
-    if not isinstance(value, numbers.Real) or isinstance(value, bool | np.bool_):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:
-        return False
 
 
 @dataclass(frozen=True, kw_only=True)

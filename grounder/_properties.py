@@ -41,7 +41,7 @@ from grounder._properties_data import (
     shape_features,
 )
 from grounder._restitution import contact_solref
-from grounder.errors import GrounderError, shown
+from grounder.errors import GrounderError, finite_number, shown
 
 if TYPE_CHECKING:
     import mujoco
@@ -355,16 +355,6 @@ def assign_properties(
 _MAX_ABS_TRANSFORMED_MEAN = 30.0
 _MAX_TRANSFORMED_DEVIATION = 10.0
 _NUM_TRANSFORMED = 6
-
-
-def finite_number(value: Any) -> bool:
-    """A JSON number (not a bool) that is finite as a float (a huge integer is not)."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        return False
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:
-        return False
 
 
 def finite_numbers(value: Any, length: int) -> bool:

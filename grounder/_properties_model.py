@@ -372,7 +372,8 @@ def _checked_meta(meta: Any, meta_path: Path, remedy: str) -> dict[str, Any]:
     """`property_net.json` checked for every field that loading and prediction read (before any of it sizes
     memory): version, embedding size, target and material names, normalisation (finite; stds and spread scales
     positive) and baseline (finite)."""
-    from grounder._properties import PropertyModelError, finite_number, finite_numbers
+    from grounder._properties import PropertyModelError, finite_numbers
+    from grounder.errors import finite_number
 
     def bad(field: str, expected: str, value: Any) -> PropertyModelError:
         got = "a JSON object" if isinstance(value, dict) else json.dumps(value)

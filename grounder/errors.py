@@ -1,6 +1,8 @@
 """Errors raised by the user-facing pipeline (trajectories, calibration, diagnosis, CLI)."""
 
 import json
+import math
+import numbers
 
 
 class GrounderError(Exception):
@@ -19,3 +21,14 @@ def shown(value: object, limit: int = 60) -> str:
     except (TypeError, ValueError, RecursionError):
         text = repr(value)
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def finite_number(value: object) -> bool:
+    """A real number from a user's file or call (Python's or NumPy's; not a bool) that is finite as a float (a
+    huge integer is not)."""
+    if not isinstance(value, numbers.Real) or isinstance(value, bool):  # NumPy's bool_ is not a numbers.Real
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
