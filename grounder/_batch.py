@@ -1,6 +1,6 @@
 """Batch calibration jobs (scenes x datasets x settings) on Ray, resumable.
 
-A jobs file (YAML; relative paths are relative to the file)::
+A jobs file (YAML; relative paths are relative to the file, ``~`` is the home folder)::
 
     defaults:                      # optional: CalibrateOptions fields applied to every job
       generations: 10
@@ -157,9 +157,9 @@ def _path(where: str, value: object, root: Path) -> Path:
         raise GrounderError(f"{where} must be a path (text), got {type(value).__name__} {shown(value)}")
     if "\0" in value:  # no file name can hold one; Path.resolve would raise ValueError
         raise GrounderError(f"{where} contains a NUL character: {shown(value)}; write the path without it")
-    try:
-        return (root / value).resolve()
-    except (OSError, RuntimeError) as exc:  # a symbolic link loop (RuntimeError before Python 3.13)
+    try:  # ~ and ~user as a shell would expand them: a YAML file is not passed through one
+        return (root / Path(value).expanduser()).resolve()
+    except (OSError, RuntimeError) as exc:  # a symbolic link loop (RuntimeError before Python 3.13); unknown ~user
         raise GrounderError(f"{where}: {shown(value)} cannot be resolved ({exc}); fix the path") from exc
 
 

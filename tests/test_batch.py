@@ -44,6 +44,7 @@ def traj_dir(tmp_path_factory) -> Path:
 def _write_jobs(path: Path, jobs: list[dict], **extra: object) -> Path:
     import yaml
 
+    path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(yaml.safe_dump({"defaults": TINY, "jobs": jobs, **extra}))
     return path
 
@@ -69,6 +70,19 @@ def test_jobs_file(tmp_path: Path, traj_dir: Path) -> None:
     bad.write_text("jobs: []\n")
     with pytest.raises(GrounderError, match="no job"):
         load_jobs(bad)
+
+
+def test_home_folder_in_jobs_file_paths(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`scene: ~/scenes/cube.xml` was read as a folder named `~` beside the jobs file: a YAML file is not expanded by
+    a shell, so the loader expands ~ as one would. Relative paths stay relative to the file."""
+    home = tmp_path / "home"
+    monkeypatch.setenv("HOME", str(home))
+    jobs_file = _write_jobs(
+        tmp_path / "work" / "jobs.yaml", [{"id": "j", "scene": "~/scenes/cube.xml", "trajectories": "data"}]
+    )
+    (job,) = load_jobs(jobs_file)
+    assert job.scene == home / "scenes" / "cube.xml"
+    assert job.trajectories == tmp_path / "work" / "data"
 
 
 def test_failing_job_is_recorded_and_others_finish(tmp_path: Path, traj_dir: Path) -> None:
