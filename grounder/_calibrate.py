@@ -70,6 +70,8 @@ from grounder.errors import GrounderError, finite_number, shown
 
 log = logging.getLogger(__name__)
 
+MAX_SEED = 2**32 - 1  # numpy's and scipy's seeds
+
 Progress = Callable[[str, int, int], None]
 
 
@@ -135,12 +137,13 @@ class CalibrateOptions:
         def bad(name: str, expected: str) -> GrounderError:
             return GrounderError(f"calibrate option {name} must be {expected}, got {shown(getattr(self, name))}")
 
-        def count(name: str, least: int, *, optional: bool = False) -> None:
+        def count(name: str, least: int, most: int | None = None, *, optional: bool = False) -> None:
             value = getattr(self, name)
             if optional and value is None:
                 return
-            if not (_is_integer(value) and value >= least):
-                raise bad(name, f"an integer >= {least}" + (" or null" if optional else ""))
+            if not (_is_integer(value) and value >= least and (most is None or value <= most)):
+                rule = f"an integer >= {least}" if most is None else f"an integer in [{least}, {most}]"
+                raise bad(name, rule + (" or null" if optional else ""))
 
         def number(name: str, expected: str, ok: Callable[[float], bool], *, optional: bool = False) -> None:
             value = getattr(self, name)
@@ -157,9 +160,9 @@ class CalibrateOptions:
             raise bad("params", "a list of parameter names (text: NAME or NAME=LOW:HIGH)")
         object.__setattr__(self, "params", tuple(self.params))
         number("validation_fraction", "a number in [0, 1)", lambda v: 0.0 <= v < 1.0)
-        count("split_seed", 0)
+        count("split_seed", 0, MAX_SEED)
         count("max_train_trajectories", 1, optional=True)
-        number("rotation_weight", "a finite number >= 0 (percent of size per degree)", lambda v: v >= 0.0)
+        number("rotation_weight", "a number in [0, 100] (percent of size per degree)", lambda v: 0.0 <= v <= 100.0)
         if self.view_point_m is not None:
             point = self.view_point_m
             if isinstance(point, str) or not isinstance(point, Sequence | np.ndarray) or len(point) != 3:
@@ -168,12 +171,12 @@ class CalibrateOptions:
                 raise bad("view_point_m", "3 finite numbers (x, y, z in metres) or null")
             object.__setattr__(self, "view_point_m", tuple(float(v) for v in point))
         number("along_view_weight", "a number in (0, 1]", lambda v: 0.0 < v <= 1.0)
-        count("popsize", 1)
+        count("popsize", 1, 1000)  # per parameter: 1000 x 10 parameters is 10000 rollouts per generation
         count("generations", 0)
         count("local_iterations", 0)
         number("fd_step", "a number in (0, 1) (a step in the unit search box)", lambda v: 0.0 < v < 1.0)
         number("interval_level", "a number in (0, 1)", lambda v: 0.0 < v < 1.0)
-        count("seed", 0)
+        count("seed", 0, MAX_SEED)
         count("nthread", 1, optional=True)
         number("max_batch_mb", "a finite number > 0 (MiB)", lambda v: v > 0.0)
         if not isinstance(self.initial, Mapping) or not all(

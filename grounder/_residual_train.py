@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import numbers
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -62,7 +63,7 @@ from grounder._simulate import (
 )
 from grounder._simulator import Simulator
 from grounder._trajectory import Trajectory, validate_against_model
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, shown
 from reconstruction import check_output_dir, staged_output_dir
 
 log = logging.getLogger(__name__)
@@ -131,16 +132,29 @@ class ResidualOptions:
     num_threads: int = 1
 
     def __post_init__(self) -> None:
-        if self.hidden < 1 or self.layers < 1 or self.steps < 1 or self.batch_size < 1:
-            raise GrounderError("hidden, layers, steps and batch_size must be >= 1")
-        if self.dagger_rounds < 0 or self.dagger_horizon < 1 or self.dagger_stride < 1:
-            raise GrounderError("dagger_rounds must be >= 0, dagger_horizon and dagger_stride >= 1")
+        for name, (low, high) in COUNT_LIMITS.items():  # high: a network or run that could never finish or fit
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= int(value) <= high:
+                raise GrounderError(f"residual option {name} must be an integer in [{low}, {high}], got {shown(value)}")
         if not 0.0 <= self.ctrl_history_s <= 1.0:
             raise GrounderError(f"ctrl_history_s must be in [0, 1] s, got {self.ctrl_history_s}")
         if self.smooth_window < 0 or (self.smooth_window > 2 and self.smooth_window % 2 == 0):
             raise GrounderError(f"smooth_window must be 0 or odd, got {self.smooth_window}")
         if not 0.5 < self.bound_quantile <= 1.0:
             raise GrounderError(f"bound_quantile must be in (0.5, 1], got {self.bound_quantile}")
+
+
+COUNT_LIMITS = {
+    "hidden": (1, 4096),  # 4096 wide: 16 M weights per layer
+    "layers": (1, 16),
+    "steps": (1, 1_000_000),
+    "batch_size": (1, 65_536),
+    "dagger_rounds": (0, 100),
+    "dagger_horizon": (1, 100_000),
+    "dagger_stride": (1, 100_000),
+    "seed": (0, 2**32 - 1),  # numpy's and torch's seeds
+    "num_threads": (1, 256),
+}
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -196,8 +196,11 @@ class TrackOptions:
     marker_max_spread_m: float = 0.01
 
     def __post_init__(self) -> None:
-        if self.aruco_size_m is not None and not self.aruco_size_m > 0:
-            raise TrackError(f"aruco_size_m={self.aruco_size_m} but expected a positive size in metres, e.g. 0.12")
+        if self.aruco_size_m is not None and not 0.005 <= self.aruco_size_m <= 5.0:  # as reconstruct's
+            raise TrackError(
+                f"aruco_size_m={self.aruco_size_m} but expected the square's side in metres, between 0.005 and 5, "
+                "e.g. 0.12"
+            )
         if self.start_frame < 0:
             raise TrackError(f"start_frame={self.start_frame} but expected >= 0")
         if self.max_frames is not None and self.max_frames < 2:
@@ -1274,13 +1277,22 @@ def track(
 
         check_output_dir(out_dir, overwrite=overwrite, inputs=(clip, scene_xml.parent))
     frames, fps = read_clip(Path(clip), options.max_frames, options.start_frame)
+    if options.min_segment_frames > len(frames):  # not after tracking the whole clip
+        raise TrackError(
+            f"min_segment_frames={options.min_segment_frames} but the clip has {len(frames)} frames to track; "
+            "pass at most that (--min-segment-frames)"
+        )
     height_px, width_px = frames[0].shape[:2]
     if options.intrinsics_colmap is not None:
         fx, fy, cx, cy = options.intrinsics_colmap
-        if not (np.isfinite([fx, fy, cx, cy]).all() and fx > 0 and fy > 0 and 0 < cx < width_px and 0 < cy < height_px):
+        # A focal length outside 0.05-50 image widths is not a camera (a 170-degree fisheye to a 1-degree telephoto);
+        # 1e300 px made OpenCV's pose solver fail an assertion.
+        focal_ok = all(0.05 * width_px <= f <= 50.0 * width_px for f in (fx, fy))
+        if not (np.isfinite([fx, fy, cx, cy]).all() and focal_ok and 0 < cx < width_px and 0 < cy < height_px):
             raise TrackError(
                 f"intrinsics fx {fx:g}, fy {fy:g}, cx {cx:g}, cy {cy:g} do not fit the {width_px}x{height_px} clip;"
-                " pass positive focal lengths and a principal point inside the image, in pixels (COLMAP's PINHOLE)"
+                f" pass focal lengths of {0.05 * width_px:g}-{50 * width_px:g} px and a principal point inside the "
+                "image, in pixels (COLMAP's PINHOLE)"
             )
         camera = PinholeCamera.from_colmap(width_px, height_px, fx, fy, cx, cy)
         dist = np.zeros(4)

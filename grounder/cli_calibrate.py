@@ -161,7 +161,7 @@ def register(app: typer.Typer) -> None:
         Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file or output folder.
         """
         _setup_logging(verbose)
-        require(("--num-cpus", num_cpus, num_cpus is None or num_cpus >= 1, ">= 1"))
+        require(("--num-cpus", num_cpus, num_cpus is None or 1 <= num_cpus <= 256, "between 1 and 256"))
         with user_errors_exit_2():
             from grounder._batch import check_batch_output, load_jobs, run_batch
 

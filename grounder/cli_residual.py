@@ -42,10 +42,18 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Train a bounded, gated residual on recorded trajectories; write a residual scene folder."""
         _setup_logging(verbose)
+        from grounder._residual_train import COUNT_LIMITS
+
         require(
-            ("--steps", steps, steps >= 1, ">= 1"),
-            ("--rounds", rounds, rounds >= 0, ">= 0"),
-            ("--hidden", hidden, hidden >= 1, ">= 1"),
+            *(
+                (flag, value, low <= value <= high, f"between {low} and {high}")
+                for flag, value, (low, high) in (
+                    ("--steps", steps, COUNT_LIMITS["steps"]),
+                    ("--rounds", rounds, COUNT_LIMITS["dagger_rounds"]),
+                    ("--hidden", hidden, COUNT_LIMITS["hidden"]),
+                    ("--seed", seed, COUNT_LIMITS["seed"]),
+                )
+            )
         )
         with user_errors_exit_2():
             from grounder._residual_train import REPORT_FILE, ResidualOptions, train_residual

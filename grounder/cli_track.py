@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Annotated
 
@@ -61,7 +60,7 @@ def register(app: typer.Typer) -> None:
         """6-DoF pose of every grounded object in every frame; lost frames flagged; trajectories per tracked run."""
         _setup_logging(verbose)
         require(
-            ("--aruco-size", aruco_size, math.isfinite(aruco_size) and aruco_size > 0, "> 0 and finite"),
+            ("--aruco-size", aruco_size, 0.005 <= aruco_size <= 5.0, "between 0.005 and 5 (metres)"),
             ("--min-segment-frames", min_segment_frames, min_segment_frames >= 3, ">= 3"),
             (
                 "--max-frames",

@@ -29,6 +29,7 @@ from reconstruction.errors import InputError, RegistrationError, WorldFrameError
 log = logging.getLogger(__name__)
 
 MIN_REGISTRATION_RATE = 0.5
+MAX_SEED = 2**31 - 1
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 ProgressFn = Callable[[str, int, int], None]  # (stage, done, total)
@@ -40,6 +41,8 @@ def _validate(options: ReconstructOptions) -> None:
     for name, value in (("--aruco-size", options.aruco_size_m), ("--known-extent", options.known_extent_m)):
         if value is not None and not (0.005 <= value <= 5.0):
             raise InputError(f"{name} is {value} m but must be between 0.005 and 5 m (metres, not millimetres)")
+    if not 0 <= options.sfm.seed <= MAX_SEED:  # COLMAP keeps its seed in a C int
+        raise InputError(f"--seed is {options.sfm.seed} but must be between 0 and {MAX_SEED}")
     if options.frames.max_frames < _frames.MIN_FRAMES:
         raise InputError(f"--max-frames is {options.frames.max_frames} but must be at least {_frames.MIN_FRAMES}")
 

@@ -699,22 +699,26 @@ def test_cli_overwrite_of_a_folder_inside_the_scene_is_refused(
         # A NaN weight made every loss NaN, hence 1e6, hence every candidate equal: "success" at the nominal values.
         (
             {"rotation_weight": float("nan")},
-            "rotation_weight must be a finite number >= 0 (percent of size per degree), got NaN",
+            "rotation_weight must be a number in [0, 100] (percent of size per degree), got NaN",
         ),
-        ({"rotation_weight": float("inf")}, "rotation_weight must be a finite number >= 0"),
-        ({"rotation_weight": -1.0}, "rotation_weight must be a finite number >= 0"),
+        ({"rotation_weight": float("inf")}, "rotation_weight must be a number in [0, 100]"),
+        ({"rotation_weight": -1.0}, "rotation_weight must be a number in [0, 100]"),
         (
             {"rotation_weight": "1"},
-            'rotation_weight must be a finite number >= 0 (percent of size per degree), got "1"',
+            'rotation_weight must be a number in [0, 100] (percent of size per degree), got "1"',
         ),
         ({"generations": 2.5}, "generations must be an integer >= 0, got 2.5"),
         ({"generations": True}, "generations must be an integer >= 0, got true"),
-        ({"popsize": 0}, "popsize must be an integer >= 1, got 0"),
+        ({"popsize": 0}, "popsize must be an integer in [1, 1000], got 0"),
         ({"local_iterations": "3"}, "local_iterations must be an integer >= 0"),
-        ({"seed": -1}, "seed must be an integer >= 0"),
-        ({"split_seed": 1.0}, "split_seed must be an integer >= 0"),
+        ({"seed": -1}, "seed must be an integer in [0, 4294967295]"),
+        ({"split_seed": 1.0}, "split_seed must be an integer in [0, 4294967295]"),
         ({"nthread": 0}, "nthread must be an integer >= 1 or null"),
         ({"max_train_trajectories": 0}, "max_train_trajectories must be an integer >= 1 or null"),
+        # huge values: scipy's seed and popsize overflowed (tracebacks), a weight of 1e300 fitted overflowing costs
+        ({"seed": 2**32}, "seed must be an integer in [0, 4294967295], got 4294967296"),
+        ({"popsize": 10**20}, "popsize must be an integer in [1, 1000]"),
+        ({"rotation_weight": 1e300}, "rotation_weight must be a number in [0, 100] (percent of size per degree)"),
         ({"params": "cube.friction.sliding"}, "params must be a list of parameter names"),
         ({"params": ("cube.friction.sliding", 3)}, "params must be a list of parameter names"),
         ({"validation_fraction": float("nan")}, "validation_fraction must be a number in [0, 1), got NaN"),
@@ -772,7 +776,7 @@ def test_cli_nan_rotation_weight_is_refused(traj_dir: Path, tmp_path: Path) -> N
         "--params", "cube.friction.sliding", "--rotation-weight", "nan",
         "--generations", "0", "--local-iterations", "0",
     )  # fmt: skip
-    _assert_exit_2(result, "calibrate option rotation_weight must be a finite number >= 0")
+    _assert_exit_2(result, "calibrate option rotation_weight must be a number in [0, 100]")
     assert "got NaN" in result.output
     assert not (tmp_path / "o").exists()
 

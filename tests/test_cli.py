@@ -319,13 +319,30 @@ def test_value_checks_name_each_value_that_is_wrong(capsys: pytest.CaptureFixtur
         (["diagnose-benchmark", "--seed", "-1"], "--seed -1 must be >= 0"),
         (["properties", "evaluate", "--seed", "-1"], "--seed -1 must be >= 0"),
         (["properties", "sample", "s", "-o", "o", "-n", "100000"], "-n 100000 must be between 1 and 10000"),
-        (["ground", "v.mp4", "-o", "o", "--density", "inf"], "--density inf must be > 0 and finite"),
+        (["ground", "v.mp4", "-o", "o", "--density", "inf"], "--density inf must be between 1 and 25000 (kg/m^3)"),
+        (["ground", "v.mp4", "-o", "o", "--density", "1e300"], "--density 1e+300 must be between 1 and 25000"),
+        (["ground", "v.mp4", "-o", "o", "--face-budget", "10000000"], "--face-budget 10000000 must be between 100"),
+        (
+            ["residual", "train", "s", "t", "-o", "o", "--hidden", "100000"],
+            "--hidden 100000 must be between 1 and 4096",
+        ),
+        (["residual", "train", "s", "t", "-o", "o", "--steps", "10" * 10], "must be between 1 and 1000000"),
+        (["residual", "train", "s", "t", "-o", "o", "--seed", "-1"], "--seed -1 must be between 0 and 4294967295"),
+        (["batch", "j.yaml", "--num-cpus", "10" * 10], "must be between 1 and 256"),
+        (["calibrate", "s.xml", "t", "-o", "o", "--seed", "4294967296"], "seed must be an integer in [0, 4294967295]"),
+        (["calibrate", "s.xml", "t", "-o", "o", "--popsize", "10" * 10], "popsize must be an integer in [1, 1000]"),
+        (["calibrate", "s.xml", "t", "-o", "o", "--rotation-weight", "1e300"], "rotation_weight must be a number in"),
+        (["reconstruct", "samples/tabletop/video.mp4", "-o", "o", "--seed", "-1"], "--seed is -1 but must be between"),
+        (["ground", "samples/tabletop/video.mp4", "-o", "o", "--seed", "2147483648"], "--seed is 2147483648 but"),
         (["properties", "train", "-o", "/proc/image2sim_test/w", "--num-train", "100"], "cannot create the output"),
     ],
 )
 def test_values_that_cannot_work_are_refused_before_any_work(args: list[str], needle: str) -> None:
     """Each of these was accepted: --threads 2000 grew to 15 GB and ignored SIGTERM, --seed -1 was numpy's
     traceback, --horizon nan reported 'every nan s', --density inf failed after a minute of grounding naming
-    another value, an uncreatable -o failed only after training."""
+    another value, an uncreatable -o failed only after training. Later (an audit of every numeric option): seeds
+    out of COLMAP's, numpy's or torch's range were tracebacks after the first stage, a huge --popsize, --hidden or
+    --num-cpus one from SciPy, torch or Ray, a huge --steps ran without end, and --density 1e300 or
+    --rotation-weight 1e300 exited 0 with a meaningless scene or fit."""
     proc = run_cli(*args, timeout=60)
     assert_one_line_error(proc, needle, alone=True)

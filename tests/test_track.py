@@ -232,7 +232,13 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
     assert result.exit_code == 2
     assert "image2sim: error:" in result.output and "scene.xml" in result.output
     clip, scene = str(TOSS / "video.mp4"), str(TOSS / "truth")
-    for intrinsics in (["0", "0", "0", "0"], ["-500", "500", "320", "240"], ["500", "500", "9999", "240"]):
+    for intrinsics in (
+        ["0", "0", "0", "0"],
+        ["-500", "500", "320", "240"],
+        ["500", "500", "9999", "240"],
+        ["1e300", "1e300", "320", "240"],  # an assertion failure in OpenCV's pose solver (a traceback)
+        ["1e-300", "1e-300", "320", "240"],
+    ):
         result = runner.invoke(
             app, ["track", clip, "--scene", scene, "-o", str(tmp_path / "o"), "--intrinsics", *intrinsics]
         )
@@ -241,7 +247,9 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
         )
     # Values that pass the type but cannot work: refused before any work, naming the option.
     for flags, needle in (
-        (["--aruco-size", "inf"], "--aruco-size inf must be > 0 and finite"),
+        (["--aruco-size", "inf"], "--aruco-size inf must be between 0.005 and 5 (metres)"),
+        (["--aruco-size", "1e300"], "--aruco-size 1e+300 must be between 0.005 and 5"),  # was OpenCV's assertion
+        (["--min-segment-frames", "100000"], "min_segment_frames=100000 but the clip has 90 frames to track"),
         (["--max-frames", "3"], "--max-frames 3 must be >= --min-segment-frames (5)"),
         (["--start-frame", "-1"], "--start-frame -1 must be >= 0"),
     ):
@@ -353,8 +361,9 @@ def test_read_clip_refuses_a_video_cut_short(tmp_path: Path) -> None:
 
 
 def test_options_reject_bad_values() -> None:
-    with pytest.raises(TrackError, match="aruco_size_m"):
-        TrackOptions(aruco_size_m=-1.0)
+    for size_m in (-1.0, 1e-300, 1e300):
+        with pytest.raises(TrackError, match="aruco_size_m"):
+            TrackOptions(aruco_size_m=size_m)
     with pytest.raises(TrackError, match="min_segment_frames"):
         TrackOptions(min_segment_frames=2)
 
