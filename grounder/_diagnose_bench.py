@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -17,6 +18,23 @@ MEASUREMENT_EFFECTS = ("length_scale", "time_scale", "velocity_lag")
 UNEXPLAINED_THRESHOLD = 0.5
 """An out-of-library case counts as reported "largely unexplained" when more than this fraction of its held-out gap
 remains."""
+MIN_TRAJECTORIES = 8
+"""Fewest trajectories per case: the diagnosis holds 30% of them out for its check."""
+MAX_TRAJECTORIES = 1000
+"""Most trajectories per case. Each is simulated (1 s at 2 ms steps) and then re-simulated for every candidate effect
+and fitted value: ~0.7 s of diagnosis per trajectory per case on 2 threads, so 1000 take ~12 min a case and ~3 h for
+the 16 cases (the default 16 take seconds)."""
+
+
+def check_num_trajectories(num_trajectories: int) -> None:
+    """Raises GrounderError unless `num_trajectories` is an integer in [MIN_TRAJECTORIES, MAX_TRAJECTORIES]."""
+    value = num_trajectories
+    integer = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    if not (integer and MIN_TRAJECTORIES <= value <= MAX_TRAJECTORIES):
+        raise GrounderError(
+            f"num_trajectories={value!r} but expected an integer between {MIN_TRAJECTORIES} and {MAX_TRAJECTORIES} "
+            "per case"
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -69,6 +87,7 @@ def run_case(
     spec: CaseSpec, num_trajectories: int = 16, nthread: int = 2, seed: int = 0, options: DiagnoseOptions | None = None
 ) -> BenchResult:
     """Generates one case and diagnoses it blind (``options`` default: the one benchmark setting)."""
+    check_num_trajectories(num_trajectories)
     case = make_case(spec, num_trajectories, seed=seed)
     model = mujoco.MjModel.from_xml_string(case.scene_xml)
     t0 = time.perf_counter()
@@ -111,6 +130,7 @@ def run_benchmark(
     progress: Callable[[str, int, int], None] | None = None,
 ) -> list[BenchResult]:
     """Runs the named cases (all by default) one after another; `progress(stage, done, total)` after each."""
+    check_num_trajectories(num_trajectories)  # before the first case, not after it
     report = progress or (lambda _s, _d, _t: None)
     specs = select_cases(names)
     results = []

@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import itertools
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from grounder._properties_materials import MATERIAL_NAMES, MATERIALS, Material, sample_properties
+from grounder.errors import GrounderError
 
 CROP_PX = 64
 NUM_VIEWS = 3
@@ -29,6 +31,9 @@ _TEX_PX = 64
 _TEXTURES_PER_MATERIAL = 48
 _MESHES_PER_KIND = 10
 _HIDDEN_GROUP = 5
+MAX_SAMPLES = 100_000
+"""Most objects one `generate_dataset` call renders: their crops alone are allocated up front, 36,864 bytes each
+(3 views x 64 x 64 x RGB uint8), so 100,000 take 3.7 GB (and ~30 min to render at ~18 ms each on one core)."""
 
 ProgressFn = Callable[[str, int, int], None]
 
@@ -487,7 +492,17 @@ class _Studio:
 
 
 def generate_dataset(num_samples: int, seed: int, *, progress: ProgressFn | None = None) -> PropertyDataset:
-    """Renders `num_samples` objects (materials balanced) with their true properties; deterministic per seed."""
+    """Renders `num_samples` objects (materials balanced) with their true properties; deterministic per seed.
+
+    Raises:
+        GrounderError: `num_samples` is not an integer between 1 and `MAX_SAMPLES` (checked before any allocation).
+    """
+    integer = isinstance(num_samples, numbers.Integral) and not isinstance(num_samples, bool)
+    if not (integer and 1 <= num_samples <= MAX_SAMPLES):
+        raise GrounderError(
+            f"num_samples={num_samples!r} but expected an integer between 1 and {MAX_SAMPLES} "
+            "(each object's crops take 37 KB)"
+        )
     rng = np.random.default_rng([seed, 2])
     studio = _Studio(seed)
     crops = np.empty((num_samples, NUM_VIEWS, CROP_PX, CROP_PX, 3), np.uint8)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import numbers
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,8 +26,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from grounder._properties_data import NUM_SHAPE_FEATURES, NUM_VIEWS, PropertyDataset, generate_dataset
+from grounder._properties_data import MAX_SAMPLES, NUM_SHAPE_FEATURES, NUM_VIEWS, PropertyDataset, generate_dataset
 from grounder._properties_materials import MATERIAL_NAMES, TARGET_NAMES
+from grounder.errors import GrounderError, finite_number
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +37,15 @@ Z90 = 1.6448536269514722  # standard normal 95th percentile: mean +- Z90 std is 
 MODEL_VERSION = "image2sim.properties/1"
 WEIGHTS_FILE = "property_net.pt"
 META_FILE = "property_net.json"
+
+MIN_NUM_TRAIN = 100
+MAX_NUM_TRAIN = 50_000
+"""Training holds every crop twice, as rendered (uint8, 37 KB an object) and as the float32 tensor it trains on
+(147 KB): 50,000 objects take ~9 GB, 3.5 times the default's 14,000 (and ~50 s an epoch on 2 cores)."""
+MAX_EPOCHS = 1000
+"""An epoch takes ~1 s per 1,000 objects on 2 cores: 1000 epochs of the default 14,000 are ~4 h (the recipe's 30
+take 7 min); more is a run that looks stuck."""
+MIN_EVAL_SAMPLES = 10
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -63,6 +74,27 @@ class TrainOptions:
     kl_weight: float = 1e-3
     torch_seed: int = 0
     num_threads: int = 2
+
+    def __post_init__(self) -> None:  # checked when built: a huge count would otherwise allocate or run for days
+        def count(name: str, least: int, most: int) -> None:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not least <= int(value) <= most:
+                raise GrounderError(f"TrainOptions.{name}={value!r} but expected an integer between {least} and {most}")
+
+        count("num_train", MIN_NUM_TRAIN, MAX_NUM_TRAIN)
+        count("num_val", MIN_EVAL_SAMPLES, MAX_SAMPLES)
+        count("epochs", 1, MAX_EPOCHS)
+        count("embed_dim", 1, 1024)
+        count("batch_size", 1, MAX_NUM_TRAIN)
+        count("num_threads", 1, 1024)
+        for name in ("train_seed", "val_seed", "torch_seed"):
+            count(name, 0, 2**63 - 1)  # torch.manual_seed takes at most 64 bits; numpy any integer >= 0
+        for name in ("learning_rate", "weight_decay", "kl_weight"):
+            value = getattr(self, name)
+            positive = name == "learning_rate"
+            if not (finite_number(value) and (value > 0 if positive else value >= 0)):
+                rule = "> 0" if positive else ">= 0"
+                raise GrounderError(f"TrainOptions.{name}={value!r} but expected a finite number {rule}")
 
 
 TEST_SEED = 3
@@ -505,7 +537,16 @@ def metrics(pred: Predictions, data: PropertyDataset, baseline: dict[str, float]
 def evaluate(
     weights_dir: Path, *, num_samples: int = NUM_TEST, seed: int = TEST_SEED, progress: ProgressFn | None = None
 ) -> dict[str, Any]:
-    """Figures on held-out objects (another seed: other shapes, textures, lights and cameras)."""
+    """Figures on held-out objects (another seed: other shapes, textures, lights and cameras).
+
+    Raises:
+        GrounderError: `num_samples` outside `MIN_EVAL_SAMPLES`..`MAX_SAMPLES`, or a broken weights folder.
+    """
+    integer = isinstance(num_samples, numbers.Integral) and not isinstance(num_samples, bool)
+    if not (integer and MIN_EVAL_SAMPLES <= num_samples <= MAX_SAMPLES):
+        raise GrounderError(
+            f"num_samples={num_samples!r} but expected an integer between {MIN_EVAL_SAMPLES} and {MAX_SAMPLES}"
+        )
     net, norm, meta = load(weights_dir)
     data = generate_dataset(num_samples, seed, progress=progress)
     return metrics(predict(net, norm, data.crops, data.shape_features), data, meta["baseline"])

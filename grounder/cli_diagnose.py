@@ -76,8 +76,16 @@ def register(app: typer.Typer) -> None:
         json_out: Annotated[Path | None, typer.Option("--json", help="Also write the results here.")] = None,
     ) -> None:
         """Withheld-effect benchmark: generate cases with hidden effects, diagnose them blind, print the table."""
+        from grounder._diagnose_bench import MAX_TRAJECTORIES, MIN_TRAJECTORIES
+
         require(
-            ("--trajectories", trajectories, trajectories >= 8, ">= 8 (each case holds 30% out for the check)"),
+            (
+                "--trajectories",
+                trajectories,
+                MIN_TRAJECTORIES <= trajectories <= MAX_TRAJECTORIES,
+                f"between {MIN_TRAJECTORIES} and {MAX_TRAJECTORIES} (each case holds 30% out for the check; "
+                "~0.7 s each per case on 2 threads)",
+            ),
             ("--threads", threads, 1 <= threads <= MAX_THREADS, f"between 1 and {MAX_THREADS}"),
             ("--seed", seed, seed >= 0, ">= 0"),
         )

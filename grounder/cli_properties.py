@@ -37,9 +37,21 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (~11 min, 2 cores)."""
         _setup_logging(verbose)
+        from grounder._properties_model import MAX_EPOCHS, MAX_NUM_TRAIN, MIN_NUM_TRAIN
+
         require(
-            ("--num-train", num_train, num_train is None or num_train >= 100, ">= 100"),
-            ("--epochs", epochs, epochs is None or epochs >= 1, ">= 1"),
+            (
+                "--num-train",
+                num_train,
+                num_train is None or MIN_NUM_TRAIN <= num_train <= MAX_NUM_TRAIN,
+                f"between {MIN_NUM_TRAIN} and {MAX_NUM_TRAIN} (training holds ~184 KB per object)",
+            ),
+            (
+                "--epochs",
+                epochs,
+                epochs is None or 1 <= epochs <= MAX_EPOCHS,
+                f"between 1 and {MAX_EPOCHS} (an epoch of the default 14000 objects takes ~15 s)",
+            ),
         )
         with user_errors_exit_2():
             from grounder._properties import WEIGHTS_DIR
@@ -47,12 +59,16 @@ def register(app: typer.Typer) -> None:
             from grounder._properties_model import train as run_train
             from reconstruction import check_output_dir
 
+            defaults = TrainOptions()
+            options = replace(
+                defaults,
+                num_train=defaults.num_train if num_train is None else num_train,
+                epochs=defaults.epochs if epochs is None else epochs,
+            )  # checked (TrainOptions) before the output folder is touched
             if out is not None:  # without -o: regenerate the shipped weights in place, the command's purpose
                 check_output_dir(out, overwrite=overwrite)
             target = out or WEIGHTS_DIR
             with stage_progress() as progress:
-                defaults = TrainOptions()
-                options = replace(defaults, num_train=num_train or defaults.num_train, epochs=epochs or defaults.epochs)
                 meta = run_train(target, options, progress=progress)
         val = meta["validation"]
         typer.echo(
@@ -73,7 +89,18 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Errors and 90%-interval coverage on held-out shapes and appearances, against a train-mean baseline."""
         _setup_logging(verbose)
-        require(("--num-samples", num_samples, num_samples >= 10, ">= 10"), ("--seed", seed, seed >= 0, ">= 0"))
+        from grounder._properties_data import MAX_SAMPLES
+        from grounder._properties_model import MIN_EVAL_SAMPLES
+
+        require(
+            (
+                "--num-samples",
+                num_samples,
+                MIN_EVAL_SAMPLES <= num_samples <= MAX_SAMPLES,
+                f"between {MIN_EVAL_SAMPLES} and {MAX_SAMPLES} (each object's crops take 37 KB)",
+            ),
+            ("--seed", seed, seed >= 0, ">= 0"),
+        )
         if seed in (1, 2):
             fail(f"--seed {seed} is a training/calibration seed; pick another for held-out data")
         with user_errors_exit_2():

@@ -282,7 +282,7 @@ def test_diagnose_benchmark_checks_its_json_path_first(tmp_path: Path) -> None:
     proc = run_cli("diagnose-benchmark", "--json", str(tmp_path / "nowhere" / "r.json"), timeout=60)
     assert_one_line_error(proc, "does not exist", alone=True)
     proc = run_cli("diagnose-benchmark", "--trajectories", "0", timeout=60)  # named as the flag it is, not --holdout
-    assert_one_line_error(proc, "--trajectories 0 must be >= 8", alone=True)
+    assert_one_line_error(proc, "--trajectories 0 must be between 8 and 1000", alone=True)
 
 
 def test_fail_joins_a_message_over_several_lines(capsys: pytest.CaptureFixture[str]) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -43,9 +44,9 @@ def _spec(name: str) -> CaseSpec:
     return next(c for c in BENCHMARK if c.name == name)
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "grounder.cli", *args], capture_output=True, text=True, timeout=300, cwd=REPO
+        [sys.executable, "-m", "grounder.cli", *args], capture_output=True, text=True, timeout=timeout, cwd=REPO
     )
 
 
@@ -539,3 +540,32 @@ def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], t
 def test_cli_help() -> None:
     proc = run_cli("diagnose", "--help")
     assert proc.returncode == 0 and "Usage" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    ("value", "needle"),
+    [
+        (str(10**20), f"--trajectories {10**20} must be between 8 and 1000"),
+        ("1001", "--trajectories 1001 must be between 8 and 1000"),
+        ("7", "--trajectories 7 must be between 8 and 1000"),
+    ],
+)
+def test_benchmark_trajectories_that_cannot_finish_are_refused(value: str, needle: str, tmp_path: Path) -> None:
+    """--trajectories 1e20 was accepted and stayed on the first case without end (16 take seconds a case)."""
+    out = tmp_path / "bench.json"
+    tick = time.perf_counter()
+    proc = run_cli("diagnose-benchmark", "--trajectories", value, "--json", str(out), timeout=60)  # not without end
+    assert_one_line_error(proc, needle)
+    assert proc.stderr.count("\n") == 1 and not proc.stdout and not out.exists()
+    assert time.perf_counter() - tick < 30
+
+
+def test_benchmark_library_refuses_trajectory_counts_before_the_first_case() -> None:
+    from grounder._diagnose_bench import MAX_TRAJECTORIES, run_benchmark, run_case
+    from grounder.errors import GrounderError
+
+    for n in (16.0, 10**20, MAX_TRAJECTORIES + 1, 7):  # 16.0 first: without the check it fails at once
+        with pytest.raises(GrounderError, match=rf"num_trajectories={n!r} but expected an integer between 8 and 1000"):
+            run_benchmark(num_trajectories=n)  # type: ignore[arg-type]
+        with pytest.raises(GrounderError, match=r"num_trajectories=.* but expected"):
+            run_case(_spec("pendulum/joint_friction"), num_trajectories=n)  # type: ignore[arg-type]

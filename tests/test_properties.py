@@ -13,6 +13,7 @@ import math
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import mujoco
@@ -454,3 +455,60 @@ def test_non_finite_normalisation_is_refused_by_evaluate(tmp_path: Path) -> None
     assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr[-2000:])
     assert proc.stderr.count("\n") == 1 and "normalisation.target_std" in proc.stderr, proc.stderr
     assert "regenerate with `image2sim properties train" in proc.stderr and "MAE" not in proc.stdout
+
+
+HUGE = str(10**20)
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["train", "--num-train", HUGE, "--epochs", "1"], f"--num-train {HUGE} must be between 100 and 50000"),
+        (["train", "--num-train", "50001"], "--num-train 50001 must be between 100 and 50000"),
+        (["train", "--num-train", "99"], "--num-train 99 must be between 100 and 50000"),
+        (["train", "--num-train", "100", "--epochs", HUGE], f"--epochs {HUGE} must be between 1 and 1000"),
+        (["train", "--num-train", "100", "--epochs", "1001"], "--epochs 1001 must be between 1 and 1000"),
+        (["evaluate", "--num-samples", HUGE], f"--num-samples {HUGE} must be between 10 and 100000"),
+        (["evaluate", "--num-samples", "100001"], "--num-samples 100001 must be between 10 and 100000"),
+    ],
+)
+def test_counts_too_large_to_finish_are_refused_before_any_work(args: list[str], needle: str, tmp_path: Path) -> None:
+    """--num-train or --num-samples 1e20 was numpy's 'Maximum allowed dimension exceeded' traceback after loading
+    (exit 1), and 1e5 or 1e6 would allocate 4-37 GB of crops up front; --epochs 1e20 trained without end."""
+    out = tmp_path / "weights"
+    command = ["properties", *args, *(["-o", str(out)] if args[0] == "train" else [])]
+    tick = time.perf_counter()
+    proc = run_cli(*command, timeout=60)  # a run that starts working fails by its timeout, not by hanging
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("image2sim: error: "), proc.stderr
+    assert needle in lines[0], lines[0]
+    assert time.perf_counter() - tick < 30 and not out.exists() and not proc.stdout
+
+
+def test_train_options_and_dataset_refuse_sizes_that_cannot_finish() -> None:
+    """The library checks what the CLI checks: Python callers get one GrounderError, before any allocation."""
+    from grounder._properties_data import MAX_SAMPLES, generate_dataset
+    from grounder._properties_model import MAX_EPOCHS, MAX_NUM_TRAIN, TrainOptions, evaluate
+
+    for kwargs in (
+        {"num_train": 10**20},
+        {"num_train": MAX_NUM_TRAIN + 1},
+        {"num_val": MAX_SAMPLES + 1},
+        {"epochs": 10**20},
+        {"epochs": MAX_EPOCHS + 1},
+        {"epochs": 0},
+        {"epochs": 2.5},
+        {"batch_size": 0},
+        {"learning_rate": math.nan},
+        {"torch_seed": -1},
+    ):
+        name = next(iter(kwargs))
+        with pytest.raises(grounder.GrounderError, match=rf"TrainOptions\.{name}=.* but expected"):
+            TrainOptions(**kwargs)  # type: ignore[arg-type]
+    TrainOptions(num_train=MAX_NUM_TRAIN, epochs=MAX_EPOCHS)  # the bounds themselves are allowed
+    for n in (10**20, MAX_SAMPLES + 1, 0, True):
+        with pytest.raises(grounder.GrounderError, match=rf"num_samples={n!r} but expected an integer between 1 and"):
+            generate_dataset(n, 3)
+    with pytest.raises(grounder.GrounderError, match=r"num_samples=100000000000000000000 but expected"):
+        evaluate(WEIGHTS_DIR, num_samples=10**20)
