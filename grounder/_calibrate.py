@@ -42,7 +42,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import numbers
 import os
 import secrets
 import shutil
@@ -66,7 +65,7 @@ from grounder._calibrate_params import (
 from grounder._report import write_text_atomic
 from grounder._residual import RESIDUAL_FILES
 from grounder._trajectory import Trajectory, _natural_key, validate_against_model
-from grounder.errors import GrounderError, finite_number, shown
+from grounder.errors import GrounderError, finite_number, integer_in, shown
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +140,7 @@ class CalibrateOptions:
             value = getattr(self, name)
             if optional and value is None:
                 return
-            if not (_is_integer(value) and value >= least and (most is None or value <= most)):
+            if not integer_in(value, least, most):
                 rule = f"an integer >= {least}" if most is None else f"an integer in [{least}, {most}]"
                 raise bad(name, rule + (" or null" if optional else ""))
 
@@ -192,11 +191,6 @@ class CalibrateOptions:
             raise GrounderError("separate_bodies applies to raw mode only")
         if self.robust_scale is not None and self.mode != "raw":
             raise GrounderError("robust_scale applies to raw mode only (embedding mode weighs its prior by the misfit)")
-
-
-def _is_integer(value: object) -> bool:
-    """An integer (Python's or NumPy's), not a bool and not a float that happens to be whole."""
-    return isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numbers
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -12,7 +11,7 @@ import mujoco
 
 from grounder._cases import BENCHMARK, CaseSpec, make_case
 from grounder._diagnose import DiagnoseOptions, diagnose
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, integer_in
 
 MEASUREMENT_EFFECTS = ("length_scale", "time_scale", "velocity_lag")
 UNEXPLAINED_THRESHOLD = 0.5
@@ -28,12 +27,10 @@ the 16 cases (the default 16 take seconds)."""
 
 def check_num_trajectories(num_trajectories: int) -> None:
     """Raises GrounderError unless `num_trajectories` is an integer in [MIN_TRAJECTORIES, MAX_TRAJECTORIES]."""
-    value = num_trajectories
-    integer = isinstance(value, numbers.Integral) and not isinstance(value, bool)
-    if not (integer and MIN_TRAJECTORIES <= value <= MAX_TRAJECTORIES):
+    if not integer_in(num_trajectories, MIN_TRAJECTORIES, MAX_TRAJECTORIES):
         raise GrounderError(
-            f"num_trajectories={value!r} but expected an integer between {MIN_TRAJECTORIES} and {MAX_TRAJECTORIES} "
-            "per case"
+            f"num_trajectories={num_trajectories!r} but expected an integer between {MIN_TRAJECTORIES} and "
+            f"{MAX_TRAJECTORIES} per case"
         )
 
 

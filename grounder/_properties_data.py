@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import itertools
 import math
-import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from grounder._properties_materials import MATERIAL_NAMES, MATERIALS, Material, sample_properties
-from grounder.errors import GrounderError
+from grounder.errors import GrounderError, integer_in
 
 CROP_PX = 64
 NUM_VIEWS = 3
@@ -497,8 +496,7 @@ def generate_dataset(num_samples: int, seed: int, *, progress: ProgressFn | None
     Raises:
         GrounderError: `num_samples` is not an integer between 1 and `MAX_SAMPLES` (checked before any allocation).
     """
-    integer = isinstance(num_samples, numbers.Integral) and not isinstance(num_samples, bool)
-    if not (integer and 1 <= num_samples <= MAX_SAMPLES):
+    if not integer_in(num_samples, 1, MAX_SAMPLES):
         raise GrounderError(
             f"num_samples={num_samples!r} but expected an integer between 1 and {MAX_SAMPLES} "
             "(each object's crops take 37 KB)"

@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import numbers
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,7 +27,7 @@ from torch.nn import functional as F
 
 from grounder._properties_data import MAX_SAMPLES, NUM_SHAPE_FEATURES, NUM_VIEWS, PropertyDataset, generate_dataset
 from grounder._properties_materials import MATERIAL_NAMES, TARGET_NAMES
-from grounder.errors import GrounderError, finite_number
+from grounder.errors import GrounderError, finite_number, integer_in
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +77,7 @@ class TrainOptions:
     def __post_init__(self) -> None:  # checked when built: a huge count would otherwise allocate or run for days
         def count(name: str, least: int, most: int) -> None:
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not least <= int(value) <= most:
+            if not integer_in(value, least, most):
                 raise GrounderError(f"TrainOptions.{name}={value!r} but expected an integer between {least} and {most}")
 
         count("num_train", MIN_NUM_TRAIN, MAX_NUM_TRAIN)
@@ -542,8 +541,7 @@ def evaluate(
     Raises:
         GrounderError: `num_samples` outside `MIN_EVAL_SAMPLES`..`MAX_SAMPLES`, or a broken weights folder.
     """
-    integer = isinstance(num_samples, numbers.Integral) and not isinstance(num_samples, bool)
-    if not (integer and MIN_EVAL_SAMPLES <= num_samples <= MAX_SAMPLES):
+    if not integer_in(num_samples, MIN_EVAL_SAMPLES, MAX_SAMPLES):
         raise GrounderError(
             f"num_samples={num_samples!r} but expected an integer between {MIN_EVAL_SAMPLES} and {MAX_SAMPLES}"
         )

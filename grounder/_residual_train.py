@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import numbers
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -63,7 +62,7 @@ from grounder._simulate import (
 )
 from grounder._simulator import Simulator
 from grounder._trajectory import Trajectory, validate_against_model
-from grounder.errors import GrounderError, shown
+from grounder.errors import GrounderError, integer_in, shown
 from reconstruction import check_output_dir, staged_output_dir
 
 log = logging.getLogger(__name__)
@@ -134,7 +133,7 @@ class ResidualOptions:
     def __post_init__(self) -> None:
         for name, (low, high) in COUNT_LIMITS.items():  # high: a network or run that could never finish or fit
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= int(value) <= high:
+            if not integer_in(value, low, high):
                 raise GrounderError(f"residual option {name} must be an integer in [{low}, {high}], got {shown(value)}")
         if not 0.0 <= self.ctrl_history_s <= 1.0:
             raise GrounderError(f"ctrl_history_s must be in [0, 1] s, got {self.ctrl_history_s}")

@@ -32,3 +32,11 @@ def finite_number(value: object) -> bool:
         return math.isfinite(float(value))
     except OverflowError:
         return False
+
+
+def integer_in(value: object, low: int, high: int | None = None) -> bool:
+    """An integer from a user's file or call (Python's or NumPy's; not a bool, not a whole float) in [low, high]
+    (no upper end when ``high`` is None)."""
+    if not isinstance(value, numbers.Integral) or isinstance(value, bool):  # NumPy's bool_ is not Integral
+        return False
+    return low <= int(value) and (high is None or int(value) <= high)
