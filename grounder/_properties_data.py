@@ -34,6 +34,16 @@ MAX_SAMPLES = 100_000
 """Most objects one `generate_dataset` call renders: their crops alone are allocated up front, 36,864 bytes each
 (3 views x 64 x 64 x RGB uint8), so 100,000 take 3.7 GB (and ~30 min to render at ~18 ms each on one core)."""
 
+# Sizes of training and evaluation runs, here (no torch) so that the CLI refuses a bad one at once.
+MIN_NUM_TRAIN = 100
+MAX_NUM_TRAIN = 50_000
+"""Training holds every crop twice, as rendered (uint8, 37 KB an object) and as the float32 tensor it trains on
+(147 KB): 50,000 objects take ~9 GB, 3.5 times the default's 14,000 (and ~50 s an epoch on 2 cores)."""
+MAX_EPOCHS = 1000
+"""An epoch takes ~1 s per 1,000 objects on 2 cores: 1000 epochs of the default 14,000 are ~4 h (the recipe's 30
+take 7 min); more is a run that looks stuck."""
+MIN_EVAL_SAMPLES = 10
+
 ProgressFn = Callable[[str, int, int], None]
 
 

@@ -25,7 +25,17 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from grounder._properties_data import MAX_SAMPLES, NUM_SHAPE_FEATURES, NUM_VIEWS, PropertyDataset, generate_dataset
+from grounder._properties_data import (
+    MAX_EPOCHS,
+    MAX_NUM_TRAIN,
+    MAX_SAMPLES,
+    MIN_EVAL_SAMPLES,
+    MIN_NUM_TRAIN,
+    NUM_SHAPE_FEATURES,
+    NUM_VIEWS,
+    PropertyDataset,
+    generate_dataset,
+)
 from grounder._properties_materials import MATERIAL_NAMES, TARGET_NAMES
 from grounder.errors import GrounderError, finite_number, integer_in
 
@@ -36,15 +46,6 @@ Z90 = 1.6448536269514722  # standard normal 95th percentile: mean +- Z90 std is 
 MODEL_VERSION = "image2sim.properties/1"
 WEIGHTS_FILE = "property_net.pt"
 META_FILE = "property_net.json"
-
-MIN_NUM_TRAIN = 100
-MAX_NUM_TRAIN = 50_000
-"""Training holds every crop twice, as rendered (uint8, 37 KB an object) and as the float32 tensor it trains on
-(147 KB): 50,000 objects take ~9 GB, 3.5 times the default's 14,000 (and ~50 s an epoch on 2 cores)."""
-MAX_EPOCHS = 1000
-"""An epoch takes ~1 s per 1,000 objects on 2 cores: 1000 epochs of the default 14,000 are ~4 h (the recipe's 30
-take 7 min); more is a run that looks stuck."""
-MIN_EVAL_SAMPLES = 10
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -37,7 +37,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Render synthetic objects with MuJoCo, train, calibrate the spread, write the weights (~11 min, 2 cores)."""
         _setup_logging(verbose)
-        from grounder._properties_model import MAX_EPOCHS, MAX_NUM_TRAIN, MIN_NUM_TRAIN
+        from grounder._properties_data import MAX_EPOCHS, MAX_NUM_TRAIN, MIN_NUM_TRAIN
 
         require(
             (
@@ -89,8 +89,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Errors and 90%-interval coverage on held-out shapes and appearances, against a train-mean baseline."""
         _setup_logging(verbose)
-        from grounder._properties_data import MAX_SAMPLES
-        from grounder._properties_model import MIN_EVAL_SAMPLES
+        from grounder._properties_data import MAX_SAMPLES, MIN_EVAL_SAMPLES
 
         require(
             (
