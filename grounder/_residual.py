@@ -1131,6 +1131,20 @@ def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.
     return arrays
 
 
+class _RepeatedKey(Exception):
+    """A JSON object of ``residual.json`` names the same key twice (args: the key)."""
+
+
+def _without_repeated_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``json.loads``'s ``object_pairs_hook``: the object as a dict, or `_RepeatedKey` for a key given twice."""
+    out: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in out:
+            raise _RepeatedKey(key)
+        out[key] = value
+    return out
+
+
 def load_residual(
     scene_dir: Path, model: mujoco.MjModel, *, scene_xml: Path | None = None, check_scene_xml: bool = True
 ) -> NumpyResidual | NumpyJointResidual:
@@ -1159,7 +1173,9 @@ def load_residual(
     scene_dir = Path(scene_dir)
     meta_path, weights_path = scene_dir / META_FILE, scene_dir / WEIGHTS_FILE
     try:
-        raw = json.loads(meta_path.read_text(encoding="utf-8"))
+        raw = json.loads(meta_path.read_text(encoding="utf-8"), object_pairs_hook=_without_repeated_keys)
+    except _RepeatedKey as exc:  # json keeps the last silently: which one training wrote cannot be told
+        raise GrounderError(f"{meta_path}: key {shown(exc.args[0])} appears twice in one object; {_RETRAIN}") from exc
     except OSError as exc:
         raise GrounderError(f"{meta_path}: could not be read ({exc.strerror or type(exc).__name__})") from exc
     except UnicodeDecodeError as exc:

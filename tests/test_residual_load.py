@@ -143,6 +143,17 @@ def _write_bytes(data: bytes, name: str = META_FILE) -> Callable[[Path], None]:
     return apply
 
 
+def _repeat_key(key: str, value: Any) -> Callable[[Path], None]:
+    """residual.json with ``key`` written a second time, first in the object (the trained one stays later)."""
+
+    def apply(folder: Path) -> None:
+        text = (folder / META_FILE).read_text()
+        assert text.startswith("{") and f'"{key}"' in text
+        (folder / META_FILE).write_text("{" + json.dumps(key) + ": " + json.dumps(value) + ", " + text[1:])
+
+    return apply
+
+
 class _NotWeights:
     """Pickled with protocol 4 it is what torch warns about (pickle protocol) and then refuses (not allowlisted);
     its reduction is harmless even if it ever ran."""
@@ -161,6 +172,9 @@ BROKEN: list[tuple[str, Callable[[Path], None], str, str]] = [
     ("json-list", _write_bytes(b"[1, 2, 3]"), J, "expected a JSON object, got a JSON array"),
     ("json-truncated", _write_bytes(b'{"format": "image2'), J, "not valid JSON"),
     ("json-deep", _write_bytes(b"[" * 100_000), J, "nested too deeply"),
+    # a key given twice was last-wins without a word (the first of two period_steps is what training wrote)
+    ("json-repeated-key", _repeat_key("period_steps", 7), J, 'key "period_steps" appears twice in one object'),
+    ("json-repeated-gate-key", _repeat_key("gate", {}), J, 'key "gate" appears twice'),
     # residual.json: fields the Simulator and the residual use as they are
     ("period-zero", _set_meta("period_steps", 0), J, "period_steps is 0, expected an integer in [1, "),
     ("period-huge", _set_meta("period_steps", 10**9), J, "period_steps is 1000000000"),
