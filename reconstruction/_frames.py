@@ -130,20 +130,23 @@ def check_frame_pixels(where: Path, width: float, height: float, what: str = "th
         )
 
 
-def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image from its header, without decoding it; checked by `check_frame_pixels`.
+def image_size(path: Path, *, check_whole: bool = False) -> tuple[int, int]:
+    """(width, height) of an image from its header, without decoding it; checked by `check_frame_pixels`, and with
+    ``check_whole`` also checked not to be cut short (`_check_whole`), in the same opening of the file.
 
     Raises:
-        InputError: the image is unreadable or larger than `MAX_IMAGE_PIXELS`.
+        InputError: the image is unreadable, larger than `MAX_IMAGE_PIXELS` or (``check_whole``) truncated.
     """
     from PIL import UnidentifiedImageError
 
     try:
         with _pillow_open(path) as header:
             width, height = header.size
+            check_frame_pixels(path, width, height)  # before a JPEG's wholeness check decodes any of it
+            if check_whole:
+                _check_whole(path, header)
     except (OSError, UnidentifiedImageError, ValueError) as exc:
         raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG") from exc
-    check_frame_pixels(path, width, height)
     return width, height
 
 
@@ -166,22 +169,19 @@ def _pillow_open(path: Path) -> Iterator[Any]:
         yield image
 
 
-def _check_whole(path: Path) -> None:
-    """Refuses a JPEG or PNG whose data ends before its image does (a copy cut short): OpenCV would decode such a JPEG
-    with the missing rows grey, and only a "Premature end of JPEG file" on the console. A JPEG is checked by a decode
-    at 1/8 scale (the decoder's own DCT scaling: the whole stream is read at a fraction of a full decode's cost), a
-    PNG by Pillow's chunk checksums, without decompressing it."""
-    from PIL import UnidentifiedImageError
-
+def _check_whole(path: Path, header: Any) -> None:
+    """Refuses a JPEG or PNG (``header``: it, opened by Pillow) whose data ends before its image does (a copy cut
+    short): OpenCV would decode such a JPEG with the missing rows grey, and only a "Premature end of JPEG file" on
+    the console. A JPEG is checked by a decode at 1/8 scale (the decoder's own DCT scaling: the whole stream is read
+    at a fraction of a full decode's cost), a PNG by Pillow's chunk checksums, without decompressing it."""
     try:
-        with _pillow_open(path) as header:
-            if header.format == "JPEG":
-                width, height = header.size
-                header.draft("RGB", (max(1, width // 8), max(1, height // 8)))
-                header.load()
-            elif header.format == "PNG":
-                header.verify()
-    except (OSError, UnidentifiedImageError, ValueError, SyntaxError) as exc:  # Pillow's PNG reader raises SyntaxError
+        if header.format == "JPEG":
+            width, height = header.size
+            header.draft("RGB", (max(1, width // 8), max(1, height // 8)))
+            header.load()
+        elif header.format == "PNG":
+            header.verify()
+    except (OSError, ValueError, SyntaxError) as exc:  # Pillow's PNG reader raises SyntaxError
         raise InputError(f"{path} is truncated or damaged ({exc}); copy it again from the camera or remove it") from exc
 
 
@@ -192,8 +192,7 @@ def read_image(path: Path) -> np.ndarray:
     Raises:
         InputError: the image is unreadable, truncated or larger than `MAX_IMAGE_PIXELS`.
     """
-    image_size(path)
-    _check_whole(path)
+    image_size(path, check_whole=True)
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise InputError(f"{path} is not a readable image; remove it or convert it to PNG/JPEG")
