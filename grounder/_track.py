@@ -90,6 +90,7 @@ from grounder._track_support import (
 from grounder._trajectory import Trajectory, save_trajectory
 from grounder.errors import GrounderError
 from reconstruction._frames import open_video
+from reconstruction._reconstruct import SIZE_RANGE_M
 
 log = logging.getLogger(__name__)
 
@@ -196,10 +197,11 @@ class TrackOptions:
     marker_max_spread_m: float = 0.01
 
     def __post_init__(self) -> None:
-        if self.aruco_size_m is not None and not 0.005 <= self.aruco_size_m <= 5.0:  # as reconstruct's
+        low, high = SIZE_RANGE_M  # as reconstruct's
+        if self.aruco_size_m is not None and not low <= self.aruco_size_m <= high:
             raise TrackError(
-                f"aruco_size_m={self.aruco_size_m} but expected the square's side in metres, between 0.005 and 5, "
-                "e.g. 0.12"
+                f"aruco_size_m={self.aruco_size_m} but expected the square's side in metres, between {low:g} and "
+                f"{high:g}, e.g. 0.12"
             )
         if self.start_frame < 0:
             raise TrackError(f"start_frame={self.start_frame} but expected >= 0")

@@ -59,8 +59,11 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """6-DoF pose of every grounded object in every frame; lost frames flagged; trajectories per tracked run."""
         _setup_logging(verbose)
+        from reconstruction._reconstruct import SIZE_RANGE_M
+
+        low, high = SIZE_RANGE_M
         require(
-            ("--aruco-size", aruco_size, 0.005 <= aruco_size <= 5.0, "between 0.005 and 5 (metres)"),
+            ("--aruco-size", aruco_size, low <= aruco_size <= high, f"between {low:g} and {high:g} (metres)"),
             ("--min-segment-frames", min_segment_frames, min_segment_frames >= 3, ">= 3"),
             (
                 "--max-frames",

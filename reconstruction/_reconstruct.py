@@ -30,6 +30,8 @@ log = logging.getLogger(__name__)
 
 MIN_REGISTRATION_RATE = 0.5
 MAX_SEED = 2**31 - 1
+SIZE_RANGE_M = (0.005, 5.0)
+"""A marker's side or an object's extent as a user gives it, metres: millimetres typed as metres fall outside."""
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 ProgressFn = Callable[[str, int, int], None]  # (stage, done, total)
@@ -39,8 +41,11 @@ def _validate(options: ReconstructOptions) -> None:
     if options.aruco_size_m is not None and options.known_extent_m is not None:
         raise InputError("give either --aruco-size or --known-extent, not both")
     for name, value in (("--aruco-size", options.aruco_size_m), ("--known-extent", options.known_extent_m)):
-        if value is not None and not (0.005 <= value <= 5.0):
-            raise InputError(f"{name} is {value} m but must be between 0.005 and 5 m (metres, not millimetres)")
+        if value is not None and not (SIZE_RANGE_M[0] <= value <= SIZE_RANGE_M[1]):
+            raise InputError(
+                f"{name} is {value} m but must be between {SIZE_RANGE_M[0]:g} and {SIZE_RANGE_M[1]:g} m (metres, not "
+                "millimetres)"
+            )
     if not 0 <= options.sfm.seed <= MAX_SEED:  # COLMAP keeps its seed in a C int
         raise InputError(f"--seed is {options.sfm.seed} but must be between 0 and {MAX_SEED}")
     if options.frames.max_frames < _frames.MIN_FRAMES:
