@@ -62,6 +62,7 @@ from grounder._calibrate_params import (
     body_size_m,
     resolve_parameters,
 )
+from grounder._json_files import read_json_file
 from grounder._report import write_text_atomic
 from grounder._residual import RESIDUAL_FILES
 from grounder._trajectory import Trajectory, _natural_key, validate_against_model
@@ -994,18 +995,7 @@ def _check_manifest(scene: Path) -> None:
     manifest = Path(scene) / "scene.json"
     if not Path(scene).is_dir() or not manifest.is_file():
         return
-    try:
-        json.loads(manifest.read_text(encoding="utf-8"))
-    except RecursionError:
-        reason = "nested deeper than a JSON parser allows"
-    except (OSError, ValueError) as exc:
-        reason = " ".join(str(exc).split())
-    else:
-        return
-    raise GrounderError(
-        f"{manifest}: unreadable scene.json ({reason}); restore it (re-run `image2sim ground` for this scene) "
-        "or remove it from the scene folder"
-    )
+    read_json_file(manifest, "restore it (re-run `image2sim ground` for this scene) or remove it from the scene folder")
 
 
 def _note_in_manifest(manifest: Path, result: CalibrationResult) -> None:

@@ -18,7 +18,6 @@ intervals are percentiles of the decoded posterior samples.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -29,6 +28,7 @@ import mujoco
 import numpy as np
 
 from grounder._calibrate_params import Parameter, resolve_parameter
+from grounder._json_files import read_json_file
 from grounder.errors import GrounderError, shown
 
 Decoder = Callable[[np.ndarray], Mapping[str, Any]]
@@ -64,14 +64,7 @@ def scene_manifest(scene: Path) -> dict[str, Any]:
     if not manifest.is_file():
         raise GrounderError(f"{scene}: scene has no property embedding (no scene.json next to it); use --mode raw")
     redo = "re-run `image2sim ground` for this scene, or use --mode raw"
-    try:
-        data = json.loads(manifest.read_text(encoding="utf-8"))
-    except RecursionError as exc:
-        raise GrounderError(
-            f"{manifest}: unreadable scene.json (nested deeper than a JSON parser allows); {redo}"
-        ) from exc
-    except (OSError, ValueError) as exc:
-        raise GrounderError(f"{manifest}: unreadable scene.json ({' '.join(str(exc).split())}); {redo}") from exc
+    data = read_json_file(manifest, redo)
     if not isinstance(data, dict):
         raise GrounderError(f"{manifest}: expected a JSON object; {redo}")
     return data

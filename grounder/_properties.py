@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from grounder._json_files import read_json_file
 from grounder._properties_data import (
     CROP_PX,
     NUM_VIEWS,
@@ -469,12 +470,7 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
     if n < 1:
         raise GrounderError(f"{n=} but expected at least 1 variant")
     scene_files(xml_path)  # nothing outside the scene folder
-    try:
-        manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
-    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise GrounderError(
-            f"{manifest_path}: not valid JSON ({type(exc).__name__}); re-run `image2sim ground` to rewrite it"
-        ) from exc
+    manifest = read_json_file(manifest_path, "re-run `image2sim ground` to rewrite it")
     objects = _checked_objects(manifest, manifest_path)
     try:
         mujoco.MjSpec.from_file(str(xml_path))

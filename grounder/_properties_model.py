@@ -25,6 +25,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from grounder._json_files import read_json_file
 from grounder._properties_data import (
     MAX_EPOCHS,
     MAX_NUM_TRAIN,
@@ -457,10 +458,7 @@ def load(weights_dir: Path) -> tuple[PropertyNet, Normalisation, dict[str, Any]]
     weights_dir = Path(weights_dir)
     meta_path, weights_path = weights_dir / META_FILE, weights_dir / WEIGHTS_FILE
     remedy = _regenerate(weights_dir)
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise PropertyModelError(f"{meta_path}: not a readable JSON file ({type(exc).__name__}); {remedy}") from exc
+    meta = read_json_file(meta_path, remedy, PropertyModelError)
     meta = _checked_meta(meta, meta_path, remedy)
     state = load_weights_file(weights_path, remedy)
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):

@@ -40,7 +40,6 @@ features -> gated correction function, for use outside Python).
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import re
 import struct
@@ -52,6 +51,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 import mujoco
 import numpy as np
 
+from grounder._json_files import read_json_file
 from grounder._torch_files import load_weights_file, tensor_problem
 from grounder._track_smooth import quat_conj, quat_mul
 from grounder.errors import GrounderError, shown
@@ -1131,20 +1131,6 @@ def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.
     return arrays
 
 
-class _RepeatedKey(Exception):
-    """A JSON object of ``residual.json`` names the same key twice (args: the key)."""
-
-
-def _without_repeated_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """``json.loads``'s ``object_pairs_hook``: the object as a dict, or `_RepeatedKey` for a key given twice."""
-    out: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in out:
-            raise _RepeatedKey(key)
-        out[key] = value
-    return out
-
-
 def load_residual(
     scene_dir: Path, model: mujoco.MjModel, *, scene_xml: Path | None = None, check_scene_xml: bool = True
 ) -> NumpyResidual | NumpyJointResidual:
@@ -1172,18 +1158,7 @@ def load_residual(
 
     scene_dir = Path(scene_dir)
     meta_path, weights_path = scene_dir / META_FILE, scene_dir / WEIGHTS_FILE
-    try:
-        raw = json.loads(meta_path.read_text(encoding="utf-8"), object_pairs_hook=_without_repeated_keys)
-    except _RepeatedKey as exc:  # json keeps the last silently: which one training wrote cannot be told
-        raise GrounderError(f"{meta_path}: key {shown(exc.args[0])} appears twice in one object; {_RETRAIN}") from exc
-    except OSError as exc:
-        raise GrounderError(f"{meta_path}: could not be read ({exc.strerror or type(exc).__name__})") from exc
-    except UnicodeDecodeError as exc:
-        raise GrounderError(f"{meta_path}: not UTF-8 text (byte {exc.start}); {_RETRAIN}") from exc
-    except json.JSONDecodeError as exc:
-        raise GrounderError(f"{meta_path}: not valid JSON ({exc.msg}, line {exc.lineno}); {_RETRAIN}") from exc
-    except RecursionError as exc:
-        raise GrounderError(f"{meta_path}: JSON nested too deeply; {_RETRAIN}") from exc
+    raw = read_json_file(meta_path, _RETRAIN)
     meta = ResidualMeta.from_json(raw, meta_path)
     if meta.space == JOINT_SPACE:
         try:

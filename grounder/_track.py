@@ -47,6 +47,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from grounder._json_files import read_json_file
 from grounder._track_markers import (
     ObjectMarker,
     aligned_grid_px,
@@ -352,15 +353,14 @@ def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[Pi
             f"{rec_json} not found: the scene does not say which camera filmed it; pass the clip's intrinsics "
             "(--intrinsics FX FY CX CY)"
         )
-    try:  # the scene may be someone else's: every value checked before use
-        intr = json.loads(rec_json.read_text(encoding="utf-8"))["intrinsics"]
+    redo = "re-run `image2sim ground` for this scene, or pass the clip's intrinsics (--intrinsics FX FY CX CY)"
+    payload = read_json_file(rec_json, redo, TrackError)  # the scene may be someone else's: every value checked
+    try:
+        intr = payload["intrinsics"]
         keys = ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px")
         values = [float(intr[k]) for k in keys] + [float(intr.get(k, 0.0)) for k in ("k1", "k2")]
-    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
-        raise TrackError(
-            f"{rec_json}: no readable camera intrinsics ({type(exc).__name__}: {exc}); re-run `image2sim ground` for "
-            "this scene, or pass the clip's intrinsics (--intrinsics FX FY CX CY)"
-        ) from exc
+    except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as exc:
+        raise TrackError(f"{rec_json}: no readable camera intrinsics ({type(exc).__name__}: {exc}); {redo}") from exc
     if not (np.isfinite(values).all() and min(values[:4]) > 0):
         raise TrackError(
             f"{rec_json}: camera intrinsics {dict(zip(keys, values, strict=False))} are not positive finite numbers; "
@@ -396,14 +396,14 @@ def load_scan(
         log.info("feature models from renders only (no scan frames, or the clip has its own camera)")
         return None
     try:
-        rows = json.loads(transforms.read_text())["frames"]
+        rows = read_json_file(transforms, "re-run `image2sim ground`")["frames"]
         if not (isinstance(rows, list) and rows and all(isinstance(r, dict) for r in rows)):
             raise ValueError(f"{transforms}: 'frames' is not a list of frames")
-        objects = json.loads(manifest.read_text())["objects"]
+        objects = read_json_file(manifest, "re-run `image2sim ground`")["objects"]
         world_from_objects = [pose_matrix(objects[n]["pos_m"], objects[n]["quat_wxyz"]) for n in names]
         if not all(np.isfinite(pose).all() for pose in world_from_objects):
             raise ValueError(f"{manifest}: an object's pos_m or quat_wxyz is not finite")
-    except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+    except (GrounderError, ValueError, KeyError, TypeError) as exc:
         log.warning("scan frames not used for the feature models: %s", exc)
         return None
     picks = np.unique(np.linspace(0, len(rows) - 1, min(len(rows), options.scan_feature_frames)).round().astype(int))
@@ -1534,15 +1534,6 @@ def _options_json(options: TrackOptions) -> dict[str, object]:
     out = asdict(options)
     out.pop("object_markers")  # in "object_markers" with their placements
     return json.loads(json.dumps(out, default=str))
-
-
-def load_track_json(traj_dir: Path) -> dict[str, object]:
-    """Reads `track.json` of a trajectory folder written by `track`."""
-    path = Path(traj_dir) / TRACK_JSON
-    if not path.is_file():
-        raise TrackError(f"{path} not found; pass a folder written by `image2sim track`")
-    data: dict[str, object] = json.loads(path.read_text())
-    return data
 
 
 def iter_valid_runs(valid: np.ndarray) -> Iterator[tuple[int, int]]:

@@ -31,7 +31,6 @@ one only if the other reprojects `ambiguity_ratio` times worse.
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -40,6 +39,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from grounder._json_files import read_json_file
 from grounder._track_render import PinholeCamera
 from grounder._track_smooth import pose_matrix, quat_from_matrix, rotation_angle_deg
 from grounder.errors import GrounderError, shown
@@ -172,12 +172,7 @@ def _marker_from_row(row: object, where: str, origin: str) -> ObjectMarker:
 def load_object_markers(path: Path) -> tuple[ObjectMarker, ...]:
     """The markers of a layout file (module docstring). Raises GrounderError, one line, on anything malformed."""
     path = Path(path)
-    try:
-        payload = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise GrounderError(
-            f"{path}: cannot read the marker layout ({type(exc).__name__}: {exc}); pass a JSON file as documented"
-        ) from exc
+    payload = read_json_file(path, "pass a marker layout (JSON) as README documents it")
     rows = payload.get("markers") if isinstance(payload, dict) else None
     if not isinstance(rows, list) or not rows:
         raise GrounderError(f'{path}: expected {{"markers": [...]}} with at least one marker')
@@ -193,10 +188,10 @@ def scene_markers(scene_json: Path) -> tuple[ObjectMarker, ...]:
     path = Path(scene_json)
     if not path.is_file():
         return ()
-    try:
-        rows = json.loads(path.read_text()).get("object_markers") or []
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError, RecursionError) as exc:
-        raise GrounderError(f"{path}: cannot read it ({type(exc).__name__}: {exc}); ground the scene again") from exc
+    manifest = read_json_file(path, "ground the scene again")
+    if not isinstance(manifest, dict):
+        raise GrounderError(f"{path}: expected a JSON object, not {shown(manifest)}; ground the scene again")
+    rows = manifest.get("object_markers") or []
     if not isinstance(rows, list):
         raise GrounderError(
             f"{path}: 'object_markers' is {type(rows).__name__} {shown(rows)}, not a list of markers; ground the "

@@ -850,15 +850,22 @@ def test_deeply_nested_scene_json_is_refused_before_the_work(synthetic, tmp_path
     (scene / "scene.json").write_text("[" * 100_000)
     steps: list[str] = []
     options = CalibrateOptions(params=("cube.friction.sliding",), generations=0, local_iterations=0)
-    with pytest.raises(GrounderError, match=r"scene\.json: unreadable scene\.json \(nested deeper"):
+    with pytest.raises(GrounderError, match=r"scene\.json: JSON nested too deeply"):
         calibrate(scene, trajs[:2], options=options, out=tmp_path / "out", progress=lambda s, _d, _t: steps.append(s))
     assert steps == [] and not (tmp_path / "out").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["scene"]
-    with pytest.raises(GrounderError, match=r"nested deeper.*re-run `image2sim ground`"):
+    with pytest.raises(GrounderError, match=r"nested too deeply.*re-run `image2sim ground`"):
         embedding_space(scene, mujoco.MjModel.from_xml_path(str(CUBE_XML)))
     (scene / "scene.json").write_text("{not json")
-    with pytest.raises(GrounderError, match=r"scene\.json: unreadable scene\.json \(Expecting"):
+    with pytest.raises(GrounderError, match=r"scene\.json: not valid JSON \(Expecting"):
         calibrate(scene, trajs[:2], options=options, out=tmp_path / "out")
+    # Python's json keeps the last of a repeated key: which the writer meant cannot be told, so it is refused.
+    (scene / "scene.json").write_text('{"objects": {"cube": {"density_kg_m3": 500}}, "objects": {}}')
+    with pytest.raises(GrounderError, match=r'scene\.json: key "objects" appears twice in one object; restore it'):
+        calibrate(scene, trajs[:2], options=options, out=tmp_path / "out")
+    with pytest.raises(GrounderError, match=r'key "objects" appears twice.*re-run `image2sim ground`'):
+        embedding_space(scene, mujoco.MjModel.from_xml_path(str(CUBE_XML)))
+    assert steps == [] and not (tmp_path / "out").exists()
     calibrate(scene, trajs[:2], options=options)  # no output folder: scene.json is not read
 
 

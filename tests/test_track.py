@@ -272,8 +272,11 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
     "content",
     ['{"intrinsics": {"width_px": 640}}', '{"intrinsics": {"width_px": "wide", "height_px": 480, "fx_px": 1, '
      '"fy_px": 1, "cx_px": 1, "cy_px": 1}}', "[1, 2]", "not json", '{"intrinsics": {"width_px": 640, '
-     '"height_px": 480, "fx_px": -500, "fy_px": 500, "cx_px": 320, "cy_px": 240}}', "[" * 100_000],
-    ids=["missing", "text", "list", "garbage", "negative", "nested too deep (was a RecursionError traceback)"],
+     '"height_px": 480, "fx_px": -500, "fy_px": 500, "cx_px": 320, "cy_px": 240}}', "[" * 100_000,
+     '{"intrinsics": {"width_px": 640, "height_px": 480, "fx_px": 500, "fy_px": 500, "cx_px": 320, "cy_px": 240, '
+     '"fx_px": 900}}'],
+    ids=["missing", "text", "list", "garbage", "negative", "nested too deep (was a RecursionError traceback)",
+         "a key twice (the last was used)"],
 )  # fmt: skip
 def test_a_scene_with_unreadable_intrinsics_is_one_error(content: str, tmp_path: Path) -> None:
     """The scene's reconstruct.json comes with the scene (maybe someone else's): a missing or malformed value was a

@@ -189,7 +189,8 @@ def test_a_misplaced_marker_shows_as_disagreement_with_the_model_based_track() -
 def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
     path = tmp_path / "markers.json"
     cases = {
-        "not json": "cannot read the marker layout",
+        "not json": "not valid JSON",
+        '{"markers": [{"id": 1, "size_m": 0.05, "id": 2}]}': 'key "id" appears twice',  # was read as marker 2
         '{"markers": []}': "at least one marker",
         '{"markers": [{"id": 1}]}': "needs id and size_m",
         '{"markers": [{"id": 1, "size_m": 48}]}': "expected the square's side in metres",
@@ -205,7 +206,7 @@ def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
         '{"markers": [{"id": Infinity, "size_m": 0.05}]}': "id must be a whole number, got Infinity",
         '{"markers": [{"id": 2.9, "size_m": 0.05}]}': "id must be a whole number, got 2.9",
         '{"markers": [{"id": true, "size_m": 0.05}]}': "id must be a whole number, got true",
-        "[" * 100_000: r"cannot read the marker layout \(RecursionError",  # was a RecursionError traceback
+        "[" * 100_000: "nested too deeply",  # was a RecursionError traceback
     }
     for text, expected in cases.items():
         path.write_text(text)
@@ -236,7 +237,10 @@ def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
     with pytest.raises(GrounderError, match=r"'object_markers' is int 5, not a list of markers; ground the scene"):
         scene_markers(tmp_path / "scene.json")
     (tmp_path / "scene.json").write_text('{"object_markers": ' + "[" * 100_000)
-    with pytest.raises(GrounderError, match=r"scene\.json: cannot read it \(RecursionError"):
+    with pytest.raises(GrounderError, match=r"scene\.json: JSON nested too deeply.*; ground the scene again"):
+        scene_markers(tmp_path / "scene.json")
+    (tmp_path / "scene.json").write_text("[1]")  # was an AttributeError message
+    with pytest.raises(GrounderError, match=r"scene\.json: expected a JSON object, not \[1\]; ground the scene"):
         scene_markers(tmp_path / "scene.json")
 
 
