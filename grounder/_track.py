@@ -345,6 +345,18 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
     return frames, fps
 
 
+def distortion_folds(k1: float, k2: float, image_radius: float) -> bool:
+    """Whether OpenCV's radial distortion r_d = r (1 + k1 r^2 + k2 r^4) stops increasing before the distorted radius
+    reaches ``image_radius`` (normalised image coordinates): two scene directions would then land on one pixel, and
+    no undistortion can tell them apart."""
+    radius = np.linspace(0.0, 50.0 * max(image_radius, 1e-6), 200_001)
+    slope = 1.0 + 3.0 * k1 * radius**2 + 5.0 * k2 * radius**4
+    reached = radius * (1.0 + k1 * radius**2 + k2 * radius**4) >= image_radius
+    if not reached.any():  # that radius is never reached: the mapping folds (or shrinks) first
+        return True
+    return bool((slope[: int(np.argmax(reached)) + 1] <= 0.0).any())
+
+
 def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[PinholeCamera, np.ndarray]:
     """The scan's intrinsics, scaled to the clip's size, and OpenCV distortion (k1, k2, 0, 0)."""
     rec_json = scene_xml.parent / "reconstruction" / "reconstruct.json"
@@ -364,9 +376,19 @@ def scene_intrinsics(scene_xml: Path, width_px: int, height_px: int) -> tuple[Pi
     if not (np.isfinite(values).all() and min(values[:4]) > 0):
         raise TrackError(
             f"{rec_json}: camera intrinsics {dict(zip(keys, values, strict=False))} are not positive finite numbers; "
-            "re-run `image2sim ground` for this scene, or pass the clip's intrinsics (--intrinsics FX FY CX CY)"
+            f"{redo}"
         )
     intr = dict(zip((*keys, "k1", "k2"), values, strict=True))
+    corner_radius = np.hypot(
+        max(intr["cx_px"], intr["width_px"] - intr["cx_px"]) / intr["fx_px"],
+        max(intr["cy_px"], intr["height_px"] - intr["cy_px"]) / intr["fy_px"],
+    )
+    # A fit may bend the model a little past its data at the very corners; folding halfway out is no lens at all.
+    if distortion_folds(intr["k1"], intr["k2"], 0.5 * corner_radius):
+        raise TrackError(
+            f"{rec_json}: distortion k1={intr['k1']:g}, k2={intr['k2']:g} folds the image over less than halfway to "
+            f"its corners (no real lens does; frames could not be undistorted); {redo}"
+        )
     sx, sy = width_px / intr["width_px"], height_px / intr["height_px"]
     if abs(sx - sy) > 1e-3:
         raise TrackError(

@@ -289,6 +289,31 @@ def test_a_scene_with_unreadable_intrinsics_is_one_error(content: str, tmp_path:
         scene_intrinsics(tmp_path / "scene.xml", 640, 480)
 
 
+def test_a_distortion_that_folds_the_image_is_refused(tmp_path: Path) -> None:
+    """k1, k2 come from the scene's reconstruct.json: a radial model that folds over inside the image (two directions
+    on one pixel) was accepted and undistorted into garbage; a real lens's values still load."""
+    from grounder._track import distortion_folds, scene_intrinsics
+
+    (tmp_path / "reconstruction").mkdir()
+    base = {"width_px": 640, "height_px": 480, "fx_px": 500, "fy_px": 500, "cx_px": 320, "cy_px": 240}
+    # A phone's barrel, a wide lens's (k2 bends it back) and a positive k1 load; the image radius here is 0.8.
+    for k1, k2 in [(-0.05, 0.002), (-0.3, 0.1), (0.2, 0.0)]:
+        (tmp_path / "reconstruction" / "reconstruct.json").write_text(
+            json.dumps({"intrinsics": {**base, "k1": k1, "k2": k2}})
+        )
+        _, dist = scene_intrinsics(tmp_path / "scene.xml", 640, 480)
+        assert dist.tolist() == [k1, k2, 0.0, 0.0]
+    for k1, k2 in [(-1e6, 0.0), (0.0, -50.0), (-1.5, 0.0)]:
+        (tmp_path / "reconstruction" / "reconstruct.json").write_text(
+            json.dumps({"intrinsics": {**base, "k1": k1, "k2": k2}})
+        )
+        with pytest.raises(TrackError, match=r"reconstruct\.json: distortion .* folds the image over"):
+            scene_intrinsics(tmp_path / "scene.xml", 640, 480)
+    # The fold radius of r (1 + k1 r^2) is 1/sqrt(-3 k1), where it reaches r_d = (2/3)/sqrt(-3 k1).
+    fold_rd = (2.0 / 3.0) / np.sqrt(3.0 * 0.5)
+    assert not distortion_folds(-0.5, 0.0, fold_rd - 1e-3) and distortion_folds(-0.5, 0.0, fold_rd + 1e-3)
+
+
 def test_scan_frames_outside_the_scene_are_not_read(tmp_path: Path) -> None:
     """transforms.json names its images; one naming a file outside the scene's reconstruction/ folder is not read
     (the scan frames are then left out, as when they are missing)."""
