@@ -764,6 +764,25 @@ def _start_variant(model: mujoco.MjModel, body: str, impact: Impact, delta: np.n
     return _impact_trajectory(impact, qpos, qvel)
 
 
+def _gaussian_draws(rng: np.random.Generator, cov: np.ndarray, size: int) -> np.ndarray:
+    """(size, D) zero-mean draws of covariance ``cov`` (D, D; positive semi-definite, maybe singular), the same on
+    every machine for one seed.
+
+    NumPy's ``multivariate_normal`` factors by an SVD, whose singular vectors' signs (and, for a near-singular
+    matrix such as a drift's squared-exponential covariance, the vectors themselves) depend on the CPU's LAPACK
+    kernels: one seed gave other draws, and other fits, on another CPU. A Cholesky factor is unique; a relative
+    1e-12 on the diagonal makes a singular covariance definite without changing any variance measurably.
+    """
+    jitter = 1e-12 * max(float(np.max(np.diag(cov), initial=0.0)), 1e-300)
+    sym = 0.5 * (cov + cov.T) + jitter * np.eye(len(cov))
+    try:
+        factor = np.linalg.cholesky(sym)
+    except np.linalg.LinAlgError:  # not semi-definite beyond rounding: the nearest that is, by its eigenvalues
+        values, vectors = np.linalg.eigh(sym)
+        factor = vectors * np.sqrt(np.clip(values, 0.0, None))
+    return rng.standard_normal((size, len(cov))) @ factor.T
+
+
 def _propagated_covariance(model: mujoco.MjModel, body: str, impact: Impact, options: ImpactOptions) -> np.ndarray:
     """(D, D) covariance of the compared frames' residuals (`_compared`'s): the tracked frames' own error plus the
     start's errors carried through the contact. With `options.start_samples`, the sample covariance of the simulated
@@ -773,10 +792,10 @@ def _propagated_covariance(model: mujoco.MjModel, body: str, impact: Impact, opt
     standard deviation, so across the contact's switches a secant, not a tangent); the drift is then left out."""
     if options.start_samples:
         rng = np.random.default_rng(options.start_seed)
-        deltas = rng.multivariate_normal(np.zeros(12), impact.start_cov, size=options.start_samples)
+        deltas = _gaussian_draws(rng, impact.start_cov, options.start_samples)
         shifts = np.zeros((options.start_samples, 0))
         if impact.drift_cov.size:  # the drift moves the start and the compared frames together
-            drift = rng.multivariate_normal(np.zeros(len(impact.drift_cov)), impact.drift_cov, size=len(deltas))
+            drift = _gaussian_draws(rng, impact.drift_cov, len(deltas))
             deltas += drift @ impact.drift_start.T
             shifts = drift @ impact.drift_after[: _compared_size(impact, options.compare_rotation)].T
         trajs = [_start_variant(model, body, impact, d) for d in deltas]

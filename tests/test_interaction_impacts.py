@@ -251,7 +251,7 @@ def _drifting(traj: Trajectory, seed: int, drift_m: float, drift_time_s: float) 
     qpos = traj.qpos.copy()
     lag = traj.time_s[:, None] - traj.time_s[None, :]
     cov = drift_m**2 * np.exp(-0.5 * (lag / drift_time_s) ** 2) + 1e-12 * np.eye(len(lag))
-    depth = rng.multivariate_normal(np.zeros(len(lag)), cov)
+    depth = rng.multivariate_normal(np.zeros(len(lag)), cov, method="cholesky")  # SVD's draws vary by CPU
     rays = qpos[:, :3] - VIEW_POINT_M
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     qpos[:, :3] += depth[:, None] * rays + rng.normal(scale=3e-4, size=(len(qpos), 3))
@@ -263,7 +263,8 @@ def _drifting(traj: Trajectory, seed: int, drift_m: float, drift_time_s: float) 
 def test_a_drifting_depth_error_leaves_the_values_within_10_percent(seed: int) -> None:
     """Tracked with a depth error that drifts by 6 mm over 0.3 s (which no flight's residuals show; the scanned can of
     `samples/toss` was 4.4-9.4 mm off for 0.45 s), more than the default drift model's 4 mm, the sliding throw's
-    friction and restitution still come back within 10%, compared in position and orientation."""
+    friction and restitution still come back within 10%, compared in position and orientation. (Not for every draw:
+    of seeds 2-7, seed 2 gives a restitution of 0.525, -12.5%; the other five are within 10%.)"""
     truth = _scene(0.3, 0.6).compile()
     traj, _ = _throw(truth, (1.5, 0.3, -0.8), (1.0, -3.0, 0.5))
     model = _prior()
@@ -321,3 +322,25 @@ def test_a_value_stays_resolved_only_where_copies_of_the_tracks_agree() -> None:
     ]
     assert not all(confirmed)
     assert shaken.friction_resolved == confirmed[0] and shaken.restitution_resolved == confirmed[1]
+
+
+def test_start_draws_are_the_cholesky_factors_and_keep_a_singular_covariance() -> None:
+    """The start states are drawn by a Cholesky factor, unique, where NumPy's `multivariate_normal` factors by an SVD
+    whose vectors' signs depend on the CPU's LAPACK: one seed gave other draws, and a restitution of 0.525 instead of
+    0.6, on an AMD EPYC. A drift's squared-exponential covariance is singular (plain Cholesky fails on it); the draws
+    still have its covariance, and a matrix a rounding error below semi-definite is drawn from too."""
+    from grounder._interaction_impacts import _gaussian_draws
+
+    time_s = np.arange(12) / 30.0
+    cov = 0.004**2 * np.exp(-0.5 * ((time_s[:, None] - time_s[None, :]) / 0.3) ** 2)
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.cholesky(cov)
+    draws = _gaussian_draws(np.random.default_rng(0), cov, 200_000)
+    assert np.abs(np.cov(draws, rowvar=False) - cov).max() < 0.02 * cov.max()
+    expected = (
+        np.random.default_rng(0).standard_normal((3, 12)) @ np.linalg.cholesky(cov + 1e-12 * cov.max() * np.eye(12)).T
+    )
+    assert np.array_equal(_gaussian_draws(np.random.default_rng(0), cov, 3), expected)
+    below = cov - 1e-9 * cov.max() * np.eye(12)  # eigenvalues down to -1e-9 of the largest variance
+    draws = _gaussian_draws(np.random.default_rng(1), below, 200_000)
+    assert np.isfinite(draws).all() and np.abs(np.cov(draws, rowvar=False) - cov).max() < 0.02 * cov.max()
