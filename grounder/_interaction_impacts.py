@@ -972,15 +972,10 @@ def stable_fit(
     fit = fit_impacts(model, contact, impacts, options, progress=progress)
     copies = []
     for k in range(options.stability_copies):
-        moved = find_impacts(
-            model, body, _moved(trajs, options.stability_m, options.start_seed + 1 + k), options, view_point_m
-        )
+        seed = options.start_seed + 1 + k
+        moved = find_impacts(model, body, _moved(trajs, options.stability_m, seed), options, view_point_m)
         # Each copy also draws its own start states: a value resolved under one draw of them only is not measured.
-        other = (
-            fit_impacts(model, contact, moved, replace(options, start_seed=options.start_seed + 1 + k))
-            if moved
-            else None
-        )
+        other = fit_impacts(model, contact, moved, replace(options, start_seed=seed)) if moved else None
         copies.append(
             (float("nan"), float("nan"), False, False)
             if other is None
