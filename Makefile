@@ -34,8 +34,11 @@ lint: install
 typecheck: install
 	$(VENV)/bin/mypy
 
+# Tests run in parallel, one worker per core (at most 4); tests that share a grounding or a module's fixture run on
+# one worker (tests/conftest.py). PYTEST_WORKERS=0 runs them in this process.
+PYTEST_WORKERS ?= auto
 pytest: install
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --maxprocesses 4 --dist loadgroup
 
 test: lint typecheck pytest
 

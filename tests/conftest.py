@@ -77,3 +77,32 @@ def reconstruction_of_points() -> Callable[[np.ndarray], ReconstructionResult]:
         )  # fmt: skip
 
     return make
+
+
+# Session fixtures that ground a whole video: every test that needs one runs on the worker that grounds it.
+_SHARED_GROUNDINGS = ("grounded_apple", "grounded_tabletop")
+
+
+def xdist_group_of(item: pytest.Item) -> str | None:
+    """The pytest-xdist group a test belongs to (`make test` runs `--dist loadgroup`), or None to run anywhere.
+
+    A worker is its own process, so a fixture wider than one test is built once per worker that needs it: tests
+    of one grounding share a group (one grounding, not one per worker), and so do the tests of a module with a
+    module-scoped fixture (its fixture is built once, and module-level state such as a Ray instance stays in one
+    process)."""
+    names = getattr(item, "fixturenames", ())
+    for name in _SHARED_GROUNDINGS:
+        if name in names:
+            return name
+    info = getattr(item, "_fixtureinfo", None)
+    for defs in info.name2fixturedefs.values() if info is not None else ():
+        if defs and defs[-1].scope == "module":
+            return item.nodeid.split("::", 1)[0]
+    return None
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        group = xdist_group_of(item)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
