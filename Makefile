@@ -34,11 +34,11 @@ lint: install
 typecheck: install
 	$(VENV)/bin/mypy
 
-# Tests run in parallel, one worker per core (at most 4); tests that share a grounding or a module's fixture run on
-# one worker (tests/conftest.py). PYTEST_WORKERS=0 runs them in this process.
+# Tests run in parallel, one worker per core (at most 4), a test file to a worker (its module fixtures are built
+# once); a grounding two files share is built once per run (tests/conftest.py). PYTEST_WORKERS=0: no workers.
 PYTEST_WORKERS ?= auto
 pytest: install
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --maxprocesses 4 --dist loadgroup
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --maxprocesses 4 --dist loadfile
 
 test: lint typecheck pytest
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Callable
@@ -10,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from filelock import FileLock
 
 from reconstruction import CameraIntrinsics, ReconstructionResult, RegisteredFrame, ScaleSource, WorldFrame
 
@@ -35,26 +37,42 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def _once_per_run(tmp_path_factory: pytest.TempPathFactory, name: str, cmd: list[str]) -> Path:
+    """Runs the `image2sim` command `cmd` + `-o OUT` once per test run and returns OUT.
+
+    `make test` runs the test files on several pytest-xdist workers (`--dist loadfile`), each its own process with
+    its own session fixtures; the folder and its lock lie in the run's shared temporary folder, so the first worker
+    that needs it runs the command and the others wait for its result instead of grounding the video again. A
+    failed run leaves no `.done` mark: the next worker to ask runs it again and reports its own failure."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the workers' basetemps are siblings under the run's folder
+    out, done = root / name / "scene", root / f"{name}.done"
+    with FileLock(str(root / f"{name}.lock")):
+        if not done.exists():
+            shutil.rmtree(out.parent, ignore_errors=True)
+            out.parent.mkdir(parents=True)
+            full = [sys.executable, "-m", "grounder.cli", *cmd, "-o", str(out)]
+            proc = subprocess.run(full, capture_output=True, text=True, timeout=900)
+            assert proc.returncode == 0, proc.stderr[-3000:]
+            assert f"MJCF: {out / 'scene.xml'}" in proc.stdout
+            done.touch()
+    return out
+
+
 @pytest.fixture(scope="session")
 def grounded_tabletop(tabletop_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """`image2sim ground` on the tabletop sample, run once per test session through the CLI (about a minute)."""
-    out = tmp_path_factory.mktemp("ground") / "scene"
-    cmd = [sys.executable, "-m", "grounder.cli", "ground", str(tabletop_dir / "video.mp4"), "-o", str(out)]
-    proc = subprocess.run([*cmd, "--aruco-size", "0.12"], capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    assert f"MJCF: {out / 'scene.xml'}" in proc.stdout
-    return out
+    """`image2sim ground` on the tabletop sample, run once per test run through the CLI (about a minute)."""
+    cmd = ["ground", str(tabletop_dir / "video.mp4"), "--aruco-size", "0.12"]
+    return _once_per_run(tmp_path_factory, "grounded_tabletop", cmd)
 
 
 @pytest.fixture(scope="session")
 def grounded_apple(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """`image2sim ground` on the real apple video with `--known-extent 0.08`, once per session (about 90 s): the
+    """`image2sim ground` on the real apple video with `--known-extent 0.08`, once per test run (about 90 s): the
     film-a-scene test reads its scene, the reconstruct test its `reconstruction/` stage output (one run, not two)."""
-    out = tmp_path_factory.mktemp("apple") / "scene"
-    cmd = [sys.executable, "-m", "grounder.cli", "ground", str(shared_data / "apple_video" / "apple.mp4")]
-    proc = subprocess.run([*cmd, "-o", str(out), "--known-extent", "0.08"], capture_output=True, text=True, timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return out
+    cmd = ["ground", str(shared_data / "apple_video" / "apple.mp4"), "--known-extent", "0.08"]
+    return _once_per_run(tmp_path_factory, "grounded_apple", cmd)
 
 
 @pytest.fixture
@@ -77,32 +95,3 @@ def reconstruction_of_points() -> Callable[[np.ndarray], ReconstructionResult]:
         )  # fmt: skip
 
     return make
-
-
-# Session fixtures that ground a whole video: every test that needs one runs on the worker that grounds it.
-_SHARED_GROUNDINGS = ("grounded_apple", "grounded_tabletop")
-
-
-def xdist_group_of(item: pytest.Item) -> str | None:
-    """The pytest-xdist group a test belongs to (`make test` runs `--dist loadgroup`), or None to run anywhere.
-
-    A worker is its own process, so a fixture wider than one test is built once per worker that needs it: tests
-    of one grounding share a group (one grounding, not one per worker), and so do the tests of a module with a
-    module-scoped fixture (its fixture is built once, and module-level state such as a Ray instance stays in one
-    process)."""
-    names = getattr(item, "fixturenames", ())
-    for name in _SHARED_GROUNDINGS:
-        if name in names:
-            return name
-    info = getattr(item, "_fixtureinfo", None)
-    for defs in info.name2fixturedefs.values() if info is not None else ():
-        if defs and defs[-1].scope == "module":
-            return item.nodeid.split("::", 1)[0]
-    return None
-
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:
-        group = xdist_group_of(item)
-        if group is not None:
-            item.add_marker(pytest.mark.xdist_group(group))
