@@ -18,7 +18,8 @@ if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
     _os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 
-from grounder._ground import GroundOptions, GroundResult, ground
+from typing import TYPE_CHECKING
+
 from grounder._trajectory import (
     Trajectory,
     load_trajectories,
@@ -29,8 +30,12 @@ from grounder._trajectory import (
 )
 from grounder.errors import GrounderError, TrajectoryError
 
-# name -> module that defines it; resolved on first attribute access (PEP 562).
+# name -> module that defines it; resolved on first attribute access (PEP 562). `ground` is among them: it pulls in
+# COLMAP, Open3D and trimesh, and the command line starts (`image2sim --help`, a refused option) without them.
 _LAZY = {
+    "GroundOptions": "grounder._ground",
+    "GroundResult": "grounder._ground",
+    "ground": "grounder._ground",
     "CalibrateOptions": "grounder._calibrate",
     "CalibrationResult": "grounder._calibrate",
     "calibrate": "grounder._calibrate",
@@ -61,14 +66,22 @@ def __getattr__(name: str) -> object:
     raise AttributeError(f"module 'grounder' has no attribute {name!r}")
 
 
+if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
+    from grounder._calibrate import CalibrateOptions, CalibrationResult, calibrate
+    from grounder._diagnose import DiagnoseOptions, Diagnosis, diagnose, diagnose_files
+    from grounder._ground import GroundOptions, GroundResult, ground
+    from grounder._import import load_dair_pll_cube
+    from grounder._interaction import InteractionOptions, InteractionResult, ground_with_interaction
+    from grounder._residual_train import ResidualOptions, train_residual
+    from grounder._simulate import simulate
+    from grounder._simulator import Simulator, has_residual
+    from grounder._track import TrackOptions, TrackResult, track
+
 __all__ = [
     *sorted(_LAZY),
-    "GroundOptions",
-    "GroundResult",
     "GrounderError",
     "Trajectory",
     "TrajectoryError",
-    "ground",
     "load_trajectories",
     "load_trajectory",
     "save_trajectories",
