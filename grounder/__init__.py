@@ -77,14 +77,35 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from grounder._simulator import Simulator, has_residual
     from grounder._track import TrackOptions, TrackResult, track
 
-__all__ = [
-    *sorted(_LAZY),
+__all__ = [  # spelled out (not built from _LAZY) so that linters and type checkers read it
+    "CalibrateOptions",
+    "CalibrationResult",
+    "DiagnoseOptions",
+    "Diagnosis",
+    "GroundOptions",
+    "GroundResult",
     "GrounderError",
+    "InteractionOptions",
+    "InteractionResult",
+    "ResidualOptions",
+    "Simulator",
+    "TrackOptions",
+    "TrackResult",
     "Trajectory",
     "TrajectoryError",
+    "calibrate",
+    "diagnose",
+    "diagnose_files",
+    "ground",
+    "ground_with_interaction",
+    "has_residual",
+    "load_dair_pll_cube",
     "load_trajectories",
     "load_trajectory",
     "save_trajectories",
     "save_trajectory",
+    "simulate",
+    "track",
+    "train_residual",
     "validate_against_model",
 ]

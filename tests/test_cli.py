@@ -75,6 +75,24 @@ def test_console_script_installed() -> None:
     assert subprocess.run([str(exe), "--help"], capture_output=True, timeout=60).returncode == 0
 
 
+def test_the_command_line_starts_without_the_grounding_pipeline() -> None:
+    """`import grounder` (and so `image2sim --help` or a refused option) loads none of COLMAP, Open3D, trimesh or
+    torch; each public name still resolves to what it names, and `__all__` lists every lazy name."""
+    code = (
+        "import sys, grounder; print(sorted(m for m in ('pycolmap', 'open3d', 'trimesh', 'torch', "
+        "'grounder._ground') if m in sys.modules))"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.strip() == "[]", (proc.stdout, proc.stderr[-2000:])
+    import grounder
+    from grounder._ground import ground
+
+    assert set(grounder._LAZY) <= set(grounder.__all__)
+    assert grounder.ground is ground and all(getattr(grounder, name) is not None for name in grounder.__all__)
+    with pytest.raises(AttributeError, match="no attribute 'grund'"):
+        _ = grounder.grund  # type: ignore[attr-defined]
+
+
 def _write_images(folder: Path, images: list[np.ndarray], suffix: str = ".png") -> Path:
     folder.mkdir(parents=True)
     for i, image in enumerate(images):
