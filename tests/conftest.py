@@ -38,7 +38,8 @@ def shared_data() -> Path:
 
 
 def _once_per_run(tmp_path_factory: pytest.TempPathFactory, name: str, cmd: list[str]) -> Path:
-    """Runs the `image2sim` command `cmd` + `-o OUT` once per test run and returns OUT.
+    """Runs the `image2sim` command `cmd` + `-o OUT` once per test run and returns OUT (its stdout and stderr are
+    kept beside it, in OUT's parent).
 
     `make test` runs the test files on several pytest-xdist workers (`--dist loadfile`), each its own process with
     its own session fixtures; the folder and its lock lie in the run's shared temporary folder, so the first worker
@@ -56,6 +57,8 @@ def _once_per_run(tmp_path_factory: pytest.TempPathFactory, name: str, cmd: list
             proc = subprocess.run(full, capture_output=True, text=True, timeout=900)
             assert proc.returncode == 0, proc.stderr[-3000:]
             assert f"MJCF: {out / 'scene.xml'}" in proc.stdout
+            (out.parent / "stdout.txt").write_text(proc.stdout)
+            (out.parent / "stderr.txt").write_text(proc.stderr)
             done.touch()
     return out
 
