@@ -38,7 +38,7 @@ typecheck: install
 # once); a grounding two files share is built once per run (tests/conftest.py). PYTEST_WORKERS=0: no workers.
 PYTEST_WORKERS ?= auto
 pytest: install
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --maxprocesses 4 --dist loadfile
+	$(PY) -m pytest -n $(PYTEST_WORKERS) --maxprocesses 4 --dist loadfile --no-loadscope-reorder
 
 test: lint typecheck pytest
 
