@@ -56,12 +56,18 @@ def fit_support_plane(points: np.ndarray, cam_centres: np.ndarray, *, seed: int 
     _, inlier_ids = cloud.segment_plane(distance_threshold=threshold, ransac_n=3, num_iterations=2000)
     inliers = np.zeros(len(points), bool)
     inliers[np.asarray(inlier_ids, int)] = True
-    for _ in range(2):  # least-squares refit, then re-select inliers at the same threshold
+    # Least-squares refit, then re-select inliers at the same threshold, until the inliers stop changing: two rounds
+    # left the plane where RANSAC's sample put it (Open3D's RANSAC runs in threads and is not repeatable), and the
+    # scale a known extent gives moved by 1% between runs on the same points.
+    for _ in range(20):
         on_plane = points[inliers]
         mean = on_plane.mean(axis=0)
         normal = np.linalg.svd(on_plane - mean)[2][2]
         offset = -float(normal @ mean)
-        inliers = np.abs(points @ normal + offset) < threshold
+        refit = np.abs(points @ normal + offset) < threshold
+        if np.array_equal(refit, inliers):
+            break
+        inliers = refit
     if np.median(cam_centres @ normal + offset) < 0:
         normal, offset = -normal, -offset
     return Plane(normal=normal, offset=offset, inliers=inliers)

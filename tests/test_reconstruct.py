@@ -102,6 +102,20 @@ def test_colmap_model_is_in_world_frame(reconstruction_dir: Path) -> None:
     assert np.all(cams[:, 2] > 0.2)
 
 
+def test_table_plane_does_not_depend_on_the_ransac_draw(reconstruction_dir: Path) -> None:
+    """The plane is refitted until its inliers settle, so RANSAC's seed (and Open3D's threads, which make one seed
+    unrepeatable) do not move it: with two refits, seeds 0-3 kept 1433-1449 inliers of the sample's sparse points
+    and the known-extent scale moved by 1%; here the inlier sets must agree within 0.5% (a few points of the
+    1430 may settle either way; 20-46 did) and the normals within 0.015 deg (0.03-0.11 deg)."""
+    rec = pycolmap.Reconstruction(reconstruction_dir / "sparse")
+    points = np.array([p.xyz for p in rec.points3D.values()])
+    cams = np.array([im.projection_center() for im in rec.images.values()])
+    planes = [fit_support_plane(points, cams, seed=seed) for seed in range(4)]
+    for plane in planes[1:]:
+        assert (plane.inliers != planes[0].inliers).sum() <= 0.005 * planes[0].inliers.sum()
+        assert np.degrees(np.arccos(min(1.0, float(plane.normal @ planes[0].normal)))) < 0.015
+
+
 def test_known_extent_and_unknown_scale_on_the_same_model(reconstruction_dir: Path, tabletop_dir: Path) -> None:
     """The model is already metric, so --known-extent with the true largest extent must find scale ~1."""
     objects = json.loads((tabletop_dir / "truth" / "objects.json").read_text())["objects"]
