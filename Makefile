@@ -37,10 +37,17 @@ typecheck: install
 # Tests run in parallel, one worker per core (at most 4), a test file to a worker (its module fixtures are built
 # once); a grounding two files share is built once per run (tests/conftest.py). PYTEST_WORKERS=0: no workers.
 PYTEST_WORKERS ?= auto
+PYTEST := $(PY) -m pytest -n $(PYTEST_WORKERS) --maxprocesses 4 --dist loadfile --no-loadscope-reorder
 pytest: install
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --maxprocesses 4 --dist loadfile --no-loadscope-reorder
+	$(PYTEST)
 
-test: lint typecheck pytest
+# mypy (a minute on one core from a cold cache) checks beside pytest rather than before it; its report follows
+# pytest's, and either failing fails the target.
+test: lint
+	@log=$$(mktemp); $(VENV)/bin/mypy > $$log 2>&1 & mypy_pid=$$!; \
+	$(PYTEST); pytest_rc=$$?; \
+	wait $$mypy_pid; mypy_rc=$$?; echo "mypy:"; cat $$log; rm -f $$log; \
+	test $$pytest_rc -eq 0 -a $$mypy_rc -eq 0
 
 samples: install
 	$(PY) samples/make_tabletop.py
