@@ -15,12 +15,9 @@ install: $(STAMP)
 $(STAMP): pyproject.toml Makefile constraints.txt
 	@bash .ci/system-packages.sh $(APT_PACKAGES)
 	@test -x $(PY) || python3 -m venv $(VENV)
-	@# torch first, pinned: the CPU build on this machine; a plain `torch` would pull a multi-GB CUDA build.
-	@$(PY) -c "import sys, torch; sys.exit(torch.__version__.split('+')[0] != '2.13.0')" 2>/dev/null \
-		|| $(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet --upgrade pip
-	@# constraints.txt: the versions the tests and README figures were measured with (newer releases drift).
-	$(PY) -m pip install --quiet -c constraints.txt -e '.[test]'
+	@# torch==2.13.0 first (the CPU build on this machine), then the project at the versions in constraints.txt;
+	@# with uv where it can be had (a minute against pip's three on a clean clone), else pip.
+	bash .ci/python-packages.sh $(VENV)
 	@touch $(STAMP)
 
 demo: install
