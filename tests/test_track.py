@@ -95,6 +95,37 @@ def test_renderer_matches_pinhole_projection_and_depth(toss_truth: dict[str, np.
     assert np.percentile(np.abs(outside.max(axis=1)), 50) < 1e-3  # and on a face
 
 
+def test_object_ids_read_from_the_depth_render_are_mujocos_segmentation(toss_truth: dict[str, np.ndarray]) -> None:
+    """The object ids come from the depth render's colour buffer (drawn with segment colours) rather than from a
+    third render: pixel for pixel what `mujoco.Renderer`'s own segmentation render gives, on frames where the
+    objects overlap, one is parked behind the camera, or all three are in view."""
+    intr, world_from_cam = _truth_camera()
+    camera = PinholeCamera.from_colmap(intr["width"], intr["height"], intr["fx"], intr["fy"], intr["cx"], intr["cy"])
+    seen: set[int] = set()
+    with PoseRenderer(TOSS / "truth" / "scene.xml", camera) as renderer:
+        renderer.set_camera(world_from_cam)
+        for frame in (0, 20, 45, 89):
+            poses: list[np.ndarray | None] = [_pose(toss_truth["qpos"][frame, 7 * i : 7 * i + 7]) for i in range(3)]
+            if frame == 20:
+                poses[1] = None
+            view = renderer.render(poses, rgb=False)
+            reference = renderer._renderer
+            reference.enable_segmentation_rendering()
+            segmentation = reference.render()
+            reference.disable_segmentation_rendering()
+            geom, kind = segmentation[:, :, 0], segmentation[:, :, 1]
+            expected = np.where(
+                (kind == int(mujoco.mjtObj.mjOBJ_GEOM)) & (geom >= 0),
+                renderer._geom_object[np.clip(geom, 0, renderer.model.ngeom)],
+                -1,
+            )
+            assert view.object_id.dtype == np.int16 and np.array_equal(view.object_id, expected), frame
+            seen |= set(np.unique(view.object_id).tolist())
+            if frame == 20:
+                assert not (view.object_id == 1).any()  # the parked can is nowhere
+    assert seen == {-1, 0, 1, 2}
+
+
 def test_velocities_from_smoothing_fit_are_exact_on_free_flight() -> None:
     """Quadratic positions and a constant body spin: the Savitzky-Golay fit recovers both velocities."""
     time_s = np.arange(15) / 30.0
