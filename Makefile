@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml Makefile constraints.txt
 	@bash .ci/system-packages.sh $(APT_PACKAGES)
 	@test -x $(PY) || python3 -m venv $(VENV)
 	@# torch==2.13.0 first (the CPU build on this machine), then the project at the versions in constraints.txt;
-	@# with uv where it can be had (a minute against pip's three on a clean clone), else pip.
+	@# with uv where it can be had (a minute against pip's two and a half on a clean clone), else pip.
 	bash .ci/python-packages.sh $(VENV)
 	@touch $(STAMP)
 
