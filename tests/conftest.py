@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import faulthandler
+import logging
 import os
 import shutil
 import subprocess
 import sys
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +79,51 @@ def grounded_apple(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) 
     film-a-scene test reads its scene, the reconstruct test its `reconstruction/` stage output (one run, not two)."""
     cmd = ["ground", str(shared_data / "apple_video" / "apple.mp4"), "--known-extent", "0.08"]
     return _once_per_run(tmp_path_factory, "grounded_apple", cmd)
+
+
+@dataclass(frozen=True)
+class CliRun:
+    """What one `image2sim` command did: its exit code and what it wrote (the fields of a CompletedProcess)."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+@pytest.fixture
+def cli(
+    capfd: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> Callable[..., CliRun]:
+    """Runs `image2sim ARGS...` inside this test's process, from the repository root, through the console script's
+    own entry point (`grounder.cli.main`: parsing, the one-line errors, the exit code); `timeout` in seconds.
+
+    A subprocess costs 1-3 s of interpreter start and imports per command (2.3 CPU-minutes over `test_cli.py`);
+    `test_cli.py` keeps some through the real interpreter (the console script, `python -m grounder.cli`, what a bare
+    start imports). Output is captured at the file descriptors, so what C libraries write (decoders, COLMAP) is in
+    `stderr` as on a console. The command's logging goes to pytest's handler here (the CLI sets up its own only
+    where the root logger has none), so its warnings are appended to `stderr`, a line each. A command still running
+    at `timeout` ends the whole test process with every thread's traceback (`faulthandler`): a check that something
+    is refused before any work fails there rather than hanging the run."""
+    from grounder.cli import main
+
+    monkeypatch.chdir(REPO)
+
+    def run(*args: str, timeout: float = 300) -> CliRun:
+        capfd.readouterr()
+        caplog.clear()
+        faulthandler.dump_traceback_later(timeout, exit=True)
+        try:
+            main(list(args))
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        finally:
+            faulthandler.cancel_dump_traceback_later()
+        out, err = capfd.readouterr()
+        logged = "".join(f"{r.levelname} {r.getMessage()}\n" for r in caplog.records if r.levelno >= logging.WARNING)
+        return CliRun(code, out, err + logged)
+
+    return run
 
 
 @pytest.fixture

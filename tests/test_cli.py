@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from conftest import CliRun
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -24,7 +26,7 @@ def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str
     )
 
 
-def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str, alone: bool = False) -> None:
+def assert_one_line_error(proc: CliRun | subprocess.CompletedProcess[str], *needles: str, alone: bool = False) -> None:
     """Exit code 2 and one error line naming `needles`; `alone`: nothing else on stderr either (input rejected before
     any work: no progress line, no decoder chatter)."""
     assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
@@ -55,8 +57,8 @@ README_COMMANDS = [
 
 
 @pytest.mark.parametrize("args", [[], *README_COMMANDS], ids=lambda a: " ".join(a) or "image2sim")
-def test_help(args: list[str]) -> None:
-    proc = run_cli(*args, "--help")
+def test_help(args: list[str], cli: Callable[..., CliRun]) -> None:
+    proc = cli(*args, "--help")
     assert proc.returncode == 0 and "Usage" in proc.stdout, proc.stderr
 
 
@@ -117,10 +119,10 @@ def test_missing_source(tmp_path: Path) -> None:
     assert not (tmp_path / "out").exists()
 
 
-def test_unreadable_video(tmp_path: Path) -> None:
+def test_unreadable_video(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     fake = tmp_path / "clip.mp4"
     fake.write_text("this is not a video")
-    proc = run_cli("reconstruct", str(fake), "-o", str(tmp_path / "out"))
+    proc = cli("reconstruct", str(fake), "-o", str(tmp_path / "out"))
     assert_one_line_error(proc, "clip.mp4", alone=True)
     assert not (tmp_path / "out").exists()
 
@@ -132,7 +134,9 @@ def _cut_short(path: Path) -> None:
 
 
 @pytest.mark.parametrize("suffix", [".jpg", ".png"])
-def test_truncated_image_in_a_folder_is_refused(tmp_path: Path, tabletop_dir: Path, suffix: str) -> None:
+def test_truncated_image_in_a_folder_is_refused(
+    tmp_path: Path, tabletop_dir: Path, suffix: str, cli: Callable[..., CliRun]
+) -> None:
     """A JPEG cut short decoded with its lower rows grey and only libjpeg's "Premature end of JPEG file" on the
     console; it went on into structure from motion. Now it is named as the frames are read, before any other work."""
     from reconstruction._frames import read_frames
@@ -140,12 +144,12 @@ def test_truncated_image_in_a_folder_is_refused(tmp_path: Path, tabletop_dir: Pa
     folder = _write_images(tmp_path / "imgs", _tabletop_frames(tabletop_dir, [5, 10, 15, 20]), suffix)
     assert len(read_frames(folder)) == 4  # the control: the whole images are read
     _cut_short(folder / f"img_002{suffix}")
-    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    proc = cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
     assert_one_line_error(proc, f"img_002{suffix} is truncated or damaged")
     assert not (tmp_path / "out").exists()
 
 
-def test_truncated_video_is_refused(tmp_path: Path, tabletop_dir: Path) -> None:
+def test_truncated_video_is_refused(tmp_path: Path, tabletop_dir: Path, cli: Callable[..., CliRun]) -> None:
     """A video cut short whose container still states its length (here an AVI: its header gives 30 frames) decoded
     the first half and went on as if that were the film. Now the break is named with how many frames decoded."""
     clip = tmp_path / "orbit.avi"
@@ -157,36 +161,36 @@ def test_truncated_video_is_refused(tmp_path: Path, tabletop_dir: Path) -> None:
 
     assert read_frames_counted(clip)[1] == 30  # the control: the whole file decodes to every frame it states
     _cut_short(clip)
-    proc = run_cli("reconstruct", str(clip), "-o", str(tmp_path / "out"))
+    proc = cli("reconstruct", str(clip), "-o", str(tmp_path / "out"))
     assert_one_line_error(proc, "orbit.avi stops decoding after", "of the 30 frames it states")
     assert not (tmp_path / "out").exists()
 
 
-def test_too_few_frames(tmp_path: Path) -> None:
+def test_too_few_frames(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     rng = np.random.default_rng(0)
     folder = _write_images(tmp_path / "imgs", [rng.integers(0, 255, (120, 160, 3), np.uint8) for _ in range(2)])
-    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    proc = cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
     assert_one_line_error(proc, "2 frame(s)", "at least 3")
 
 
-def test_featureless_frames(tmp_path: Path) -> None:
+def test_featureless_frames(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     folder = _write_images(tmp_path / "imgs", [np.full((120, 160, 3), 128, np.uint8) for _ in range(6)])
-    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    proc = cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
     assert_one_line_error(proc, "featureless")
     assert not (tmp_path / "out").exists()
 
 
-def test_unmatchable_frames_fail_registration(tmp_path: Path) -> None:
+def test_unmatchable_frames_fail_registration(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     rng = np.random.default_rng(1)
     noise = [cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3), np.uint8), (0, 0), 1.5) for _ in range(6)]
     folder = _write_images(tmp_path / "imgs", noise)
-    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
+    proc = cli("reconstruct", str(folder), "-o", str(tmp_path / "out"))
     assert_one_line_error(proc, "structure from motion")
     assert not (tmp_path / "out").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.partial")]
 
 
-def test_marker_size_given_but_no_marker(tmp_path: Path, tabletop_dir: Path) -> None:
+def test_marker_size_given_but_no_marker(tmp_path: Path, tabletop_dir: Path, cli: Callable[..., CliRun]) -> None:
     frames = _tabletop_frames(tabletop_dir, [5, 10, 15, 20])
     for frame in frames:  # paint the marker out
         detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
@@ -197,7 +201,7 @@ def test_marker_size_given_but_no_marker(tmp_path: Path, tabletop_dir: Path) -> 
                 big = (quad[0] - centre) * 1.6 + centre
                 cv2.fillPoly(frame, [big.astype(np.int32)], (60, 110, 170))
     folder = _write_images(tmp_path / "imgs", frames)
-    proc = run_cli("reconstruct", str(folder), "-o", str(tmp_path / "out"), "--aruco-size", "0.12", timeout=60)
+    proc = cli("reconstruct", str(folder), "-o", str(tmp_path / "out"), "--aruco-size", "0.12", timeout=60)
     assert_one_line_error(proc, "no ArUco marker", "--known-extent")
     assert not (tmp_path / "out").exists()
 
@@ -210,26 +214,28 @@ def test_marker_size_given_but_no_marker(tmp_path: Path, tabletop_dir: Path) -> 
         (["--max-frames", "1"], "--max-frames"),
     ],
 )
-def test_bad_options(tmp_path: Path, tabletop_dir: Path, flags: list[str], needle: str) -> None:
-    proc = run_cli("reconstruct", str(tabletop_dir / "video.mp4"), "-o", str(tmp_path / "out"), *flags)
+def test_bad_options(
+    tmp_path: Path, tabletop_dir: Path, flags: list[str], needle: str, cli: Callable[..., CliRun]
+) -> None:
+    proc = cli("reconstruct", str(tabletop_dir / "video.mp4"), "-o", str(tmp_path / "out"), *flags)
     assert_one_line_error(proc, needle)
 
 
-def test_existing_output_is_kept(tmp_path: Path, tabletop_dir: Path) -> None:
+def test_existing_output_is_kept(tmp_path: Path, tabletop_dir: Path, cli: Callable[..., CliRun]) -> None:
     out = tmp_path / "out"
     out.mkdir()
     (out / "precious.txt").write_text("mine")
-    proc = run_cli("reconstruct", str(tabletop_dir / "video.mp4"), "-o", str(out))
+    proc = cli("reconstruct", str(tabletop_dir / "video.mp4"), "-o", str(out))
     assert_one_line_error(proc, "--overwrite")
     assert (out / "precious.txt").read_text() == "mine"
 
 
-def test_failed_overwrite_keeps_previous_output(tmp_path: Path) -> None:
+def test_failed_overwrite_keeps_previous_output(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     out = tmp_path / "out"
     out.mkdir()
     (out / "reconstruct.json").write_text("{}")
     folder = _write_images(tmp_path / "imgs", [np.full((120, 160, 3), 128, np.uint8) for _ in range(6)])
-    proc = run_cli("reconstruct", str(folder), "-o", str(out), "--overwrite")
+    proc = cli("reconstruct", str(folder), "-o", str(out), "--overwrite")
     assert_one_line_error(proc, "featureless")
     assert (out / "reconstruct.json").read_text() == "{}"
 
@@ -243,29 +249,33 @@ def test_failed_overwrite_keeps_previous_output(tmp_path: Path) -> None:
         (["nosuch"], "No such command 'nosuch'"),
     ],
 )
-def test_usage_errors_are_one_line(args: list[str], needle: str) -> None:
+def test_usage_errors_are_one_line(args: list[str], needle: str, cli: Callable[..., CliRun]) -> None:
     """Option parsing errors get the same one line as any bad input, not click's boxed usage message."""
-    proc = run_cli(*args, timeout=60)
+    proc = cli(*args, timeout=60)
     assert_one_line_error(proc, needle, "--help", alone=True)
 
 
 @pytest.mark.parametrize("command", ["reconstruct", "ground"])
-def test_output_over_the_source_is_refused(tmp_path: Path, tabletop_dir: Path, command: str) -> None:
+def test_output_over_the_source_is_refused(
+    tmp_path: Path, tabletop_dir: Path, command: str, cli: Callable[..., CliRun]
+) -> None:
     """-o naming the image folder, or a folder that holds it, would replace the user's images even with --overwrite."""
     folder = _write_images(tmp_path / "shoot" / "imgs", _tabletop_frames(tabletop_dir, [5, 10, 15, 20]))
     (tmp_path / "shoot" / "notes.txt").write_text("mine")
     before = {p.name: p.read_bytes() for p in folder.iterdir()}
     for out in (folder, folder.parent):
-        proc = run_cli(command, str(folder), "-o", str(out), "--overwrite", "--aruco-size", "0.12", timeout=60)
+        proc = cli(command, str(folder), "-o", str(out), "--overwrite", "--aruco-size", "0.12", timeout=60)
         assert_one_line_error(proc, "choose an output folder outside", alone=True)
         assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
         assert (tmp_path / "shoot" / "notes.txt").read_text() == "mine"
 
 
-def test_unreadable_interaction_clip_fails_before_grounding(tmp_path: Path, tabletop_dir: Path) -> None:
+def test_unreadable_interaction_clip_fails_before_grounding(
+    tmp_path: Path, tabletop_dir: Path, cli: Callable[..., CliRun]
+) -> None:
     clip = tmp_path / "toss.mp4"
     clip.write_text("this is not a video")
-    proc = run_cli(
+    proc = cli(
         "ground", str(tabletop_dir / "video.mp4"), "--interaction", str(clip), "-o", str(tmp_path / "out"), timeout=60
     )
     assert_one_line_error(proc, "toss.mp4", "not a readable video", alone=True)
@@ -275,31 +285,31 @@ def test_unreadable_interaction_clip_fails_before_grounding(tmp_path: Path, tabl
     short.mkdir()
     for i in range(3):
         cv2.imwrite(str(short / f"{i}.png"), np.full((48, 64, 3), 40 * i, np.uint8))
-    proc = run_cli(
+    proc = cli(
         "ground", str(tabletop_dir / "video.mp4"), "--interaction", str(short), "-o", str(tmp_path / "out"), timeout=60
     )
     assert_one_line_error(proc, "3 frames; tracking needs at least 5", alone=True)
     assert not (tmp_path / "out").exists()
 
 
-def test_properties_train_keeps_a_non_empty_output(tmp_path: Path) -> None:
+def test_properties_train_keeps_a_non_empty_output(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     out = tmp_path / "weights"
     out.mkdir()
     (out / "property_net.json").write_text("mine")
-    proc = run_cli("properties", "train", "-o", str(out), "--num-train", "100", "--epochs", "1", timeout=60)
+    proc = cli("properties", "train", "-o", str(out), "--num-train", "100", "--epochs", "1", timeout=60)
     assert_one_line_error(proc, "not empty", "--overwrite", alone=True)
     assert (out / "property_net.json").read_text() == "mine"
 
 
-def test_diagnose_benchmark_checks_its_json_path_first(tmp_path: Path) -> None:
+def test_diagnose_benchmark_checks_its_json_path_first(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     mine = tmp_path / "results.json"
     mine.write_text("mine")
-    proc = run_cli("diagnose-benchmark", "--json", str(mine), timeout=60)
+    proc = cli("diagnose-benchmark", "--json", str(mine), timeout=60)
     assert_one_line_error(proc, "already exists", alone=True)
     assert mine.read_text() == "mine"
-    proc = run_cli("diagnose-benchmark", "--json", str(tmp_path / "nowhere" / "r.json"), timeout=60)
+    proc = cli("diagnose-benchmark", "--json", str(tmp_path / "nowhere" / "r.json"), timeout=60)
     assert_one_line_error(proc, "does not exist", alone=True)
-    proc = run_cli("diagnose-benchmark", "--trajectories", "0", timeout=60)  # named as the flag it is, not --holdout
+    proc = cli("diagnose-benchmark", "--trajectories", "0", timeout=60)  # named as the flag it is, not --holdout
     assert_one_line_error(proc, "--trajectories 0 must be between 8 and 1000", alone=True)
 
 
@@ -355,12 +365,14 @@ def test_value_checks_name_each_value_that_is_wrong(capsys: pytest.CaptureFixtur
         (["properties", "train", "-o", "/proc/image2sim_test/w", "--num-train", "100"], "cannot create the output"),
     ],
 )
-def test_values_that_cannot_work_are_refused_before_any_work(args: list[str], needle: str) -> None:
+def test_values_that_cannot_work_are_refused_before_any_work(
+    args: list[str], needle: str, cli: Callable[..., CliRun]
+) -> None:
     """Each of these was accepted: --threads 2000 grew to 15 GB and ignored SIGTERM, --seed -1 was numpy's
     traceback, --horizon nan reported 'every nan s', --density inf failed after a minute of grounding naming
     another value, an uncreatable -o failed only after training. Later (an audit of every numeric option): seeds
     out of COLMAP's, numpy's or torch's range were tracebacks after the first stage, a huge --popsize, --hidden or
     --num-cpus one from SciPy, torch or Ray, a huge --steps ran without end, and --density 1e300 or
     --rotation-weight 1e300 exited 0 with a meaningless scene or fit."""
-    proc = run_cli(*args, timeout=60)
+    proc = cli(*args, timeout=60)
     assert_one_line_error(proc, needle, alone=True)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from conftest import CliRun
 from mujoco import rollout as mj_rollout
 
 from grounder import Trajectory, save_trajectories
@@ -44,13 +44,7 @@ def _spec(name: str) -> CaseSpec:
     return next(c for c in BENCHMARK if c.name == name)
 
 
-def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "grounder.cli", *args], capture_output=True, text=True, timeout=timeout, cwd=REPO
-    )
-
-
-def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str) -> None:
+def assert_one_line_error(proc: CliRun | subprocess.CompletedProcess[str], *needles: str) -> None:
     assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
     lines = [line for line in proc.stderr.splitlines() if line.startswith("image2sim: error:")]
     assert len(lines) == 1, proc.stderr
@@ -471,12 +465,12 @@ def pendulum_case(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]
     return scene, root / "trajs"
 
 
-def test_cli_diagnose_writes_the_contract(pendulum_case: tuple[Path, Path], tmp_path: Path) -> None:
+def test_cli_diagnose_writes_the_contract(
+    pendulum_case: tuple[Path, Path], tmp_path: Path, cli: Callable[..., CliRun]
+) -> None:
     scene, trajs = pendulum_case
     out = tmp_path / "out"
-    proc = run_cli(
-        "diagnose", str(scene), str(trajs), "-o", str(out), "--effects", "joint_friction,joint_damping,armature"
-    )
+    proc = cli("diagnose", str(scene), str(trajs), "-o", str(out), "--effects", "joint_friction,joint_damping,armature")
     assert proc.returncode == 0, proc.stderr[-2000:]
     doc = json.loads((out / "diagnosis.json").read_text())
     assert isinstance(doc["gap_metric"], str)
@@ -502,7 +496,9 @@ def _write_traj(folder: Path, name: str, **arrays: np.ndarray) -> None:
 
 
 @pytest.mark.parametrize("problem", ["nq", "nan", "time", "few", "effect", "scene", "horizon"])
-def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], tmp_path: Path) -> None:
+def test_cli_bad_input_exits_2(
+    problem: str, pendulum_case: tuple[Path, Path], tmp_path: Path, cli: Callable[..., CliRun]
+) -> None:
     scene, trajs = pendulum_case
     extra: list[str] = []
     needle = ""
@@ -532,13 +528,13 @@ def test_cli_bad_input_exits_2(problem: str, pendulum_case: tuple[Path, Path], t
     else:
         extra, needle = ["--effects", "warp_drive"], "unknown effect 'warp_drive'"
     out = tmp_path / "out"
-    proc = run_cli("diagnose", str(scene), str(trajs), "-o", str(out), *extra)
+    proc = cli("diagnose", str(scene), str(trajs), "-o", str(out), *extra)
     assert_one_line_error(proc, needle)
     assert not out.exists()
 
 
-def test_cli_help() -> None:
-    proc = run_cli("diagnose", "--help")
+def test_cli_help(cli: Callable[..., CliRun]) -> None:
+    proc = cli("diagnose", "--help")
     assert proc.returncode == 0 and "Usage" in proc.stdout
 
 
@@ -550,11 +546,13 @@ def test_cli_help() -> None:
         ("7", "--trajectories 7 must be between 8 and 1000"),
     ],
 )
-def test_benchmark_trajectories_that_cannot_finish_are_refused(value: str, needle: str, tmp_path: Path) -> None:
+def test_benchmark_trajectories_that_cannot_finish_are_refused(
+    value: str, needle: str, tmp_path: Path, cli: Callable[..., CliRun]
+) -> None:
     """--trajectories 1e20 was accepted and stayed on the first case without end (16 take seconds a case)."""
     out = tmp_path / "bench.json"
     tick = time.perf_counter()
-    proc = run_cli("diagnose-benchmark", "--trajectories", value, "--json", str(out), timeout=60)  # not without end
+    proc = cli("diagnose-benchmark", "--trajectories", value, "--json", str(out), timeout=60)  # not without end
     assert_one_line_error(proc, needle)
     assert proc.stderr.count("\n") == 1 and not proc.stdout and not out.exists()
     assert time.perf_counter() - tick < 30

@@ -14,11 +14,13 @@ import re
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
+from conftest import CliRun
 
 import grounder
 from grounder._evaluate import compare_to_truth
@@ -172,23 +174,23 @@ def test_heldout_friction_error(heldout: dict[str, float]) -> None:
     assert heldout["friction_mae"] <= 0.7 * heldout["baseline_friction_mae"], heldout
 
 
-def test_cli_bad_input_exits_2(tmp_path: Path) -> None:
-    proc = run_cli("properties", "sample", str(tmp_path / "missing"), "-o", str(tmp_path / "out"))
+def test_cli_bad_input_exits_2(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
+    proc = cli("properties", "sample", str(tmp_path / "missing"), "-o", str(tmp_path / "out"))
     assert proc.returncode == 2
     assert [line for line in proc.stderr.splitlines() if line.startswith("image2sim: error:")], proc.stderr
     assert not (tmp_path / "out").exists()
-    proc = run_cli("properties", "evaluate", "--seed", "1")
+    proc = cli("properties", "evaluate", "--seed", "1")
     assert proc.returncode == 2 and "training/calibration seed" in proc.stderr
 
 
-def test_properties_help() -> None:
-    proc = run_cli("properties", "--help", timeout=60)
+def test_properties_help(cli: Callable[..., CliRun]) -> None:
+    proc = cli("properties", "--help", timeout=60)
     assert proc.returncode == 0, proc.stderr
     for command in ("train", "evaluate", "sample"):
         assert command in proc.stdout
     from grounder._properties_model import TrainOptions
 
-    proc = run_cli("properties", "train", "--help", timeout=60)
+    proc = cli("properties", "train", "--help", timeout=60)
     assert proc.returncode == 0, proc.stderr
     text = " ".join(proc.stdout.replace("│", " ").split())  # rich wraps the help in a box
     defaults = TrainOptions()
@@ -250,7 +252,7 @@ def test_scene_json_carries_embedding_mean_and_spread(grounded: Path, tabletop_d
     assert model_xml.nbody == 1 + len(manifest["objects"])
 
 
-def test_sampled_variants_differ_and_load(grounded: Path, tmp_path: Path) -> None:
+def test_sampled_variants_differ_and_load(grounded: Path, tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     models = sample_scene_variants(grounded, 4, seed=0)
     assert len(models) == 4
     bodies = [mujoco.mj_name2id(models[0], mujoco.mjtObj.mjOBJ_BODY, n) for n in ("object_0", "object_1")]
@@ -282,7 +284,7 @@ def test_sampled_variants_differ_and_load(grounded: Path, tmp_path: Path) -> Non
         for spec, drawn in draws[:3]:
             assert spec.body(name).mass == pytest.approx(entry["volume_m3"] * drawn[name]["density_kg_m3"], rel=1e-6)
     # The CLI writes them as MJCF next to a record of what was drawn.
-    proc = run_cli("properties", "sample", str(grounded), "-n", "2", "-o", str(tmp_path / "variants"))
+    proc = cli("properties", "sample", str(grounded), "-n", "2", "-o", str(tmp_path / "variants"))
     assert proc.returncode == 0, proc.stderr[-2000:]
     record = json.loads((tmp_path / "variants" / "variants.json").read_text())
     assert len(record["variants"]) == 2
@@ -347,7 +349,7 @@ def test_sampling_rejects_a_malformed_scene_json(tmp_path: Path, manifest: objec
     assert "image2sim ground" in message, message
 
 
-def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Path) -> None:
+def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     # A very wide (but finite) stored spread: every drawn value stays finite and the variants compile.
     wide = _tiny_scene(tmp_path / "wide", _entry(std=[1e6] * 6))
     for spec, drawn in sample_variant_specs(wide, 8, seed=0):
@@ -360,7 +362,7 @@ def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Pa
     assert drawn == {} and spec.body("object_0").mass == pytest.approx(0.125)
     # Through the CLI: one line, exit 2, nothing written.
     bad = _tiny_scene(tmp_path / "bad", _entry(density_kg_m3=0))
-    proc = run_cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
+    proc = cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert proc.stderr.count("\n") == 1 and "objects.object_0.density_kg_m3" in proc.stderr, proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "out").exists()
@@ -369,7 +371,7 @@ def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Pa
     xml.write_text(xml.read_text().replace('type="box"', 'type="bogus"', 1))
     assert 'type="bogus"' in xml.read_text()
     (bad / "scene.json").write_text(json.dumps({"objects": {"object_0": _entry()}}))
-    proc = run_cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
+    proc = cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert proc.stderr.count("\n") == 1 and "scene.xml: MuJoCo cannot load it (XML Error" in proc.stderr, proc.stderr
 
@@ -445,13 +447,13 @@ def test_weights_that_are_not_plain_real_tensors_are_refused(tmp_path: Path, kin
             loader(weights)
 
 
-def test_non_finite_normalisation_is_refused_by_evaluate(tmp_path: Path) -> None:
+def test_non_finite_normalisation_is_refused_by_evaluate(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
     from grounder._properties_model import load
 
     weights = _copied_weights(tmp_path / "nan", target_std=[math.nan] * 6)
     with pytest.raises(grounder.GrounderError, match=r"property_net\.json: normalisation\.target_std"):
         load(weights)
-    proc = run_cli("properties", "evaluate", "--weights", str(weights), "--num-samples", "10", timeout=120)
+    proc = cli("properties", "evaluate", "--weights", str(weights), "--num-samples", "10", timeout=120)
     assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr[-2000:])
     assert proc.stderr.count("\n") == 1 and "normalisation.target_std" in proc.stderr, proc.stderr
     assert "regenerate with `image2sim properties train" in proc.stderr and "MAE" not in proc.stdout
@@ -472,13 +474,15 @@ HUGE = str(10**20)
         (["evaluate", "--num-samples", "100001"], "--num-samples 100001 must be between 10 and 100000"),
     ],
 )
-def test_counts_too_large_to_finish_are_refused_before_any_work(args: list[str], needle: str, tmp_path: Path) -> None:
+def test_counts_too_large_to_finish_are_refused_before_any_work(
+    args: list[str], needle: str, tmp_path: Path, cli: Callable[..., CliRun]
+) -> None:
     """--num-train or --num-samples 1e20 was numpy's 'Maximum allowed dimension exceeded' traceback after loading
     (exit 1), and 1e5 or 1e6 would allocate 4-37 GB of crops up front; --epochs 1e20 trained without end."""
     out = tmp_path / "weights"
     command = ["properties", *args, *(["-o", str(out)] if args[0] == "train" else [])]
     tick = time.perf_counter()
-    proc = run_cli(*command, timeout=60)  # a run that starts working fails by its timeout, not by hanging
+    proc = cli(*command, timeout=60)  # a run that starts working fails by its timeout, not by hanging
     assert proc.returncode == 2, (proc.returncode, proc.stderr[-2000:])
     lines = proc.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("image2sim: error: "), proc.stderr
