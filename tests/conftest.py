@@ -126,6 +126,19 @@ def cli(
     return run
 
 
+def assert_one_line_error(proc: CliRun | subprocess.CompletedProcess[str], *needles: str, alone: bool = False) -> None:
+    """Exit code 2 and one error line naming `needles`; `alone`: nothing else on stderr either (input rejected before
+    any work: no progress line, no decoder chatter)."""
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
+    lines = [line for line in proc.stderr.splitlines() if line.startswith("image2sim: error:")]
+    assert len(lines) == 1, proc.stderr
+    if alone:
+        assert [line for line in proc.stderr.splitlines() if line.strip()] == lines, proc.stderr
+    assert "Traceback" not in proc.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
 @pytest.fixture
 def reconstruction_of_points() -> Callable[[np.ndarray], ReconstructionResult]:
     """Factory: a minimal ReconstructionResult (one camera at (0, -0.6, 0.4) m) holding the given sparse points."""

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import CliRun
+from conftest import CliRun, assert_one_line_error
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -24,19 +24,6 @@ def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str
         timeout=timeout,
         cwd=REPO,
     )
-
-
-def assert_one_line_error(proc: CliRun | subprocess.CompletedProcess[str], *needles: str, alone: bool = False) -> None:
-    """Exit code 2 and one error line naming `needles`; `alone`: nothing else on stderr either (input rejected before
-    any work: no progress line, no decoder chatter)."""
-    assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
-    lines = [line for line in proc.stderr.splitlines() if line.startswith("image2sim: error:")]
-    assert len(lines) == 1, proc.stderr
-    if alone:
-        assert [line for line in proc.stderr.splitlines() if line.strip()] == lines, proc.stderr
-    assert "Traceback" not in proc.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 README_COMMANDS = [

@@ -5,7 +5,6 @@ the CLI (one line, exit code 2). The full benchmark is `benchmarks/diagnose.py`.
 from __future__ import annotations
 
 import json
-import subprocess
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -13,7 +12,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import CliRun
+from conftest import CliRun, assert_one_line_error
 from mujoco import rollout as mj_rollout
 
 from grounder import Trajectory, save_trajectories
@@ -42,15 +41,6 @@ REQUIRED_EFFECTS = (
 
 def _spec(name: str) -> CaseSpec:
     return next(c for c in BENCHMARK if c.name == name)
-
-
-def assert_one_line_error(proc: CliRun | subprocess.CompletedProcess[str], *needles: str) -> None:
-    assert proc.returncode == 2, (proc.returncode, proc.stderr[-1500:])
-    lines = [line for line in proc.stderr.splitlines() if line.startswith("image2sim: error:")]
-    assert len(lines) == 1, proc.stderr
-    assert "Traceback" not in proc.stderr
-    for needle in needles:
-        assert needle in lines[0], lines[0]
 
 
 def test_library_has_the_interface_names() -> None:
