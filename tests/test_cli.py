@@ -100,10 +100,38 @@ def _tabletop_frames(tabletop_dir: Path, indices: list[int]) -> list[np.ndarray]
     return [frames[i] for i in indices]
 
 
-def test_missing_source(tmp_path: Path) -> None:
-    proc = run_cli("reconstruct", str(tmp_path / "nope.mp4"), "-o", str(tmp_path / "out"))
-    assert_one_line_error(proc, "does not exist", alone=True)
+def test_missing_source(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
+    """Through the real interpreter and through the in-process runner the other tests use: the same one line."""
+    args = ("reconstruct", str(tmp_path / "nope.mp4"), "-o", str(tmp_path / "out"))
+    real, here = run_cli(*args), cli(*args)
+    assert (here.returncode, here.stdout, here.stderr) == (real.returncode, real.stdout, real.stderr) == (
+        2, "", f"image2sim: error: {tmp_path / 'nope.mp4'} does not exist; pass a video file or a folder of images\n"
+    )  # fmt: skip
     assert not (tmp_path / "out").exists()
+
+
+def test_the_in_process_runner_sees_what_a_console_would(
+    tmp_path: Path, cli: Callable[..., CliRun], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """What C libraries write straight to file descriptor 2 and what the command logs as a warning both reach the
+    runner's stderr, so `alone=True` still fails on stray output: here a check that writes both before refusing."""
+    import logging
+    import os
+
+    import reconstruction._reconstruct as stage
+    from reconstruction.errors import InputError
+
+    def noisy_check(source: Path) -> None:
+        os.write(2, b"decoder chatter\n")
+        logging.getLogger("reconstruction").warning("a warning on the way")
+        raise InputError(f"{source} is refused; pass another")
+
+    monkeypatch.setattr(stage._frames, "check_source", noisy_check)
+    proc = cli("reconstruct", str(tmp_path / "clip.mp4"), "-o", str(tmp_path / "out"))
+    assert_one_line_error(proc, "is refused")
+    assert "decoder chatter" in proc.stderr and "WARNING a warning on the way" in proc.stderr
+    with pytest.raises(AssertionError):
+        assert_one_line_error(proc, "is refused", alone=True)
 
 
 def test_unreadable_video(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
