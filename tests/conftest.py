@@ -81,6 +81,14 @@ def grounded_apple(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) 
     return _once_per_run(tmp_path_factory, "grounded_apple", cmd)
 
 
+def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    """`image2sim ARGS...` through the real interpreter (`python -m grounder.cli`) from the repository root; the
+    `cli` fixture below runs commands in-process, which most tests use."""
+    return subprocess.run(
+        [sys.executable, "-m", "grounder.cli", *args], capture_output=True, text=True, timeout=timeout, cwd=REPO
+    )
+
+
 @dataclass(frozen=True)
 class CliRun:
     """What one `image2sim` command did: its exit code and what it wrote (the fields of a CompletedProcess)."""

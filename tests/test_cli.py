@@ -11,20 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import CliRun, assert_one_line_error
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "grounder.cli", *args],
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-        cwd=REPO,
-    )
-
+from conftest import CliRun, assert_one_line_error, run_cli
 
 README_COMMANDS = [
     ["reconstruct"],

@@ -21,7 +21,6 @@ from grounder._diagnose import DiagnoseOptions, detect_phases, diagnose
 from grounder._effects import EFFECT_NAMES, LIBRARY, AppliedEffect, Transforms, apply_effects
 from grounder._gap import coordinate_groups, group_errors_sq, make_windows, predict
 
-REPO = Path(__file__).resolve().parents[1]
 REQUIRED_EFFECTS = (
     "air_drag",
     "sliding_friction",

@@ -11,8 +11,6 @@ import itertools
 import json
 import math
 import re
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,7 +18,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import CliRun
+from conftest import CliRun, run_cli
 
 import grounder
 from grounder._evaluate import compare_to_truth
@@ -34,14 +32,7 @@ from grounder._properties import (
 from grounder._properties_data import crop_square, shape_features
 from grounder._properties_materials import MATERIALS, PhysicalProperties
 
-REPO = Path(__file__).resolve().parents[1]
 MEAN_KEYS = {"density_kg_m3", "friction", "solref", "restitution"}
-
-
-def run_cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "grounder.cli", *args], capture_output=True, text=True, timeout=timeout, cwd=REPO
-    )
 
 
 # ---------------------------------------------------------------- material table and features
