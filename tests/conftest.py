@@ -56,8 +56,7 @@ def _once_per_run(tmp_path_factory: pytest.TempPathFactory, name: str, cmd: list
         if not done.exists():
             shutil.rmtree(out.parent, ignore_errors=True)
             out.parent.mkdir(parents=True)
-            full = [sys.executable, "-m", "grounder.cli", *cmd, "-o", str(out)]
-            proc = subprocess.run(full, capture_output=True, text=True, timeout=900)
+            proc = run_cli(*cmd, "-o", str(out), timeout=900)
             assert proc.returncode == 0, proc.stderr[-3000:]
             assert f"MJCF: {out / 'scene.xml'}" in proc.stdout
             (out.parent / "stdout.txt").write_text(proc.stdout)
