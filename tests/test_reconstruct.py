@@ -7,6 +7,7 @@ directions within 0.5 deg, in the marker frame directly, with no alignment to th
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -259,6 +260,40 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
         dumps.append(list(sqlite3.connect(database).iterdump()))
     assert dumps[0] == dumps[1]
     assert not list(tmp_path.glob("*.share*"))
+
+
+@pytest.mark.parametrize(("frames", "sequential"), [(range(0, 60, 3), True), (range(0, 60, 10), False)])
+def test_matching_shared_among_threads_writes_the_one_thread_database(
+    tmp_path: Path, frames: range, sequential: bool
+) -> None:
+    """Twenty frames of the sample matched sequentially with loop detection (the pairing lists some pairs twice),
+    and six matched exhaustively, by one thread and in three shares of pairs: the matches and two-view geometries
+    are the same to the last byte, so the speed-up cannot change any reconstruction; no share is left behind."""
+    import sqlite3
+
+    from reconstruction._sfm import extract_features, match_features
+    from reconstruction._types import SfmOptions
+
+    images = tmp_path / "images"
+    names = _sample_frames(images, frames)
+    features = tmp_path / "features.db"
+    extract_features(features, images, names, SfmOptions())
+    dumps = []
+    for workers in (1, 3):
+        database = tmp_path / f"workers{workers}.db"
+        shutil.copyfile(features, database)
+        work = tmp_path / f"work{workers}"
+        work.mkdir()
+        match_features(
+            database, len(names), sequential=sequential, options=SfmOptions(matching_workers=workers), work_dir=work
+        )
+        dumps.append([line for line in sqlite3.connect(database).iterdump() if "matches" in line or "two_view" in line])
+        assert {p.name for p in work.iterdir()} <= {"vocab_tree.bin"}
+    assert sorted(p.name for p in tmp_path.glob("*.db")) == ["features.db", "workers1.db", "workers3.db"]
+    verified = [line for line in dumps[0] if line.startswith('INSERT INTO "two_view_geometries"')]
+    # exhaustive: every pair; sequential: at least each frame with its next (the sample's frames all overlap)
+    assert len(verified) >= (len(names) * (len(names) - 1) // 2 if not sequential else len(names) - 1), len(verified)
+    assert dumps[0] == dumps[1]
 
 
 def test_loop_detection_index_is_the_same_on_every_build_in_one_process(
