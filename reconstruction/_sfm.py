@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from reconstruction._parallel import usable_cores
 from reconstruction._types import SfmOptions
 from reconstruction.errors import ReconstructionError, RegistrationError
 
@@ -44,7 +45,7 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     of its own; the shares are then merged in frame order (`merge_feature_databases`), which gives the database one
     thread would write, every table row for row and byte for byte (the SQLite file's page layout may differ).
     """
-    workers = options.extraction_workers if options.extraction_workers > 0 else _usable_cores()
+    workers = options.extraction_workers if options.extraction_workers > 0 else usable_cores()
     workers = min(workers, len(image_names)) if options.extraction_threads == 1 else 1
     if workers <= 1:
         _extract_share(database_path, image_dir, image_names, options)
@@ -69,13 +70,6 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     finally:
         for part in parts:
             part.unlink(missing_ok=True)
-
-
-def _usable_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
 
 
 def _extract_share(database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions) -> None:
@@ -226,7 +220,7 @@ def match_features(
             pairing.loop_detection_period = 5
             pairing.loop_detection_num_images = 5
             pairing.loop_detection_min_index_distance = 2 * options.sequential_overlap
-    workers = options.matching_workers if options.matching_workers > 0 else _usable_cores()
+    workers = options.matching_workers if options.matching_workers > 0 else usable_cores()
     if options.num_threads != 1 or workers <= 1:
         if sequential:
             pycolmap.match_sequential(

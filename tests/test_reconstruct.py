@@ -400,3 +400,40 @@ def test_read_frames_bounds_memory_and_refuses_image_bombs(tmp_path: Path, monke
     monkeypatch.setattr(frames_module, "MAX_IMAGE_PIXELS", 700)
     with pytest.raises(InputError, match=r"0\.png is 32x24 px, more than"):
         read_frames_counted(folder)
+
+
+def test_dense_stereo_on_several_threads_fuses_what_one_thread_fuses(
+    truth_cameras: dict, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The sample's first 24 frames (less its two duplicates) at their true poses, fused from 8 stereo pairs computed
+    one at a time and three ahead on other threads: the same depth maps, TSDF and surface to the bit."""
+    import cv2
+
+    from reconstruction import _dense
+    from reconstruction._types import CameraIntrinsics
+
+    truth = {f["frame_index"]: np.array(f["world_from_cam"]) for f in truth_cameras["frames"]}
+    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
+    views = []
+    for index in range(24):
+        ok, frame = video.read()
+        assert ok
+        if index not in truth_cameras["duplicate_frames"]:
+            views.append(_dense.StereoView(image_bgr=frame, world_from_cam=truth[index]))
+    video.release()
+    i = truth_cameras["intrinsics"]
+    intrinsics = CameraIntrinsics(
+        width_px=i["width"], height_px=i["height"], fx_px=i["fx"], fy_px=i["fy"], cx_px=i["cx"], cy_px=i["cy"]
+    )
+    roi = _dense.RegionOfInterest(min_world=np.array([-0.35, -0.3, -0.02]), max_world=np.array([0.35, 0.3, 0.2]))
+    fused = []
+    for cores in (1, 3):
+        monkeypatch.setattr(_dense, "usable_cores", lambda cores=cores: cores)
+        fused.append(_dense.fuse_views(views, intrinsics, roi, _dense.DenseOptions(num_reference_views=8)))
+    one, many = fused
+    assert one.num_pairs >= 6 and len(one.faces) > 1000
+    assert one.num_pairs == many.num_pairs
+    for name in ("vertices_world", "faces", "vertex_rgb", "tsdf_voxels", "tsdf_values"):
+        np.testing.assert_array_equal(getattr(one, name), getattr(many, name), err_msg=name)
+    for a, b in zip(one.depth_maps, many.depth_maps, strict=True):
+        np.testing.assert_array_equal(a.depth, b.depth)
