@@ -6,6 +6,7 @@ import json
 import logging
 import math
 import shutil
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -143,8 +144,15 @@ def ground(
     seconds: dict[str, float] = {}
     warnings: list[str] = []
     with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,)) as stage:
+        warm_up: list[threading.Thread] = []
         tick = time.perf_counter()
-        rec = reconstruct(source, stage / "reconstruction", options.reconstruct, progress=report)
+        rec = reconstruct(
+            source,
+            stage / "reconstruction",
+            options.reconstruct,
+            progress=report,
+            on_mapping=lambda: warm_up.append(_start_warm_up(options)),
+        )
         seconds["reconstruct"] = time.perf_counter() - tick
         rec = replace(rec, out_dir=stage / "reconstruction")
         if rec.world.scale_source == ScaleSource.UNKNOWN:
@@ -183,6 +191,8 @@ def ground(
                 seconds["texture"] = time.perf_counter() - tick
 
                 tick = time.perf_counter()
+                for thread in warm_up:
+                    thread.join()
                 properties = _predict_properties(textured, views, report, warnings) if options.property_model else {}
                 seconds["properties"] = time.perf_counter() - tick
                 textured, cylinders = _snap_cylinders(textured, options.cylinder_snap)
@@ -238,6 +248,34 @@ def ground(
         warnings=tuple(warnings),
         stage_seconds=seconds,
     )
+
+
+def _start_warm_up(options: GroundOptions) -> threading.Thread:
+    """Loads, in a background thread, what the later stages need and the reconstruction does not: open3d, torch
+    with the property model, and the bounce table that turns predicted restitutions into `solref`
+    (`grounder._restitution`), about 10 s of one core's work. Started when mapping starts (`reconstruct`'s
+    `on_mapping`), which runs on one thread for a reproducible model and leaves the other cores idle; started
+    earlier it slowed the reconstruction's multi-threaded stages by as much as it saved. The results are the same,
+    the caches being the ones the stages read. A failure is left to the stage that needs the thing, which then meets
+    the error itself and reports it. Returns the thread, a daemon, so that a run that fails does not wait for it.
+    """
+
+    def work() -> None:
+        try:
+            import open3d  # noqa: F401  (dense fusion and meshing)
+
+            if options.property_model:
+                from grounder._properties import load_property_model
+                from grounder._restitution import contact_solref
+
+                load_property_model()
+                contact_solref(0.5, 0.02)  # what `_natural` asks for: the default export settings' table
+        except Exception as exc:  # reported where it matters, by the stage that needs it
+            log.debug("warm-up stopped: %s", exc)
+
+    thread = threading.Thread(target=work, name="ground-warm-up", daemon=True)
+    thread.start()
+    return thread
 
 
 def _scan_object_markers(

@@ -92,6 +92,7 @@ def reconstruct(
     *,
     overwrite: bool = False,
     progress: ProgressFn | None = None,
+    on_mapping: Callable[[], None] | None = None,
 ) -> ReconstructionResult:
     """Cameras in a metric, gravity-aligned world frame from a video or an image folder.
 
@@ -105,6 +106,9 @@ def reconstruct(
         options: settings; the world frame comes from `aruco_size_m`, else `known_extent_m`, else unknown scale.
         overwrite: replace a non-empty `out_dir` once the new result is complete.
         progress: called as progress(stage, done, total) while work goes on.
+        on_mapping: called once when incremental mapping starts, the input having been read and matched. With
+            `options.sfm.num_threads` 1 (the default) mapping keeps one core busy for the rest of the stage, so a
+            caller can start other work then (`grounder.ground` loads its later stages' libraries).
 
     Raises:
         InputError, RegistrationError, WorldFrameError: with a message that says what to change.
@@ -150,6 +154,8 @@ def reconstruct(
         _sfm.match_features(database, len(names), sequential=sequential, options=options.sfm, work_dir=work)
         seconds["matching"] = time.perf_counter() - tick
         tick = time.perf_counter()
+        if on_mapping is not None:
+            on_mapping()
         registered = [0]
 
         def on_image() -> None:
