@@ -218,6 +218,38 @@ def test_a_failed_background_decomposition_surfaces_as_itself() -> None:
             _object_specs([obj], {"object_0": job}, {}, GroundOptions(), lambda stage, done, total: None)
 
 
+def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_failures_to_itself(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """`ground` loads the property model and the bounce table in a thread while mapping runs: afterwards the
+    property stage finds both in the caches it reads (no second load), and a model that cannot load does not
+    escape the thread (the property stage meets that error itself and turns it into a warning)."""
+    import threading
+
+    from grounder import _properties, _restitution
+    from grounder._ground import GroundOptions, _start_warm_up
+
+    _properties.load_property_model.cache_clear()
+    _restitution._bounce_table.cache_clear()
+    _start_warm_up(GroundOptions()).join()
+    assert _properties.load_property_model.cache_info().currsize == 1
+    assert _restitution._bounce_table.cache_info().currsize == 1
+    _properties.load_property_model()
+    _restitution.contact_solref(0.3, 0.05)
+    assert _properties.load_property_model.cache_info().hits >= 1
+    assert _restitution._bounce_table.cache_info().misses == 1  # the stage's own call was a hit
+
+    escaped: list[BaseException] = []
+    monkeypatch.setattr(threading, "excepthook", lambda args: escaped.append(args.exc_value))
+    _properties.load_property_model.cache_clear()
+    monkeypatch.setattr(_properties, "WEIGHTS_DIR", Path("/nonexistent/weights"))
+    _start_warm_up(GroundOptions()).join()
+    assert escaped == []
+    assert _properties.load_property_model.cache_info().currsize == 0
+    with pytest.raises(_properties.PropertyModelError, match="no property model"):
+        _properties.load_property_model()
+
+
 def test_scan_frames_for_the_feature_models_read_back_with_their_cameras(scene_dir: Path, tabletop_dir: Path) -> None:
     """`track --scan-features` reads the scene folder's scan frames back (`load_scan`): each frame's camera pose,
     converted from transforms.json's OpenGL axes, agrees with the true camera of that video frame (within 5 mm and
