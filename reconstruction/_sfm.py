@@ -253,6 +253,8 @@ def match_features(
     parts = [database_path.with_name(f"{database_path.stem}.match{i}{database_path.suffix}") for i in range(workers)]
     lists = [work_dir / f"pairs{i}.txt" for i in range(workers)]
     try:
+        # Every copy is taken before any thread starts: COLMAP opens its databases in WAL mode, and copies taken while
+        # another thread had the database open came out unreadable ("disk I/O error") or different (tried).
         for (a, b), part, listing in zip(itertools.pairwise(bounds), parts, lists, strict=True):
             shutil.copyfile(database_path, part)
             listing.write_text("".join(f"{name_of[i]} {name_of[j]}\n" for i, j in pairs[a:b]))

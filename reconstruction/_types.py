@@ -62,7 +62,8 @@ class SfmOptions:
             1.38 mm median). Single-threaded, the same video gives a bit-identical model every run, in the same
             time on the tabletop's 2 cores. -1: all, for long videos on many cores. Matching alone on 2 threads
             is no exception (2026-11-27, the sample's database matched again three times: 384 instead of 385 pairs
-            kept, 3-7 of them different each run, in 11-12 s against 13-14 s on one thread).
+            kept, 3-7 of them different each run, in 11-12 s against 13-14 s on one thread); `matching_workers`
+            gets that speed without the difference.
         extraction_threads: CPU threads for SIFT extraction. One by default: pycolmap's multi-threaded extraction
             is not reproducible (the tabletop sample twice, same seed: 4669 and 4665 points, cameras up to 1 mm
             apart, the bowl's Chamfer error anywhere in 2.64-3.11 mm), single-threaded it is (to 1e-11), at about
