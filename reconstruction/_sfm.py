@@ -55,12 +55,7 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     parts = [database_path.with_name(f"{database_path.stem}.share{i}{database_path.suffix}") for i in range(workers)]
     try:
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:  # pycolmap releases the GIL while it extracts
-            jobs = [
-                pool.submit(_extract_share, part, image_dir, share, options)
-                for part, share in zip(parts, shares, strict=True)
-            ]
-            for job in jobs:
-                job.result()
+            list(pool.map(lambda part, share: _extract_share(part, image_dir, share, options), parts, shares))
         try:
             merge_feature_databases(parts, database_path)
         except UnmergeableSharesError as exc:  # e.g. frames of different sizes: one thread decides as before
@@ -259,12 +254,7 @@ def match_features(
             shutil.copyfile(database_path, part)
             listing.write_text("".join(f"{name_of[i]} {name_of[j]}\n" for i, j in pairs[a:b]))
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:  # pycolmap releases the GIL while it matches
-            jobs = [
-                pool.submit(_match_share, part, listing, matching, verification)
-                for part, listing in zip(parts, lists, strict=True)
-            ]
-            for job in jobs:
-                job.result()
+            list(pool.map(lambda part, listing: _match_share(part, listing, matching, verification), parts, lists))
         merge_match_databases(parts, database_path)
     finally:
         for path in (*parts, *lists):
