@@ -222,22 +222,32 @@ def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_fai
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """`ground` loads the property model and the bounce table in a thread while mapping runs: afterwards the
-    property stage finds both in the caches it reads (no second load), and a model that cannot load does not
-    escape the thread (the property stage meets that error itself and turns it into a warning)."""
+    property stage finds the model in its cache (no second load) and asks for the bounce table with the very
+    arguments the warm-up built it for (an lru_cache hit; the table itself is a stand-in here, its 4 s build is
+    `tests/test_restitution.py`'s), and a model that cannot load does not escape the thread (the property stage meets
+    that error itself and turns it into a warning)."""
     import threading
 
     from grounder import _properties, _restitution
     from grounder._ground import GroundOptions, _start_warm_up
 
+    asked: list[tuple[object, ...]] = []
+
+    def stand_in(*args: object) -> tuple[np.ndarray, np.ndarray]:
+        asked.append(args)
+        return np.geomspace(0.012, 0.2, 8), np.tile(
+            np.linspace(0.99, 0.01, len(_restitution._TABLE_DAMPRATIOS)), (8, 1)
+        )
+
+    monkeypatch.setattr(_restitution, "_bounce_table", stand_in)
     _properties.load_property_model.cache_clear()
-    _restitution._bounce_table.cache_clear()
     _start_warm_up(GroundOptions()).join()
     assert _properties.load_property_model.cache_info().currsize == 1
-    assert _restitution._bounce_table.cache_info().currsize == 1
+    assert len(asked) == 1
     _properties.load_property_model()
-    _restitution.contact_solref(0.3, 0.05)
     assert _properties.load_property_model.cache_info().hits >= 1
-    assert _restitution._bounce_table.cache_info().misses == 1  # the stage's own call was a hit
+    _properties._natural(np.array([6.0, -0.5, -5.0, -9.0, 0.0, -3.9]), np.full(6, 0.2))  # the stage's decoding
+    assert len(asked) > 1 and set(asked) == {asked[0]}
 
     escaped: list[BaseException] = []
     monkeypatch.setattr(threading, "excepthook", lambda args: escaped.append(args.exc_value))
