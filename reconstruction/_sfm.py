@@ -15,8 +15,9 @@ import os
 import shutil
 import sqlite3
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import pycolmap
@@ -28,6 +29,7 @@ from reconstruction.errors import ReconstructionError, RegistrationError
 log = logging.getLogger(__name__)
 
 VOCAB_TREE_WORDS = 256
+T = TypeVar("T")
 
 
 def _quiet_colmap() -> None:
@@ -50,9 +52,8 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     if workers <= 1:
         _extract_share(database_path, image_dir, image_names, options)
         return
-    bounds = np.linspace(0, len(image_names), workers + 1).round().astype(int)
-    shares = [image_names[a:b] for a, b in itertools.pairwise(bounds)]
-    parts = [database_path.with_name(f"{database_path.stem}.share{i}{database_path.suffix}") for i in range(workers)]
+    shares = _contiguous_shares(image_names, workers)
+    parts = _part_paths(database_path, "share", workers)
     try:
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:  # pycolmap releases the GIL while it extracts
             list(pool.map(lambda part, share: _extract_share(part, image_dir, share, options), parts, shares))
@@ -65,6 +66,17 @@ def extract_features(database_path: Path, image_dir: Path, image_names: list[str
     finally:
         for part in parts:
             part.unlink(missing_ok=True)
+
+
+def _contiguous_shares(items: Sequence[T], workers: int) -> list[Sequence[T]]:
+    """``items`` cut, in order, into ``workers`` contiguous shares of near-equal size."""
+    bounds = np.linspace(0, len(items), workers + 1).round().astype(int)
+    return [items[a:b] for a, b in itertools.pairwise(bounds)]
+
+
+def _part_paths(database_path: Path, tag: str, count: int) -> list[Path]:
+    """Where the per-share databases go, beside ``database_path``: ``database.<tag><i>.db``."""
+    return [database_path.with_name(f"{database_path.stem}.{tag}{i}{database_path.suffix}") for i in range(count)]
 
 
 def _extract_share(database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions) -> None:
@@ -244,15 +256,14 @@ def match_features(
     if not pairs:
         return
     workers = min(workers, len(pairs))
-    bounds = np.linspace(0, len(pairs), workers + 1).round().astype(int)
-    parts = [database_path.with_name(f"{database_path.stem}.match{i}{database_path.suffix}") for i in range(workers)]
+    parts = _part_paths(database_path, "match", workers)
     lists = [work_dir / f"pairs{i}.txt" for i in range(workers)]
     try:
         # Every copy is taken before any thread starts: COLMAP opens its databases in WAL mode, and copies taken while
         # another thread had the database open came out unreadable ("disk I/O error") or different (tried).
-        for (a, b), part, listing in zip(itertools.pairwise(bounds), parts, lists, strict=True):
+        for share, part, listing in zip(_contiguous_shares(pairs, workers), parts, lists, strict=True):
             shutil.copyfile(database_path, part)
-            listing.write_text("".join(f"{name_of[i]} {name_of[j]}\n" for i, j in pairs[a:b]))
+            listing.write_text("".join(f"{name_of[i]} {name_of[j]}\n" for i, j in share))
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:  # pycolmap releases the GIL while it matches
             list(pool.map(lambda part, listing: _match_share(part, listing, matching, verification), parts, lists))
         merge_match_databases(parts, database_path)
