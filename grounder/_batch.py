@@ -28,8 +28,10 @@ Output folder (new, empty, or the output of an earlier batch run, which its ``ba
 A job counts as finished when its ``results/<id>.json`` says ``ok``: a re-run (after a crash or Ctrl-C) skips it
 and runs the rest; failed jobs are run again, and so are jobs whose record is unreadable or invalid (with a
 warning). A failing job is recorded and does not stop the others. Jobs run as Ray tasks (one CPU each) on a local
-Ray started for the run, or on an existing cluster given by ``address`` (``ray://host:10001`` or ``auto``); the
-cluster's nodes need image2sim installed and the paths visible.
+Ray started for the run, or on an existing cluster given by ``address``: the head node's ``host:port`` (its GCS
+port, 6379 by default), ``auto`` (the cluster ``ray start`` made on this machine) or ``ray://host:10001`` (the Ray
+client, which needs ``pip install 'ray[client]'``); the cluster's nodes need image2sim installed and the paths visible.
+A cluster that cannot be reached is reported before the output folder is created.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import os
 import re
 import secrets
 import shutil
+import socket
 import time
 import traceback
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -618,6 +621,61 @@ def ray_init_kwargs(address: str | None, num_cpus: int | None) -> dict[str, Any]
     }
 
 
+_HOST_PORT = re.compile(r"^(?:ray://)?(?P<host>\[[0-9a-fA-F:]+\]|[A-Za-z0-9_.-]+):(?P<port>[0-9]{1,5})$")
+
+
+def check_ray_address(address: str, *, timeout_s: float = 10.0) -> None:
+    """Refuses a cluster address that cannot work, before Ray is asked (Ray itself may hang or print a traceback).
+
+    Args:
+        address: ``auto``, ``host:port`` or ``ray://host:port``.
+        timeout_s: How long to wait for the TCP connection to ``host:port``.
+
+    Raises:
+        GrounderError: Not one of those forms; ``ray://`` without the Ray client installed; nothing listening.
+    """
+    if address == "auto":
+        return
+    match = _HOST_PORT.match(address)
+    if match is None or not 0 < int(match["port"]) < 65536:
+        raise GrounderError(
+            f"--address {address!r} is not a Ray cluster address; give the head node's host:port (e.g. head:6379), "
+            "auto, or leave --address out for a local Ray"
+        )
+    if address.startswith("ray://"):
+        import importlib.util
+
+        if importlib.util.find_spec("grpc") is None:
+            raise GrounderError(
+                f"--address {address}: ray:// addresses need the Ray client, which is not installed; run "
+                "`.venv/bin/pip install 'ray[client]'`, or give the head node's GCS address (host:6379)"
+            )
+    host, port = match["host"].strip("[]"), int(match["port"])
+    try:
+        socket.create_connection((host, port), timeout=timeout_s).close()
+    except OSError as exc:
+        raise GrounderError(
+            f"--address {address}: nothing answers at {host}:{port} ({exc.strerror or exc}); check that the Ray head "
+            "node runs (`ray start --head`) and the host and port, or leave --address out for a local Ray"
+        ) from exc
+
+
+def connect_ray(address: str | None, num_cpus: int | None) -> None:
+    """``ray.init`` for a batch run (:func:`ray_init_kwargs`); a cluster that cannot be joined is a user error."""
+    import ray
+
+    if address:
+        check_ray_address(address)
+    try:
+        ray.init(**ray_init_kwargs(address, num_cpus))
+    except (ConnectionError, ValueError, RuntimeError, TimeoutError) as exc:
+        where = f"the Ray cluster at {address}" if address else "a local Ray"
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise GrounderError(
+            f"cannot start or join {where} ({first}); check --address, or run with --inline to go without Ray"
+        ) from exc
+
+
 def run_batch(
     jobs: Sequence[Job],
     out_dir: Path,
@@ -641,18 +699,47 @@ def run_batch(
         The summary; failed jobs are listed, not raised.
 
     Raises:
-        GrounderError: ``out_dir`` is refused by :func:`check_batch_output` (before any job runs).
+        GrounderError: ``out_dir`` is refused by :func:`check_batch_output`, or Ray cannot be started or the
+            cluster at ``address`` joined (both before the output folder is created or any job runs).
     """
     tick = time.time()
     out_dir = Path(out_dir)
-    _prepare_output(out_dir, jobs)
-    report: Progress = progress or (lambda _s, _d, _t: None)
+    check_batch_output(out_dir)
     for job in jobs:
         _, problem = _load_result(out_dir, job.id)
         if problem:  # e.g. edited by hand or truncated by a full disk: the job's result cannot be trusted
             log.warning("%s: %s; running the job again", result_path(out_dir, job.id), problem)
     skipped = [j.id for j in jobs if is_finished(out_dir, j.id)]
     pending = [j for j in jobs if j.id not in set(skipped)]
+    started_here = False
+    if pending and not inline:
+        import ray
+
+        started_here = not ray.is_initialized()
+        if started_here:
+            connect_ray(address, num_cpus)  # before the output exists: a bad address leaves nothing behind
+    try:
+        return _run_pending(jobs, pending, skipped, out_dir, inline=inline, progress=progress, tick=tick)
+    finally:
+        if started_here:
+            import ray
+
+            ray.shutdown()
+
+
+def _run_pending(
+    jobs: Sequence[Job],
+    pending: Sequence[Job],
+    skipped: Sequence[str],
+    out_dir: Path,
+    *,
+    inline: bool,
+    progress: Progress | None,
+    tick: float,
+) -> BatchSummary:
+    """:func:`run_batch` once Ray (if used) is up: creates the output, runs ``pending``, writes the table."""
+    _prepare_output(out_dir, jobs)
+    report: Progress = progress or (lambda _s, _d, _t: None)
     # Leftovers of a run that was killed while writing: temporary files and folders (never results).
     for leftover in [*(out_dir / RESULTS_DIR).glob(".*.tmp"), *(out_dir / SCENES_DIR).glob(".*.tmp")]:
         if leftover.is_dir():
@@ -678,35 +765,28 @@ def run_batch(
     elif pending:
         import ray
 
-        started_here = not ray.is_initialized()
-        if started_here:
-            ray.init(**ray_init_kwargs(address, num_cpus))
-        try:
-            remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
-            refs = {remote.remote(job.to_json(), str(out_dir)): job for job in pending}
-            waiting = list(refs)
-            while waiting:
-                ready, waiting = ray.wait(waiting, num_returns=1)
-                for ref in ready:
-                    job = refs[ref]
-                    try:
-                        record = ray.get(ref)
-                    except Exception as exc:  # the worker died (killed, out of memory): record it here
-                        record = {
-                            "id": job.id,
-                            "job": job.to_json(),
-                            "status": "failed",
-                            "error": f"worker failed: {type(exc).__name__}: {exc}".splitlines()[0],
-                        }
-                        _write_json_atomic(result_path(out_dir, job.id), record)
-                    ran.append(job.id)
-                    done += 1
-                    _log_record(record)
-                    write_table(out_dir, jobs)
-                    report(stage, done, total)
-        finally:
-            if started_here:
-                ray.shutdown()
+        remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
+        refs = {remote.remote(job.to_json(), str(out_dir)): job for job in pending}
+        waiting = list(refs)
+        while waiting:
+            ready, waiting = ray.wait(waiting, num_returns=1)
+            for ref in ready:
+                job = refs[ref]
+                try:
+                    record = ray.get(ref)
+                except Exception as exc:  # the worker died (killed, out of memory): record it here
+                    record = {
+                        "id": job.id,
+                        "job": job.to_json(),
+                        "status": "failed",
+                        "error": f"worker failed: {type(exc).__name__}: {exc}".splitlines()[0],
+                    }
+                    _write_json_atomic(result_path(out_dir, job.id), record)
+                ran.append(job.id)
+                done += 1
+                _log_record(record)
+                write_table(out_dir, jobs)
+                report(stage, done, total)
     rows = write_table(out_dir, jobs)
     failed = tuple(r["id"] for r in rows if r["status"] == "failed")
     return BatchSummary(

@@ -150,7 +150,11 @@ def register(app: typer.Typer) -> None:
             ),
         ] = None,
         address: Annotated[
-            str | None, typer.Option(help="Ray cluster address (ray://host:10001 or auto); default: a local Ray.")
+            str | None,
+            typer.Option(
+                help="Ray cluster: the head node's host:port (e.g. head:6379), auto, or ray://host:10001 (needs "
+                "ray[client]); default: a local Ray."
+            ),
         ] = None,
         num_cpus: Annotated[int | None, typer.Option(help="CPUs of the local Ray (jobs at a time).")] = None,
         inline: Annotated[bool, typer.Option(help="Run the jobs one by one in this process, without Ray.")] = False,

@@ -6,6 +6,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -120,7 +121,7 @@ def test_failing_job_is_recorded_and_others_finish(tmp_path: Path, traj_dir: Pat
 def test_ray_address_is_passed_through(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, traj_dir: Path) -> None:
     import ray
 
-    assert ray_init_kwargs("ray://head:10001", None)["address"] == "ray://head:10001"
+    assert ray_init_kwargs("head:6379", None)["address"] == "head:6379"
     local = ray_init_kwargs(None, 1)
     assert local["num_cpus"] == 1 and "address" not in local and local["include_dashboard"] is False
 
@@ -138,9 +139,45 @@ def test_ray_address_is_passed_through(monkeypatch: pytest.MonkeyPatch, tmp_path
     jobs_file = _write_jobs(
         tmp_path / "jobs.yaml", [{"id": "a", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}]
     )
-    with pytest.raises(Connected):
-        run_batch(load_jobs(jobs_file), tmp_path / "out", address="ray://head:10001")
-    assert seen["address"] == "ray://head:10001"
+    with socket.create_server(("127.0.0.1", 0)) as head:  # something listening, as a head node's GCS port does
+        address = f"127.0.0.1:{head.getsockname()[1]}"
+        with pytest.raises(Connected):
+            run_batch(load_jobs(jobs_file), tmp_path / "out", address=address)
+    assert seen["address"] == address
+    assert not (tmp_path / "out").exists()  # connecting comes first: a failed join leaves no output folder
+
+
+@pytest.mark.parametrize(
+    ("address", "why"),
+    [
+        ("garbage", "not a Ray cluster address"),
+        ("head:99999", "not a Ray cluster address"),
+        ("127.0.0.1:{free}", "nothing answers at 127.0.0.1"),
+        ("ray://127.0.0.1:{free}", "ray[client]"),
+    ],
+)
+def test_an_unusable_ray_address_is_one_clear_error_and_leaves_no_output(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, traj_dir: Path, address: str, why: str
+) -> None:
+    import importlib.util
+
+    import ray
+
+    def must_not_init(**kwargs: object) -> None:
+        raise AssertionError(f"ray.init called with {kwargs}")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", must_not_init)
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "grpc" else real_find_spec(name))
+    with socket.create_server(("127.0.0.1", 0)) as probe:
+        free = probe.getsockname()[1]  # closed again below: nothing listens there
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml", [{"id": "a", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}]
+    )
+    with pytest.raises(GrounderError, match=re.escape(why)):
+        run_batch(load_jobs(jobs_file), tmp_path / "out", address=address.format(free=free))
+    assert not (tmp_path / "out").exists()
 
 
 def _session_pids(sid: int) -> list[int]:
