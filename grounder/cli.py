@@ -114,12 +114,13 @@ def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
 
 
 def _setup_logging(verbose: bool) -> None:
+    from rich.console import Console
     from rich.logging import RichHandler
 
-    logging.basicConfig(
+    logging.basicConfig(  # on stderr with the progress: stdout keeps only the results' lines
         level=logging.INFO if verbose else logging.WARNING,
         format="%(message)s",
-        handlers=[RichHandler(show_time=False, show_path=False, markup=False)],
+        handlers=[RichHandler(console=Console(stderr=True), show_time=False, show_path=False, markup=False)],
     )
 
 

@@ -36,6 +36,17 @@ def test_help(args: list[str], cli: Callable[..., CliRun]) -> None:
     assert proc.returncode == 0 and "Usage" in proc.stdout, proc.stderr
 
 
+def test_log_messages_go_to_stderr_and_leave_stdout_to_the_results() -> None:
+    code = (
+        "import logging; from grounder.cli import _setup_logging; _setup_logging(False); "
+        "logging.getLogger('grounder.x').warning('SCALE UNKNOWN: pass --aruco-size'); print('MJCF: out/scene.xml')"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout == "MJCF: out/scene.xml\n"
+    assert "SCALE UNKNOWN" in proc.stderr
+
+
 def test_every_readme_command_has_a_help_test() -> None:
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     used = {tuple(line.split()[1:3]) for line in readme.splitlines() if line.startswith("image2sim ")}
