@@ -1048,6 +1048,26 @@ def has_residual_files(scene_dir: Path) -> bool:
     return scene_dir.is_dir() and (scene_dir / META_FILE).is_file() and (scene_dir / WEIGHTS_FILE).is_file()
 
 
+def check_residual_pair(scene_dir: Path) -> None:
+    """Refuses a scene folder that holds one of ``residual.json`` and ``residual.pt`` without the other.
+
+    Such a folder would otherwise be simulated without its residual, silently.
+
+    Raises:
+        GrounderError: one line naming the file that is there and the one that is missing, and what to do.
+    """
+    scene_dir = Path(scene_dir)
+    if not scene_dir.is_dir():
+        return
+    there = [name for name in (META_FILE, WEIGHTS_FILE) if (scene_dir / name).exists()]
+    if len(there) == 1:
+        missing = WEIGHTS_FILE if there[0] == META_FILE else META_FILE
+        raise GrounderError(
+            f"{scene_dir / there[0]} has no {missing} beside it: the residual is incomplete; copy the whole scene "
+            "folder again, retrain it (image2sim residual train), or run without it (--no-residual)"
+        )
+
+
 def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.ndarray]:
     """``residual.pt``'s tensors as float64 arrays, each checked against the metadata first.
 
@@ -1173,7 +1193,13 @@ def load_residual(
             )
         bodies: list[FreeBody] = []
     else:
-        bodies = free_bodies(model)
+        try:
+            bodies = free_bodies(model)
+        except GrounderError as exc:  # a scene of hinges and slides: name the residual it does not fit
+            raise GrounderError(
+                f"{meta_path}: a residual of free bodies {list(meta.bodies)}, not for this scene ({exc}); retrain it "
+                "on this scene, or run without it (--no-residual)"
+            ) from exc
         if tuple(b.name for b in bodies) != meta.bodies:
             raise GrounderError(
                 f"{meta_path}: the residual corrects bodies {list(meta.bodies)} but the scene's free bodies are "

@@ -500,6 +500,12 @@ def train_residual(
     try:
         torch.manual_seed(options.seed)
         fit_trajs, select_trajs = _selection_split(trajs, options)
+        if not select_trajs:
+            log.warning(
+                "no trajectory held out to check the residual's output gain (%d trajectories; it takes 5): the "
+                "residual ships at gain 1 unchecked",
+                len(trajs),
+            )
         trainer = _Trainer(scene_xml, fit_trajs, options)
         report("residual: one-step targets", 0, 1)
         base = trainer.one_step()

@@ -8,6 +8,7 @@ MuJoCo steps, then the residual corrects each free body from the state at the st
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from mujoco import rollout as mj_rollout
 from grounder._residual import (
     FreeBody,
     NumpyResidual,
+    check_residual_pair,
     has_residual_files,
     load_residual,
 )
@@ -34,6 +36,8 @@ from grounder._simulate import (
 )
 from grounder._trajectory import Trajectory
 from grounder.errors import GrounderError
+
+log = logging.getLogger(__name__)
 
 
 def has_residual(scene_dir: Path) -> bool:
@@ -61,13 +65,18 @@ class Simulator:
         self.nthread = nthread or default_nthread()
         scene_dir = xml.parent
         # The metadata (period_steps included) comes checked from load_residual. Without use_residual the residual
-        # is never applied, so a scene.xml edited since training is no reason to refuse: training a new residual on
-        # that scene is the way to bring them back in line.
-        residual = (
-            load_residual(scene_dir, self.model, scene_xml=xml, check_scene_xml=use_residual)
-            if has_residual(scene_dir)
-            else None
-        )
+        # is never applied, so neither a scene.xml edited since training nor a broken or incomplete residual is a
+        # reason to refuse: training a new residual on that scene is the way to bring them back in line.
+        residual: NumpyResidual | NumpyJointResidual | None = None
+        if use_residual:
+            check_residual_pair(scene_dir)
+            if has_residual(scene_dir):
+                residual = load_residual(scene_dir, self.model, scene_xml=xml)
+        elif has_residual(scene_dir):
+            try:
+                residual = load_residual(scene_dir, self.model, scene_xml=xml, check_scene_xml=False)
+            except GrounderError as exc:
+                log.warning("not using the residual in %s (%s)", scene_dir, exc)
         self.period_steps = residual.meta.period_steps if residual is not None else 1
         self.residual: NumpyResidual | NumpyJointResidual | None = residual if use_residual else None
         self._data = mujoco.MjData(self.model)

@@ -209,6 +209,7 @@ def run_rollout(
     scene_dir = scene if scene.is_dir() else scene.parent
     if use_residual and importlib.util.find_spec("grounder._simulator") is not None:
         module = importlib.import_module("grounder._simulator")
+        module.check_residual_pair(scene_dir)  # half a residual is an error, not a silent plain-MuJoCo run
         if module.has_residual(scene_dir):
             preds = module.Simulator(scene).rollout(trajs, stable=True)
             used = True

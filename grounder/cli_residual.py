@@ -53,7 +53,8 @@ def register(app: typer.Typer) -> None:
                     ("--hidden", hidden, COUNT_LIMITS["hidden"]),
                     ("--seed", seed, COUNT_LIMITS["seed"]),
                 )
-            )
+            ),
+            ("--ctrl-history", ctrl_history, 0.0 <= ctrl_history <= 1.0, "between 0 and 1 (seconds)"),
         )
         with user_errors_exit_2():
             from grounder._residual_train import REPORT_FILE, ResidualOptions, train_residual
@@ -81,10 +82,18 @@ def register(app: typer.Typer) -> None:
                 f"joint-space residual; one-step RMS joint position {before[0] * 1e3:.2f} -> {after[0] * 1e3:.2f} "
                 f"mrad (mm for slides), joint velocity {before[2]:.3f} -> {after[2]:.3f} rad/s"
             )
+        if result.gain_scores:
+            gain = f"output gain chosen on held-out rollouts: {result.gain:g}" + (
+                " (the residual did not help: MuJoCo alone)" if result.gain == 0 else ""
+            )
+        else:
+            gain = (
+                f"output gain {result.gain:g}, NOT checked on held-out rollouts (none held out: give at least 5 "
+                "trajectories to have it checked)"
+            )
         typer.echo(
             f"trained on {result.num_trajectories} trajectories ({result.num_samples} samples) in "
-            f"{result.seconds:.1f} s; {errors}; output gain chosen on held-out rollouts: "
-            f"{result.gain:g}" + (" (the residual did not help: MuJoCo alone)" if result.gain == 0 else "")
+            f"{result.seconds:.1f} s; {errors}; {gain}"
         )
         typer.echo(f"residual scene: {result.out} (report: {result.out / REPORT_FILE})")
 

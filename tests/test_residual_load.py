@@ -381,14 +381,9 @@ def test_mesh_edited_since_training_is_refused(trajs: Path, tmp_path: Path) -> N
     assert Simulator(folder).residual is not None
 
 
-def test_retraining_on_an_edited_residual_scene_works(valid: Path, tmp_path: Path) -> None:
-    """What the refusal says to do: `residual train` on the edited folder (its old residual is not applied while
-    training), and the new residual loads with the edited scene.xml."""
-    folder = tmp_path / "res"
-    shutil.copytree(valid, folder)
-    edited = CUBE_XML.replace('mass="0.4" friction="0.3', 'mass="0.4" friction="0.6')
-    (folder / "scene.xml").write_text(edited)
-    model = mujoco.MjModel.from_xml_string(edited)
+def _four_tosses(xml: str) -> list[Trajectory]:
+    """Four short tosses of the cube, simulated in ``xml``."""
+    model = mujoco.MjModel.from_xml_string(xml)
     time_s = np.arange(12) / RATE_HZ
     seeds = []
     for i in range(4):
@@ -397,11 +392,80 @@ def test_retraining_on_an_edited_residual_scene_works(valid: Path, tmp_path: Pat
         seeds.append(Trajectory(time_s=time_s, qpos=qpos, qvel=qvel, name=f"t{i}"))
     recorded = simulate(model, seeds)
     assert isinstance(recorded, list)
-    options = ResidualOptions(
+    return recorded
+
+
+def _tiny_options() -> ResidualOptions:
+    return ResidualOptions(
         steps=2, batch_size=8, hidden=HIDDEN, layers=1, gains=(0.0, 1.0), gate=GateOptions(coverage_centres=CENTRES)
     )
-    out = train_residual(folder, recorded, tmp_path / "retrained", options).out  # type: ignore[arg-type]
+
+
+def test_retraining_on_an_edited_residual_scene_works(valid: Path, tmp_path: Path) -> None:
+    """What the refusal says to do: `residual train` on the edited folder (its old residual is not applied while
+    training), and the new residual loads with the edited scene.xml."""
+    folder = tmp_path / "res"
+    shutil.copytree(valid, folder)
+    edited = CUBE_XML.replace('mass="0.4" friction="0.3', 'mass="0.4" friction="0.6')
+    (folder / "scene.xml").write_text(edited)
+    result = train_residual(folder, _four_tosses(edited), tmp_path / "retrained", _tiny_options())
+    out = result.out
     written = json.loads((out / META_FILE).read_text())
     assert written["scene_xml_sha256"] == file_sha256(folder / "scene.xml")
     assert written["scene_files_sha256"] == {}  # a scene of primitives loads no files
     assert Simulator(out).residual is not None
+    assert result.gain == 1.0 and result.gain_scores == {}  # four trajectories: none held out, the gain unchecked
+
+
+@pytest.mark.parametrize("case", ["pt-garbage", "pt-nan-weight", "hidden-not-the-weights"])
+def test_retraining_on_a_broken_residual_works(case: str, valid: Path, tmp_path: Path) -> None:
+    """The refusal of a broken residual says "retrain with `image2sim residual train`": that command must not be
+    refused for the very residual it is to replace (it is not applied while training)."""
+    folder = tmp_path / "res"
+    shutil.copytree(valid, folder)
+    breaks = next(c[1] for c in BROKEN if c[0] == case)
+    breaks(folder)
+    with pytest.raises(GrounderError):
+        Simulator(folder)
+    out = train_residual(folder, _four_tosses(CUBE_XML), tmp_path / "retrained", _tiny_options()).out
+    assert Simulator(out).residual is not None
+
+
+@pytest.mark.parametrize("kept", [META_FILE, WEIGHTS_FILE])
+def test_half_a_residual_is_refused_not_ignored(kept: str, valid: Path, trajs: Path, tmp_path: Path) -> None:
+    """A folder with residual.pt but no residual.json (or the other way round) would roll out as plain MuJoCo while
+    the user believes the residual is on: refused, one line naming both files; --no-residual still runs."""
+    folder = tmp_path / "res"
+    shutil.copytree(valid, folder)
+    missing = WEIGHTS_FILE if kept == META_FILE else META_FILE
+    (folder / missing).unlink()
+    with pytest.raises(GrounderError, match=f"has no {missing} beside it"):
+        Simulator(folder)
+    _assert_one_line(_rollout(folder, trajs, tmp_path / "out"), str(folder / kept), missing, "--no-residual")
+    assert not (tmp_path / "out").exists()
+    plain = _rollout(folder, trajs, tmp_path / "plain", "--no-residual")
+    assert plain.exit_code == 0, plain.output
+
+
+def test_an_unchecked_gain_is_said_so(valid: Path, tmp_path: Path) -> None:
+    """Fewer than 5 trajectories leave none to choose the output gain on: the command says it is unchecked rather
+    than "chosen on held-out rollouts"."""
+    folder = tmp_path / "res"
+    shutil.copytree(valid, folder)
+    tosses = save_trajectories(_four_tosses(CUBE_XML), tmp_path / "tosses")
+    args = ["residual", "train", str(folder), str(tosses), "-o", str(tmp_path / "out"), "--steps", "2"]
+    result = CliRunner().invoke(app, [*args, "--hidden", str(HIDDEN), "--rounds", "1"])
+    assert result.exit_code == 0, result.output
+    assert "output gain 1, NOT checked on held-out rollouts" in result.stdout
+    assert "chosen on held-out" not in result.stdout
+
+
+def test_a_free_body_residual_in_a_jointed_scene_names_its_file(valid: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "res"
+    shutil.copytree(valid, folder)
+    hinge = '<mujoco><worldbody><body><joint type="hinge"/><geom size="0.1" mass="1"/></body></worldbody></mujoco>'
+    (folder / "scene.xml").write_text(hinge)
+    with pytest.raises(GrounderError) as caught:
+        Simulator(folder)
+    line = str(caught.value)
+    assert line.startswith(f"{folder / META_FILE}: a residual of free bodies") and "--no-residual" in line, line
