@@ -79,9 +79,13 @@ def load_property_model(weights_dir: Path | None = None) -> PropertyModel:
 
     weights_dir = Path(weights_dir or WEIGHTS_DIR)
     if not (weights_dir / WEIGHTS_FILE).is_file() or not (weights_dir / META_FILE).is_file():
+        make = (
+            "reinstall the package (make install) or regenerate them with `image2sim properties train` (~11 min)"
+            if weights_dir == WEIGHTS_DIR
+            else f"make one there with `image2sim properties train -o {weights_dir}`"
+        )
         raise PropertyModelError(
-            f"no property model in {weights_dir} (expected {WEIGHTS_FILE} and {META_FILE}); "
-            "run `image2sim properties train` to make one"
+            f"no property model in {weights_dir} (expected {WEIGHTS_FILE} and {META_FILE}); {make}"
         )
     try:
         with quiet_pickle_protocol_warning():
@@ -472,6 +476,11 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
     scene_files(xml_path)  # nothing outside the scene folder
     manifest = read_json_file(manifest_path, "re-run `image2sim ground` to rewrite it")
     objects = _checked_objects(manifest, manifest_path)
+    if not any("properties" in entry for entry in objects.values()):
+        raise GrounderError(
+            f"{manifest_path}: no object has predicted properties to draw from, so every variant would be the same "
+            "scene; ground the scene with the property model on (`image2sim ground` without --density)"
+        )
     try:
         mujoco.MjSpec.from_file(str(xml_path))
     except ValueError as exc:  # MuJoCo's message spans lines

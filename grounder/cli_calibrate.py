@@ -106,7 +106,10 @@ def register(app: typer.Typer) -> None:
         no_residual: Annotated[
             bool, typer.Option("--no-residual", help="Plain MuJoCo even when the scene folder has a residual.")
         ] = False,
-        overwrite: Annotated[bool, typer.Option(help="Write into a non-empty output folder.")] = False,
+        overwrite: Annotated[
+            bool,
+            typer.Option(help="Replace a non-empty output folder (its files are removed) once the rollouts are done."),
+        ] = False,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
     ) -> None:
         """Simulate every trajectory from its first state with its controls; same file names in the output."""

@@ -174,6 +174,15 @@ def test_cli_bad_input_exits_2(tmp_path: Path, cli: Callable[..., CliRun]) -> No
     assert proc.returncode == 2 and "training/calibration seed" in proc.stderr
 
 
+def test_a_missing_model_folder_says_how_to_make_one_there(tmp_path: Path) -> None:
+    """Not plain `image2sim properties train`, which would regenerate the package's own weights instead."""
+    from grounder._properties import load_property_model
+
+    with pytest.raises(grounder.GrounderError) as info:
+        load_property_model(tmp_path / "mine")
+    assert str(info.value).endswith(f"make one there with `image2sim properties train -o {tmp_path / 'mine'}`")
+
+
 def test_properties_help(cli: Callable[..., CliRun]) -> None:
     proc = cli("properties", "--help", timeout=60)
     assert proc.returncode == 0, proc.stderr
@@ -327,6 +336,7 @@ def _entry(**changes: object) -> dict[str, object]:
         ({"objects": {"object_0": _entry(density_kg_m3=0)}}, "objects.object_0.density_kg_m3"),
         ({"objects": {"object_0": _entry(density_kg_m3="heavy")}}, "objects.object_0.density_kg_m3"),
         ({"objects": {"object_0": _entry(density_kg_m3=math.nan)}}, "objects.object_0.density_kg_m3"),
+        ({"objects": {"object_0": {"density_kg_m3": 1000.0}}}, "no object has predicted properties"),
     ],
 )
 def test_sampling_rejects_a_malformed_scene_json(tmp_path: Path, manifest: object, field: str) -> None:
