@@ -1045,10 +1045,17 @@ def write_calibrated_scene(
         from grounder._calibrate_report import write_report
 
         write_report(stage / "report.html", result, base, report_trajs)
-        if out.exists():
-            out.rmdir()  # checked empty by calibrate()
-        os.replace(stage, out)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
+    try:
+        if out.exists():
+            out.rmdir()  # checked empty by calibrate(); not empty now if something wrote there meanwhile
+        os.replace(stage, out)
+    except OSError as exc:  # the finished result is kept, named, rather than thrown away
+        raise GrounderError(
+            f"cannot move the calibrated scene into {out} ({exc.strerror or exc}; was it written to while "
+            f"calibrating?); it is kept, complete, in {stage}: move it where you want it, or re-run with another "
+            "output folder (-o)"
+        ) from exc
     return out

@@ -67,6 +67,11 @@ def check_output_dir(
         raise error(f"output {out_dir} is a symbolic link; pass the folder's real path (-o), or a new folder")
     if out_dir.exists() and not out_dir.is_dir():
         raise error(f"output {out_dir} is a file; pass a folder path (-o)")
+    if out_dir.is_dir() and os.path.ismount(out_dir):  # a result moves in by renaming, and a mount point cannot move
+        raise error(
+            f"output folder {out_dir} is a mount point, which cannot be replaced by the result; pass a new folder "
+            f"inside it (-o {out_dir / 'out'})"
+        )
     # A probe beside the output: a location it cannot be written to (a read-only or virtual file system, a file in
     # the path) fails before the work rather than after it.
     probe, created = _mkdir_beside(Path(os.path.abspath(out_dir)), "probe", error)
@@ -149,7 +154,16 @@ def staged_output_dir(
             backup = out_dir.with_name(f".{out_dir.name}.old-{staging.name.rsplit('-', 1)[-1]}")
             out_dir.rename(backup)
         staging.rename(out_dir)
-    except BaseException:  # e.g. the path changed under us: put the user's folder back, leave nothing half-made
+    except OSError as exc:
+        # The folder cannot move (made immutable, busy, or created by someone else meanwhile): the user's folder
+        # goes back, and the finished result is kept where it is, named, rather than thrown away.
+        if backup is not None and not out_dir.exists():
+            backup.rename(out_dir)
+        raise error(
+            f"cannot move the result into {out_dir} ({exc.strerror or exc}); it is kept, complete, in {staging}: "
+            "move it where you want it, or re-run with another output folder (-o)"
+        ) from exc
+    except BaseException:  # interrupted: put the user's folder back, leave nothing half-made
         if backup is not None and not out_dir.exists():
             backup.rename(out_dir)
         shutil.rmtree(staging, ignore_errors=True)

@@ -217,6 +217,30 @@ def test_output_folder_must_be_new(synthetic, tmp_path: Path) -> None:
     assert (tmp_path / "taken" / "keep.txt").read_text() == "mine"
 
 
+def test_output_folder_filled_while_calibrating_keeps_the_result(
+    synthetic, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A second run, or the user, writing into the output folder while calibrate works: that was an OSError
+    traceback at the end. Now one error naming where the complete result is; the other writer's file is kept."""
+    import grounder._calibrate_report as report
+
+    trajs, _ = synthetic
+    out = tmp_path / "out"
+    real_write_report = report.write_report
+
+    def write_report_meanwhile(*args: object, **kwargs: object) -> None:
+        real_write_report(*args, **kwargs)  # type: ignore[arg-type]
+        out.mkdir()
+        (out / "other.txt").write_text("written meanwhile")
+
+    monkeypatch.setattr(report, "write_report", write_report_meanwhile)
+    with pytest.raises(GrounderError, match="cannot move the calibrated scene into .* kept, complete, in"):
+        calibrate(CUBE_XML, trajs[:2], options=CalibrateOptions(generations=0, local_iterations=0), out=out)
+    assert (out / "other.txt").read_text() == "written meanwhile"
+    kept = [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+    assert len(kept) == 1 and (kept[0] / "scene.xml").is_file() and (kept[0] / "calibration.json").is_file()
+
+
 def test_embedding_mode_needs_an_embedding(synthetic) -> None:
     trajs, _ = synthetic
     with pytest.raises(GrounderError, match="scene has no property embedding"):

@@ -346,6 +346,44 @@ def test_staged_output_dir_edge_paths(tmp_path: Path, monkeypatch: pytest.Monkey
         pass
 
 
+def test_an_output_folder_that_cannot_move_is_refused_early_or_keeps_the_result(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A mount point (a Docker volume, say) cannot be renamed: it was a Device-busy traceback after all the work,
+    and the result thrown away. Now it is refused before the work; and a folder that cannot be moved for another
+    reason (made immutable, or created meanwhile) is one error that names where the complete result is kept."""
+    import os
+
+    from reconstruction import check_output_dir, staged_output_dir
+    from reconstruction.errors import InputError
+
+    volume = tmp_path / "volume"
+    volume.mkdir()
+    real_ismount = os.path.ismount
+    monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == volume or real_ismount(p))
+    with pytest.raises(InputError, match=f"is a mount point.*-o {volume / 'out'}"):
+        check_output_dir(volume)
+    monkeypatch.setattr(os.path, "ismount", real_ismount)
+
+    users = tmp_path / "users"
+    users.mkdir()
+    (users / "notes.txt").write_text("mine")
+    real_rename = Path.rename
+
+    def busy_rename(self: Path, target: str | Path) -> Path:
+        if self == users:
+            raise OSError(16, "Device or resource busy")
+        return real_rename(self, target)
+
+    monkeypatch.setattr(Path, "rename", busy_rename)
+    with pytest.raises(InputError, match="cannot move the result into .*Device or resource busy.*kept, complete, in"):
+        with staged_output_dir(users, overwrite=True) as stage:
+            (stage / "result.txt").write_text("done")
+    assert (users / "notes.txt").read_text() == "mine"  # the user's folder is as it was
+    kept = [p for p in tmp_path.iterdir() if p.name.startswith(".users.partial-")]
+    assert len(kept) == 1 and (kept[0] / "result.txt").read_text() == "done"
+
+
 @pytest.mark.parametrize("side_px", [10_000, 20_000])
 def test_image_bombs_beyond_pillows_limits_are_one_error(tmp_path: Path, side_px: int) -> None:
     """A PNG header of 20000 x 20000 px (over Pillow's own error limit, 179 Mpx) was a DecompressionBombError
