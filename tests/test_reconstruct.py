@@ -376,7 +376,7 @@ def test_an_output_folder_that_cannot_move_is_refused_early_or_keeps_the_result(
         return real_rename(self, target)
 
     monkeypatch.setattr(Path, "rename", busy_rename)
-    with pytest.raises(InputError, match="cannot move the result into .*Device or resource busy.*kept, complete, in"):
+    with pytest.raises(InputError, match=r"cannot move the result into .*Device or resource busy.*kept, complete, in"):
         with staged_output_dir(users, overwrite=True) as stage:
             (stage / "result.txt").write_text("done")
     assert (users / "notes.txt").read_text() == "mine"  # the user's folder is as it was
