@@ -1254,6 +1254,11 @@ def ground_with_interaction(
     if grounded_scene is None:  # the videos that will be read fail now, not after the grounding
         check_source(Path(scan))
     check_source(Path(clip))
+    if track_options.aruco_size_m is None:  # found now, not after the grounding
+        raise GrounderError(
+            "tracking the interaction clip finds the camera from the ArUco marker on the table, so it needs the "
+            "marker's size: pass --aruco-size M (--known-extent cannot stand in for it)"
+        )
     needed = track_options.min_segment_frames  # a few frames decoded now: a clip too short to track fails here
     first, _ = read_clip(Path(clip), needed, track_options.start_frame)
     if len(first) < needed:

@@ -633,3 +633,15 @@ def test_videos_are_checked_before_any_work_and_only_those_read(tmp_path: Path) 
     with pytest.raises(InputError, match=r"toss\.mp4 is not a readable video"):
         ground_with_interaction(tmp_path / "missing_scan.mp4", clip, tmp_path / "b", grounded_scene=scene)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["grounded", "toss.mp4"]
+
+
+def test_a_missing_marker_size_fails_before_the_grounding(tmp_path: Path) -> None:
+    """Tracking needs the table marker's size; without it `ground --interaction` failed only after grounding the
+    scan (about 3 minutes). Now it fails at once, saying which option to pass, and writes nothing."""
+    from grounder._interaction import ground_with_interaction
+    from grounder.errors import GrounderError
+
+    samples = Path(__file__).resolve().parents[1] / "samples"
+    with pytest.raises(GrounderError, match=r"pass --aruco-size M \(--known-extent cannot stand in for it\)"):
+        ground_with_interaction(samples / "tabletop" / "video.mp4", samples / "toss" / "video.mp4", tmp_path / "out")
+    assert list(tmp_path.iterdir()) == []
