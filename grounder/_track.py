@@ -1487,10 +1487,11 @@ def write_track_output(
 ) -> None:
     """Writes the segment trajectories, `track.json` and (if given) `overview.png` atomically into `out_dir`."""
     from reconstruction import staged_output_dir
+    from reconstruction._outdir import write_image
 
     with staged_output_dir(out_dir, overwrite=overwrite) as stage:
         if overview_bgr is not None:
-            cv2.imwrite(str(stage / "overview.png"), overview_bgr)
+            write_image(stage / "overview.png", overview_bgr, error=TrackError)
         for traj in result.trajectories:
             save_trajectory(traj, stage / f"{traj.name}.npz")
         objects = {}

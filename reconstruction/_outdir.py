@@ -5,9 +5,11 @@ from __future__ import annotations
 import os
 import secrets
 import shutil
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+
+import numpy as np
 
 from reconstruction.errors import InputError
 
@@ -170,6 +172,24 @@ def staged_output_dir(
         raise
     if backup is not None:
         shutil.rmtree(backup, ignore_errors=True)
+
+
+def write_image(
+    path: Path, image: np.ndarray, params: Sequence[int] = (), *, error: type[Exception] = InputError
+) -> None:
+    """``cv2.imwrite`` that fails loudly: OpenCV returns False on a full disk or an unwritable folder, and the run
+    would go on to fail later somewhere that does not say why.
+
+    Raises:
+        `error` (InputError unless given): the image could not be written.
+    """
+    import cv2
+
+    if not cv2.imwrite(str(path), image, list(params)):
+        raise error(
+            f"could not write {path} (disk full, or the folder not writable?); free some space or choose "
+            "another output folder (-o)"
+        )
 
 
 def _remove_empty(folders: list[Path]) -> None:

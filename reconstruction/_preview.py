@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from reconstruction._outdir import write_image
 from reconstruction._types import ReconstructionResult
 
 PANEL_PX = 480
@@ -55,4 +56,4 @@ def write_preview(path: Path, result: ReconstructionResult) -> None:
     unit = "m" if str(result.world.scale_source) != "unknown" else "(scale unknown)"
     top = _panel(points, colours, cams, looks, (0, 1), f"top view (x, y) {unit}; red dots = cameras")
     side = _panel(points, colours, cams, looks, (0, 2), f"side view (x, z); table top z = 0; {len(cams)} cameras")
-    cv2.imwrite(str(path), np.hstack([top, side]))
+    write_image(path, np.hstack([top, side]))

@@ -14,7 +14,7 @@ import numpy as np
 import pycolmap
 
 from reconstruction import _frames, _sfm, _world
-from reconstruction._outdir import staged_output_dir
+from reconstruction._outdir import staged_output_dir, write_image
 from reconstruction._preview import write_preview
 from reconstruction._types import (
     CameraIntrinsics,
@@ -134,7 +134,7 @@ def reconstruct(
         names = []
         for frame in selection.kept:
             name = f"frame_{frame.index:05d}.jpg"
-            cv2.imwrite(str(image_dir / name), frame.image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            write_image(image_dir / name, frame.image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
             names.append(name)
         index_of = {n: f.index for n, f in zip(names, selection.kept, strict=True)}
         # Find the marker before the expensive work, so a missing marker fails in seconds.

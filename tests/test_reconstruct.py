@@ -475,3 +475,16 @@ def test_dense_stereo_on_several_threads_fuses_what_one_thread_fuses(
         np.testing.assert_array_equal(getattr(one, name), getattr(many, name), err_msg=name)
     for a, b in zip(one.depth_maps, many.depth_maps, strict=True):
         np.testing.assert_array_equal(a.depth, b.depth)
+
+
+def test_an_image_that_cannot_be_written_is_one_error(tmp_path: Path) -> None:
+    """cv2.imwrite returns False on a full disk or a missing folder; ignored, reconstruct went on and failed inside
+    COLMAP with "No registered database factory succeeded". Now the write itself fails, naming the file."""
+    from reconstruction._outdir import write_image
+    from reconstruction.errors import InputError
+
+    image = np.zeros((8, 8, 3), np.uint8)
+    write_image(tmp_path / "ok.png", image)
+    assert (tmp_path / "ok.png").stat().st_size > 0
+    with pytest.raises(InputError, match=r"could not write .*gone[/\\]frame\.jpg \(disk full"):
+        write_image(tmp_path / "gone" / "frame.jpg", image)
