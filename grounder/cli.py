@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -279,6 +280,15 @@ def _register_subcommands() -> None:
 _register_subcommands()
 
 
+class _Terminated(BaseException):
+    """SIGTERM (`timeout`, `docker stop`, a cancelled CI job) as an exception, so that every output stage cleans up
+    the way it does for Ctrl-C; a BaseException, so no `except Exception` on the way swallows it."""
+
+
+def _terminated(signum: int, frame: object) -> None:
+    raise _Terminated
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point.
 
@@ -288,8 +298,12 @@ def main(argv: list[str] | None = None) -> None:
     # typer 0.29 carries its own click (`constraints.txt` pins it); its exceptions are not re-exported by `typer`.
     from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
 
+    signal.signal(signal.SIGTERM, _terminated)
     try:
         code = app(args=argv, prog_name="image2sim", standalone_mode=False)
+    except _Terminated:  # the output stages have removed what they had begun, as for Ctrl-C
+        typer.echo("image2sim: stopped (SIGTERM); nothing half-written was left", err=True)
+        sys.exit(128 + signal.SIGTERM)
     except NoArgsIsHelpError as exc:  # `image2sim` or a group alone: typer has printed its help already
         sys.exit(exc.exit_code)
     except UsageError as exc:

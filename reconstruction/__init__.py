@@ -1,5 +1,6 @@
 """Pixels -> cameras -> geometry: structure from motion in a metric, gravity-aligned world frame."""
 
+from reconstruction import _colmap  # noqa: F401  (first: pycolmap without the SIGTERM handler its import installs)
 from reconstruction._frames import Frame, FrameSelection, read_frames, select_frames
 from reconstruction._outdir import check_output_dir, check_outside_inputs, staged_output_dir
 from reconstruction._reconstruct import reconstruct, rescale_written
