@@ -177,7 +177,7 @@ class CalibrateOptions:
         number("fd_step", "a number in (0, 1) (a step in the unit search box)", lambda v: 0.0 < v < 1.0)
         number("interval_level", "a number in (0, 1)", lambda v: 0.0 < v < 1.0)
         count("seed", 0, MAX_SEED)
-        count("nthread", 1, optional=True)
+        count("nthread", 1, 256, optional=True)  # 1e5 threads hung the run
         number("max_batch_mb", "a finite number > 0 (MiB)", lambda v: v > 0.0)
         if not isinstance(self.initial, Mapping) or not all(
             isinstance(k, str) and finite_number(v) for k, v in self.initial.items()

@@ -39,6 +39,7 @@ W_BOUND = 3.0
 # so with both bounded it stays within |z| <= 60.
 MAX_ABS_EMBEDDING = 30.0
 MAX_EMBEDDING_STD = 10.0
+DENSITY_RANGE_KG_M3 = (0.1, 1e5)  # a scene.json density outside it is a corrupt file, not a material
 _FIELDS = ("mass", "friction.sliding", "friction.torsional", "friction.rolling", "solref.timeconst", "solref.dampratio")
 
 
@@ -173,6 +174,12 @@ def embedding_space(scene: Path, model: mujoco.MjModel, decoder: Decoder | None 
             raise GrounderError(
                 f"{where}: properties.embedding_std must be finite numbers in (0, {MAX_EMBEDDING_STD:g}], "
                 f"got {shown(props.get('embedding_std'))}; {redo}"
+            )
+        lo, hi = DENSITY_RANGE_KG_M3
+        if math.isfinite(density0_kg_m3) and density0_kg_m3 > 0 and not lo <= density0_kg_m3 <= hi:
+            # the scene's mass is rescaled by the decoded density over this one: 1e-300 gave a mass of 5e302 kg
+            raise GrounderError(
+                f"{where}: density_kg_m3 {density0_kg_m3:g} is outside {lo:g}-{hi:g} kg/m^3 (aerogel to osmium); {redo}"
             )
         bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
         if bid <= 0:

@@ -274,6 +274,15 @@ def test_embedding_mode_needs_an_embedding(synthetic) -> None:
             r"properties\.embedding_std must be finite numbers in \(0, 10\]",
         ),
         ({"cube": {"properties": {"embedding": [10**400, 0.0]}}}, "non-numeric embedding"),
+        # the mass is rescaled by decoded / stored density: 1e-300 wrote mass="4.9e+302"
+        (
+            {"cube": {"density_kg_m3": 1e-300, "properties": {"embedding": [0.0, 0.0]}}},
+            r"density_kg_m3 1e-300 is outside 0\.1-100000 kg/m\^3",
+        ),
+        (
+            {"cube": {"density_kg_m3": 1e308, "properties": {"embedding": [0.0, 0.0]}}},
+            r"density_kg_m3 1e\+308 is outside",
+        ),
     ],
     ids=[
         "objects-list",
@@ -286,6 +295,8 @@ def test_embedding_mode_needs_an_embedding(synthetic) -> None:
         "huge-embedding",
         "huge-std",
         "integer-overflow",
+        "tiny-density",
+        "huge-density",
     ],
 )
 def test_embedding_mode_malformed_scene_json_is_one_error(objects: object, needle: str, tmp_path: Path) -> None:
@@ -737,7 +748,8 @@ def test_cli_overwrite_of_a_folder_inside_the_scene_is_refused(
         ({"local_iterations": "3"}, "local_iterations must be an integer >= 0"),
         ({"seed": -1}, "seed must be an integer in [0, 4294967295]"),
         ({"split_seed": 1.0}, "split_seed must be an integer in [0, 4294967295]"),
-        ({"nthread": 0}, "nthread must be an integer >= 1 or null"),
+        ({"nthread": 0}, "nthread must be an integer in [1, 256] or null"),
+        ({"nthread": 100_000}, "nthread must be an integer in [1, 256] or null"),  # hung a batch job
         ({"max_train_trajectories": 0}, "max_train_trajectories must be an integer >= 1 or null"),
         # huge values: scipy's seed and popsize overflowed (tracebacks), a weight of 1e300 fitted overflowing costs
         ({"seed": 2**32}, "seed must be an integer in [0, 4294967295], got 4294967296"),
