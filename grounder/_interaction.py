@@ -1263,7 +1263,8 @@ def ground_with_interaction(
     first, _ = read_clip(Path(clip), needed, track_options.start_frame)
     if len(first) < needed:
         raise GrounderError(
-            f"{clip}: {len(first)} frames; tracking needs at least {needed} (min_segment_frames) to make a trajectory"
+            f"{clip}: {len(first)} frames; tracking needs at least {needed} to make a trajectory: film a longer "
+            "interaction clip"
         )
     del first
     with staged_output_dir(Path(out), overwrite=overwrite, inputs=(scan, clip, grounded_scene)) as stage:

@@ -45,6 +45,10 @@ def scene_xml_path(scene: Path) -> Path:
         raise GrounderError(
             f"{scene}: scene does not exist; pass an MJCF file or a scene folder with {SCENE_XML} (`image2sim ground`)"
         )
+    elif scene.suffix.lower() == ".json":  # scene.json is the manifest beside the MJCF, not a scene
+        raise GrounderError(
+            f"{scene}: a JSON file, not an MJCF scene; pass the scene folder ({scene.parent}) or its {SCENE_XML}"
+        )
     else:
         xml = scene
     scene_files(xml)

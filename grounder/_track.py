@@ -90,7 +90,7 @@ from grounder._track_support import (
 )
 from grounder._trajectory import Trajectory, save_trajectory
 from grounder.errors import GrounderError
-from reconstruction._frames import open_video
+from reconstruction._frames import opened_video
 from reconstruction._reconstruct import SIZE_RANGE_M
 
 log = logging.getLogger(__name__)
@@ -310,7 +310,7 @@ def read_clip(clip: Path, max_frames: int | None = None, start_frame: int = 0) -
             fps = 30.0
             count = len(files)
         else:
-            capture = open_video(clip)
+            capture = opened_video(clip)  # an unreadable file: said so, not "read 0 frames"
             try:
                 fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
                 count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
@@ -1302,9 +1302,14 @@ def track(
         check_output_dir(out_dir, overwrite=overwrite, inputs=(clip, scene_xml.parent))
     frames, fps = read_clip(Path(clip), options.max_frames, options.start_frame)
     if options.min_segment_frames > len(frames):  # not after tracking the whole clip
+        lower = (
+            f"or pass --min-segment-frames {len(frames)}"
+            if len(frames) >= 3  # the fewest a trajectory may have (TrackOptions)
+            else "a trajectory needs at least 3"
+        )
         raise TrackError(
-            f"min_segment_frames={options.min_segment_frames} but the clip has {len(frames)} frames to track; "
-            "pass at most that (--min-segment-frames)"
+            f"{clip}: {len(frames)} frames to track, fewer than a trajectory's {options.min_segment_frames} "
+            f"(--min-segment-frames); track a longer clip (or span: --start-frame, --max-frames) {lower}"
         )
     height_px, width_px = frames[0].shape[:2]
     if options.intrinsics_colmap is not None:

@@ -67,7 +67,7 @@ def check_source(source: Path) -> None:
         InputError: the source is missing, a folder without images, or a file no video decoder opens.
     """
     if is_video(source):
-        _opened_video(source).release()
+        opened_video(source).release()
     else:
         _check_path(source)
 
@@ -81,7 +81,7 @@ def _check_path(source: Path) -> None:
         raise InputError(f"{source} holds no images ({', '.join(IMAGE_SUFFIXES)}); pass a video or an image folder")
 
 
-def _opened_video(source: Path) -> cv2.VideoCapture:
+def opened_video(source: Path) -> cv2.VideoCapture:
     """The open capture of a video file; the caller releases it."""
     capture = open_video(source)
     if not capture.isOpened():
@@ -243,7 +243,7 @@ def read_frames_counted(
             report(i + 1, len(paths))
         count = len(paths)
     else:
-        capture = _opened_video(source)
+        capture = opened_video(source)
         total = max(0, int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0))
         try:
             check_frame_pixels(

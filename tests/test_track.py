@@ -280,7 +280,8 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
     for flags, needle in (
         (["--aruco-size", "inf"], "--aruco-size inf must be between 0.005 and 5 (metres)"),
         (["--aruco-size", "1e300"], "--aruco-size 1e+300 must be between 0.005 and 5"),  # was OpenCV's assertion
-        (["--min-segment-frames", "100000"], "min_segment_frames=100000 but the clip has 90 frames to track"),
+        (["--min-segment-frames", "100000"], "90 frames to track, fewer than a trajectory's 100000"),
+        (["--min-segment-frames", "100000"], "or pass --min-segment-frames 90"),  # advice that can be followed
         (["--max-frames", "3"], "--max-frames 3 must be >= --min-segment-frames (5)"),
         (["--start-frame", "-1"], "--start-frame -1 must be >= 0"),
     ):
@@ -297,6 +298,15 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
     )
     assert result.exit_code == 2 and "not empty" in result.output, result.output
     assert (tmp_path / "taken" / "mine.txt").read_text() == "mine"
+    # Not a video: said so (it was "read 0 frame(s)"); the manifest for the scene: the folder is named instead.
+    result = runner.invoke(app, ["track", str(tmp_path / "garbage.mp4"), "--scene", scene, "-o", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "garbage.mp4 is not a readable video" in result.output, result.output
+    (tmp_path / "scene.json").write_text("{}")
+    result = runner.invoke(app, ["track", clip, "--scene", str(tmp_path / "scene.json"), "-o", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "a JSON file, not an MJCF scene; pass the scene folder" in result.output, (
+        result.output
+    )
+    assert not (tmp_path / "o").exists()
 
 
 @pytest.mark.parametrize(
