@@ -230,8 +230,10 @@ def load_jobs(path: Path) -> list[Job]:
     import yaml
 
     path = Path(path)
+    if path.is_dir():
+        raise GrounderError(f"{path} is a folder; pass the jobs file (YAML) itself, e.g. {path / 'jobs.yaml'}")
     if not path.is_file():
-        raise GrounderError(f"{path}: jobs file does not exist")
+        raise GrounderError(f"{path}: jobs file does not exist; pass the path of a jobs file (YAML)")
     try:
         data = yaml.load(path.read_bytes().decode("utf-8"), Loader=_yaml_loader())  # a yaml.SafeLoader
     except UnicodeDecodeError as exc:

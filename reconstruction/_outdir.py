@@ -105,6 +105,11 @@ def _mkdir_beside(out_dir: Path, tag: str, error: type[Exception]) -> tuple[Path
         folder.mkdir()
     except OSError as exc:
         _remove_empty(created)
+        in_the_way = next((p for p in out_dir.parents if p.exists() and not p.is_dir()), None)
+        if in_the_way is not None:  # mkdir says "File exists", which reads as if the output folder did
+            raise error(
+                f"cannot create the output folder {out_dir}: {in_the_way} is a file, not a folder; choose another -o"
+            ) from exc
         raise error(f"cannot create the output folder {out_dir} ({exc.strerror or exc}); choose another -o") from exc
     return folder, created
 

@@ -523,3 +523,10 @@ def test_deeply_nested_marker_or_record_is_not_trusted(
     assert summary.skipped == () and summary.ran == ("job",) and summary.failed == ()
     assert any("job.json" in r.getMessage() and "nested too deeply" in r.getMessage() for r in caplog.records)
     assert (read_result(out, "job") or {}).get("status") == "ok"
+
+
+def test_a_folder_or_a_missing_path_as_the_jobs_file_is_one_clear_line(tmp_path: Path) -> None:
+    with pytest.raises(GrounderError, match=r"is a folder; pass the jobs file \(YAML\) itself"):
+        load_jobs(tmp_path)
+    with pytest.raises(GrounderError, match=r"jobs file does not exist; pass the path of a jobs file"):
+        load_jobs(tmp_path / "jobs.yaml")
