@@ -23,6 +23,28 @@ def _check_new_dir(path: Path, *, inputs: tuple[Path, ...] = ()) -> None:
     check_output_dir(path, error=GrounderError, inputs=inputs, offers_overwrite=False)
 
 
+_FLAG_OF_OPTION = {
+    "validation_fraction": "--validation-fraction",
+    "split_seed": "--split-seed",
+    "max_train_trajectories": "--max-train",
+    "generations": "--generations",
+    "popsize": "--popsize",
+    "local_iterations": "--local-iterations",
+    "rotation_weight": "--rotation-weight",
+    "seed": "--seed",
+    "params": "--params",
+}
+
+
+def _as_flag(message: str) -> str:
+    """``calibrate option FIELD must be ...`` (CalibrateOptions' wording, for Python and jobs files) as ``--flag``."""
+    for field_name, flag in _FLAG_OF_OPTION.items():
+        prefix = f"calibrate option {field_name} must be "
+        if message.startswith(prefix):
+            return f"{flag} must be {message[len(prefix) :].replace(' or null', '')}"
+    return message
+
+
 def register(app: typer.Typer) -> None:
     """Adds the calibration commands to the ``image2sim`` app."""
     from grounder.cli import _setup_logging, fail, require, stage_progress, user_errors_exit_2
@@ -63,22 +85,26 @@ def register(app: typer.Typer) -> None:
             from grounder._calibrate import CalibrateOptions, load_scene
             from grounder._calibrate import calibrate as run_calibrate
             from grounder._trajectory import load_trajectories
+            from grounder.errors import GrounderError
 
             if mode not in ("raw", "embedding"):
                 fail(f"--mode must be raw or embedding, got {mode!r}")
             _check_new_dir(out, inputs=(scene, traj_dir))
-            options = CalibrateOptions(
-                params=_split_params(params),
-                mode=mode,  # type: ignore[arg-type]
-                validation_fraction=validation_fraction,
-                split_seed=split_seed,
-                max_train_trajectories=max_train,
-                generations=generations,
-                popsize=popsize,
-                local_iterations=local_iterations,
-                rotation_weight=rotation_weight,
-                seed=seed,
-            )
+            try:
+                options = CalibrateOptions(
+                    params=_split_params(params),
+                    mode=mode,  # type: ignore[arg-type]
+                    validation_fraction=validation_fraction,
+                    split_seed=split_seed,
+                    max_train_trajectories=max_train,
+                    generations=generations,
+                    popsize=popsize,
+                    local_iterations=local_iterations,
+                    rotation_weight=rotation_weight,
+                    seed=seed,
+                )
+            except GrounderError as exc:  # named by the option's field: say the flag the user typed
+                fail(_as_flag(str(exc)))
             _, model = load_scene(scene)
             trajs = load_trajectories(traj_dir, model)
             from grounder._calibrate_params import resolve_parameters

@@ -812,9 +812,13 @@ def test_cli_nan_rotation_weight_is_refused(traj_dir: Path, tmp_path: Path) -> N
         "--params", "cube.friction.sliding", "--rotation-weight", "nan",
         "--generations", "0", "--local-iterations", "0",
     )  # fmt: skip
-    _assert_exit_2(result, "calibrate option rotation_weight must be a number in [0, 100]")
+    _assert_exit_2(result, "--rotation-weight must be a number in [0, 100]")  # the flag, not the Python field
     assert "got NaN" in result.output
     assert not (tmp_path / "o").exists()
+    result = _cli(
+        "calibrate", str(CUBE_XML), str(traj_dir), "-o", str(tmp_path / "o"), "--max-train", "0",
+    )  # fmt: skip
+    _assert_exit_2(result, "--max-train must be an integer >= 1, got 0")  # not "max_train_trajectories ... or null"
 
 
 def test_note_replaces_a_linked_scene_json(tmp_path: Path) -> None:
