@@ -382,14 +382,20 @@ def train(out_dir: Path, options: TrainOptions | None = None, *, progress: Progr
 
 
 def save(net: PropertyNet, meta: dict[str, Any], out_dir: Path) -> None:
-    """Writes the weights (float32 state dict) and the metadata JSON, each atomically."""
+    """Writes the weights (float32 state dict) and the metadata JSON: both written in full to temporary files
+    first, then each moved into place, so a failure while writing (a full disk, Ctrl-C) leaves the old pair
+    untouched and no temporary file behind."""
     out_dir.mkdir(parents=True, exist_ok=True)
     weights_tmp = out_dir / f".{WEIGHTS_FILE}.tmp"
-    torch.save({k: v.detach().clone() for k, v in net.state_dict().items()}, weights_tmp)
-    weights_tmp.replace(out_dir / WEIGHTS_FILE)
     meta_tmp = out_dir / f".{META_FILE}.tmp"
-    meta_tmp.write_text(json.dumps(meta, indent=1) + "\n")
-    meta_tmp.replace(out_dir / META_FILE)
+    try:
+        torch.save({k: v.detach().clone() for k, v in net.state_dict().items()}, weights_tmp)
+        meta_tmp.write_text(json.dumps(meta, indent=1) + "\n")
+        weights_tmp.replace(out_dir / WEIGHTS_FILE)
+        meta_tmp.replace(out_dir / META_FILE)
+    finally:
+        weights_tmp.unlink(missing_ok=True)
+        meta_tmp.unlink(missing_ok=True)
 
 
 def _regenerate(weights_dir: Path) -> str:

@@ -517,3 +517,22 @@ def test_train_options_and_dataset_refuse_sizes_that_cannot_finish() -> None:
             generate_dataset(n, 3)
     with pytest.raises(grounder.GrounderError, match=r"num_samples=100000000000000000000 but expected"):
         evaluate(WEIGHTS_DIR, num_samples=10**20)
+
+
+def test_saving_weights_that_fails_midway_keeps_the_old_pair(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`save` replaced the weights, then the metadata: a failure between them left new weights beside old metadata.
+    Both are now written in full first; a failure writing the metadata leaves the old pair and no temporary file."""
+    from grounder import _properties_model
+    from grounder._properties_model import META_FILE, WEIGHTS_FILE, PropertyNet
+
+    folder = _copied_weights(tmp_path / "weights")
+    before = {name: (folder / name).read_bytes() for name in (WEIGHTS_FILE, META_FILE)}
+
+    def full_disk(self: Path, *args: object, **kwargs: object) -> int:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(Path, "write_text", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        _properties_model.save(PropertyNet(), {"format": 1}, folder)
+    assert {name: (folder / name).read_bytes() for name in (WEIGHTS_FILE, META_FILE)} == before
+    assert sorted(p.name for p in folder.iterdir()) == sorted(before)
