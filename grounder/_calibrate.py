@@ -855,7 +855,7 @@ def _check_trajectories(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> N
         raise GrounderError("trajectory names must be unique; the split is made by name")
     for t in trajs:
         validate_against_model(t, model)
-        sim.step_indices(t.time_s, model.opt.timestep)
+        sim.step_indices(t.time_s, model.opt.timestep, t.name)
 
 
 def calibrate(

@@ -149,7 +149,7 @@ def make_windows(model: mujoco.MjModel, trajs: Sequence[Trajectory], horizon_s: 
     rows: list[tuple[int, np.ndarray, np.ndarray, int]] = []  # traj, samples, rel steps, start step
     step_controls = []
     for ti, traj in enumerate(trajs):
-        steps = step_indices(traj.time_s, dt)
+        steps = step_indices(traj.time_s, dt, traj.name)
         step_controls.append(_controls(traj, steps, model.nu, int(steps[-1]) + 1))
         if horizon_s is None:
             starts = [0]

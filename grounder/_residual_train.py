@@ -194,7 +194,7 @@ class _Transitions:
 
 
 def _period_steps(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> int:
-    gaps = np.concatenate([np.diff(step_indices(t.time_s, model.opt.timestep)) for t in trajs])
+    gaps = np.concatenate([np.diff(step_indices(t.time_s, model.opt.timestep, t.name)) for t in trajs])
     values, counts = np.unique(gaps, return_counts=True)
     return int(values[np.argmax(counts)])
 
@@ -238,7 +238,7 @@ class _Trainer:
         self.qvel: list[np.ndarray] = []
         self.ctrl: list[np.ndarray | None] = []
         for traj in trajs:
-            steps = step_indices(traj.time_s, self.model.opt.timestep)
+            steps = step_indices(traj.time_s, self.model.opt.timestep, traj.name)
             breaks = np.flatnonzero(np.diff(steps) != self.period) + 1
             for seg in np.split(np.arange(len(steps)), breaks):
                 if len(seg) >= 2:

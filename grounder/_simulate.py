@@ -198,18 +198,30 @@ def default_nthread() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def step_indices(time_s: np.ndarray, timestep_s: float) -> np.ndarray:
+def step_indices(time_s: np.ndarray, timestep_s: float, name: str | None = None) -> np.ndarray:
     """Model steps from the first sample to each sample, (T,) int64, 0 for the first.
 
+    Args:
+        name: The trajectory's name, for the error message.
+
     Raises:
-        GrounderError: two samples fall on the same model step (the data is sampled faster than the model).
+        GrounderError: two samples fall on the same model step (the data is sampled faster than the model, or two
+            samples share a time).
     """
     steps = np.rint((np.asarray(time_s, np.float64) - time_s[0]) / timestep_s).astype(np.int64)
     if len(steps) > 1 and np.any(np.diff(steps) <= 0):
-        dt_min = float(np.min(np.diff(time_s)))
+        gaps = np.diff(time_s)
+        at = int(np.argmin(gaps))
+        which = f"trajectory {name}" if name else "a trajectory"
+        fix = (
+            "samples must be at least one model step apart: use a shorter timestep in the scene's <option>, or "
+            "resample the recording"
+            if gaps[at] > 0
+            else "remove the repeated sample from the recording"
+        )
         raise GrounderError(
-            f"trajectory samples are {dt_min * 1e3:.3f} ms apart but the model timestep is {timestep_s * 1e3:.3f} ms; "
-            "use a model timestep no longer than the sample interval"
+            f"{which}: samples {at} and {at + 1} are {gaps[at] * 1e3:.3f} ms apart but the model timestep is "
+            f"{timestep_s * 1e3:.3f} ms; {fix}"
         )
     return steps
 
@@ -275,7 +287,7 @@ def prepare(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> RolloutBatch:
     if not trajs:
         raise GrounderError("no trajectories to simulate")
     data = mujoco.MjData(model)
-    steps = [step_indices(t.time_s, model.opt.timestep) for t in trajs]
+    steps = [step_indices(t.time_s, model.opt.timestep, t.name) for t in trajs]
     nstep = max(1, max(int(s[-1]) for s in steps))
     state_bytes = len(trajs) * (nstep + 1) * mujoco.mj_stateSize(model, FULLPHYSICS) * 8
     if state_bytes > _rollout_memory_limit():

@@ -84,8 +84,10 @@ def test_quaternion_double_cover_is_the_same_rotation() -> None:
 
 
 def test_data_faster_than_the_model_is_refused() -> None:
-    with pytest.raises(GrounderError, match="timestep"):
-        step_indices(np.array([0.0, 0.0001, 0.0002]), 0.001)
+    with pytest.raises(GrounderError, match=r"trajectory toss_3: samples 0 and 1 are 0\.100 ms apart .* shorter"):
+        step_indices(np.array([0.0, 0.0001, 0.0002]), 0.001, "toss_3")
+    with pytest.raises(GrounderError, match=r"samples 1 and 2 are 0\.000 ms apart .* remove the repeated sample"):
+        step_indices(np.array([0.0, 0.01, 0.01, 0.02]), 0.001, "toss_3")
 
 
 def test_a_time_column_too_long_to_simulate_is_refused_before_allocating() -> None:
