@@ -299,8 +299,9 @@ def test_unreadable_interaction_clip_fails_before_grounding(
     for i in range(3):
         cv2.imwrite(str(short / f"{i}.png"), np.full((48, 64, 3), 40 * i, np.uint8))
     proc = cli(
-        "ground", str(tabletop_dir / "video.mp4"), "--interaction", str(short), "-o", str(tmp_path / "out"), timeout=60
-    )
+        "ground", str(tabletop_dir / "video.mp4"), "--interaction", str(short), "-o", str(tmp_path / "out"),
+        "--aruco-size", "0.12", timeout=60,
+    )  # fmt: skip
     assert_one_line_error(proc, "3 frames; tracking needs at least 5", alone=True)
     assert not (tmp_path / "out").exists()
 
@@ -372,7 +373,7 @@ def test_value_checks_name_each_value_that_is_wrong(capsys: pytest.CaptureFixtur
         (["batch", "j.yaml", "--num-cpus", "10" * 10], "must be between 1 and 256"),
         (["calibrate", "s.xml", "t", "-o", "o", "--seed", "4294967296"], "seed must be an integer in [0, 4294967295]"),
         (["calibrate", "s.xml", "t", "-o", "o", "--popsize", "10" * 10], "popsize must be an integer in [1, 1000]"),
-        (["calibrate", "s.xml", "t", "-o", "o", "--rotation-weight", "1e300"], "rotation_weight must be a number in"),
+        (["calibrate", "s.xml", "t", "-o", "o", "--rotation-weight", "1e300"], "--rotation-weight must be a number in"),
         (["reconstruct", "samples/tabletop/video.mp4", "-o", "o", "--seed", "-1"], "--seed is -1 but must be between"),
         (["ground", "samples/tabletop/video.mp4", "-o", "o", "--seed", "2147483648"], "--seed is 2147483648 but"),
         (["properties", "train", "-o", "/proc/image2sim_test/w", "--num-train", "100"], "cannot create the output"),

@@ -357,10 +357,20 @@ def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Pa
         values = drawn["object_0"]
         assert all(math.isfinite(v) for v in [values["density_kg_m3"], *values["friction"], *values["solref"]])
         assert spec.compile().body_mass[1] == pytest.approx(0.125 * values["density_kg_m3"] / 1000.0, rel=1e-9)
-    # Objects without `properties` keep their values.
+    # Objects without `properties` keep their values, beside one that has them; a scene where none has them would
+    # give identical variants, and is refused.
+    mixed = _tiny_scene(tmp_path / "mixed", _entry())
+    xml = (mixed / "scene.xml").read_text()
+    second = xml[xml.index('<body name="object_0"') : xml.index("</worldbody>")].replace("object_0", "object_1")
+    (mixed / "scene.xml").write_text(xml.replace("</worldbody>", second + "</worldbody>"))
+    manifest = json.loads((mixed / "scene.json").read_text())
+    manifest["objects"]["object_1"] = {"density_kg_m3": 1000.0}
+    (mixed / "scene.json").write_text(json.dumps(manifest))
+    (spec, drawn), *_ = sample_variant_specs(mixed, 1)
+    assert set(drawn) == {"object_0"} and spec.body("object_1").mass == pytest.approx(0.125)
     plain = _tiny_scene(tmp_path / "plain", {"density_kg_m3": 1000.0})
-    (spec, drawn), *_ = sample_variant_specs(plain, 1)
-    assert drawn == {} and spec.body("object_0").mass == pytest.approx(0.125)
+    with pytest.raises(grounder.GrounderError, match="no object has predicted properties to draw from"):
+        sample_variant_specs(plain, 1)
     # Through the CLI: one line, exit 2, nothing written.
     bad = _tiny_scene(tmp_path / "bad", _entry(density_kg_m3=0))
     proc = cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
