@@ -146,12 +146,21 @@ def reconstruct(
         work.mkdir()
         database = work / "database.db"
         report("extracting SIFT features", 0, len(names))
-        _sfm.extract_features(database, image_dir, names, options.sfm)
+        _sfm.extract_features(
+            database, image_dir, names, options.sfm, lambda done: report("extracting SIFT features", done, len(names))
+        )
         seconds["features"] = time.perf_counter() - tick
         tick = time.perf_counter()
-        report("matching", 0, len(names))
+        report("matching", 0, 1)  # image pairs: counted once listed
         sequential = _frames.is_video(source) or len(names) > options.sfm.exhaustive_max_images
-        _sfm.match_features(database, len(names), sequential=sequential, options=options.sfm, work_dir=work)
+        _sfm.match_features(
+            database,
+            len(names),
+            sequential=sequential,
+            options=options.sfm,
+            work_dir=work,
+            progress=lambda done, pairs: report("matching", done, pairs),
+        )
         seconds["matching"] = time.perf_counter() - tick
         tick = time.perf_counter()
         if on_mapping is not None:

@@ -7,7 +7,6 @@ orbit and needs nothing from the network.
 
 from __future__ import annotations
 
-import concurrent.futures
 import contextlib
 import itertools
 import logging
@@ -22,13 +21,17 @@ from typing import TypeVar
 import numpy as np
 import pycolmap
 
-from reconstruction._parallel import usable_cores
+from reconstruction._parallel import run_jobs_reporting, usable_cores
 from reconstruction._types import SfmOptions
 from reconstruction.errors import ReconstructionError, RegistrationError
 
 log = logging.getLogger(__name__)
 
 VOCAB_TREE_WORDS = 256
+# Chunks of frames per extraction worker (and of pairs per matching worker): progress every few seconds and a
+# prompt Ctrl-C, for a merge of a few more small databases.
+EXTRACTION_CHUNKS_PER_WORKER = 4
+MATCHING_CHUNKS_PER_WORKER = 4
 T = TypeVar("T")
 
 
@@ -39,24 +42,45 @@ def _quiet_colmap() -> None:
         logging_mod.minloglevel = 1  # 0 INFO, 1 WARNING
 
 
-def extract_features(database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions) -> None:
+def extract_features(
+    database_path: Path,
+    image_dir: Path,
+    image_names: list[str],
+    options: SfmOptions,
+    progress: Callable[[int], None] | None = None,
+) -> None:
     """SIFT features for every image into a new COLMAP database, all images sharing one camera.
 
-    With one extraction thread (reproducible) the frames are shared out among ``extraction_workers`` threads (0:
-    one per usable core), each running pycolmap's single-threaded extraction on a contiguous share into a database
-    of its own; the shares are then merged in frame order (`merge_feature_databases`), which gives the database one
-    thread would write, every table row for row and byte for byte (the SQLite file's page layout may differ).
+    With one extraction thread (reproducible) the frames are cut, in order, into a few chunks per worker
+    (`EXTRACTION_CHUNKS_PER_WORKER`), run by ``extraction_workers`` threads (0: one per usable core), each chunk by
+    pycolmap's single-threaded extraction into a database of its own; the chunks are then merged in frame order
+    (`merge_feature_databases`), which gives the database one thread would write, every table row for row and byte
+    for byte (the SQLite file's page layout may differ). ``progress(images_done)`` is called as chunks finish, in
+    the calling thread; Ctrl-C waits for the running chunks only.
     """
     workers = options.extraction_workers if options.extraction_workers > 0 else usable_cores()
-    workers = min(workers, len(image_names)) if options.extraction_threads == 1 else 1
-    if workers <= 1:
+    if options.extraction_threads != 1 or len(image_names) < 2:
         _extract_share(database_path, image_dir, image_names, options)
+        if progress is not None:
+            progress(len(image_names))
         return
-    shares = _contiguous_shares(image_names, workers)
-    parts = _part_paths(database_path, "share", workers)
+    workers = min(workers, len(image_names))
+    chunks = _contiguous_shares(image_names, min(len(image_names), workers * EXTRACTION_CHUNKS_PER_WORKER))
+    parts = _part_paths(database_path, "share", len(chunks))
+
+    def job(part: Path, chunk: Sequence[str]) -> Callable[[Callable[[int], None]], None]:
+        def run(tick: Callable[[int], None]) -> None:
+            _extract_share(part, image_dir, list(chunk), options)  # pycolmap releases the GIL while it extracts
+            tick(len(chunk))
+
+        return run
+
     try:
-        with concurrent.futures.ThreadPoolExecutor(workers) as pool:  # pycolmap releases the GIL while it extracts
-            list(pool.map(lambda part, share: _extract_share(part, image_dir, share, options), parts, shares))
+        run_jobs_reporting(
+            [job(part, chunk) for part, chunk in zip(parts, chunks, strict=True)],
+            workers,
+            progress or (lambda _done: None),
+        )
         try:
             merge_feature_databases(parts, database_path)
         except UnmergeableSharesError as exc:  # e.g. frames of different sizes: one thread decides as before
@@ -198,7 +222,13 @@ def build_vocab_tree(database_path: Path, out_path: Path, seed: int = 0) -> Path
 
 
 def match_features(
-    database_path: Path, num_images: int, *, sequential: bool, options: SfmOptions, work_dir: Path
+    database_path: Path,
+    num_images: int,
+    *,
+    sequential: bool,
+    options: SfmOptions,
+    work_dir: Path,
+    progress: Callable[[int, int], None] | None = None,
 ) -> None:
     """Sequential matching with loop detection for videos; exhaustive for small unordered image sets.
 
@@ -208,7 +238,10 @@ def match_features(
     single-threaded in a copy of the database, and the shares' matches and two-view geometries merged back
     (`merge_match_databases`). Every pair's RANSAC starts from the same seed, so that gives the tables one thread
     writes, row for row and byte for byte (`tests/test_reconstruct.py`), in 10 s instead of 14 s on the tabletop
-    sample's 2 cores. With more matching threads COLMAP's own threading runs as before (not reproducible).
+    sample's 2 cores. Each thread matches its share in a few chunks (`MATCHING_CHUNKS_PER_WORKER`), one after the
+    other in its copy, and ``progress(pairs_done, pairs)`` is called as chunks finish, in the calling thread; Ctrl-C
+    waits for the running chunks only. With more matching threads COLMAP's own threading runs as before (not
+    reproducible).
     """
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = options.num_threads
@@ -257,18 +290,35 @@ def match_features(
         return
     workers = min(workers, len(pairs))
     parts = _part_paths(database_path, "match", workers)
-    lists = [work_dir / f"pairs{i}.txt" for i in range(workers)]
+    shares = _contiguous_shares(pairs, workers)
+    chunked = [_contiguous_shares(share, min(len(share), MATCHING_CHUNKS_PER_WORKER)) for share in shares]
+    lists = [[work_dir / f"pairs{w}_{c}.txt" for c in range(len(chunks))] for w, chunks in enumerate(chunked)]
+    report = progress or (lambda _done, _total: None)
+
+    def job(part: Path, listings: list[Path], chunks: list[Sequence[tuple[int, int]]]) -> Callable[..., None]:
+        def run(tick: Callable[[int], None]) -> None:
+            for listing, chunk in zip(listings, chunks, strict=True):  # in order, into this share's one copy
+                _match_share(part, listing, matching, verification)  # pycolmap releases the GIL while it matches
+                tick(len(chunk))
+
+        return run
+
     try:
         # Every copy is taken before any thread starts: COLMAP opens its databases in WAL mode, and copies taken while
         # another thread had the database open came out unreadable ("disk I/O error") or different (tried).
-        for share, part, listing in zip(_contiguous_shares(pairs, workers), parts, lists, strict=True):
+        for part, listings, chunks in zip(parts, lists, chunked, strict=True):
             shutil.copyfile(database_path, part)
-            listing.write_text("".join(f"{name_of[i]} {name_of[j]}\n" for i, j in share))
-        with concurrent.futures.ThreadPoolExecutor(workers) as pool:  # pycolmap releases the GIL while it matches
-            list(pool.map(lambda part, listing: _match_share(part, listing, matching, verification), parts, lists))
+            for listing, chunk in zip(listings, chunks, strict=True):
+                listing.write_text("".join(f"{name_of[i]} {name_of[j]}\n" for i, j in chunk))
+        report(0, len(pairs))
+        run_jobs_reporting(
+            [job(*args) for args in zip(parts, lists, chunked, strict=True)],
+            workers,
+            lambda done: report(done, len(pairs)),
+        )
         merge_match_databases(parts, database_path)
     finally:
-        for path in (*parts, *lists):
+        for path in (*parts, *itertools.chain.from_iterable(lists)):
             path.unlink(missing_ok=True)
 
 

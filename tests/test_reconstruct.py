@@ -220,23 +220,30 @@ def _sample_frames(images: Path, indices: Sequence[int], smaller_from: int | Non
 
 
 def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(tmp_path: Path) -> None:
-    """Seven frames of the sample, extracted by one thread and by three (2 + 2 + 3 frames, merged): the two COLMAP
-    databases are the same to the last byte of every table, so the speed-up cannot change any reconstruction."""
+    """Seven frames of the sample, extracted by one pycolmap call, and in chunks (merged in order) by one thread
+    (four chunks) and by three (seven): the COLMAP databases are the same to the last byte of every table, so
+    neither the speed-up nor the chunks that give progress can change any reconstruction. Progress comes as chunks
+    finish."""
     import sqlite3
 
-    from reconstruction._sfm import extract_features
+    from reconstruction._sfm import EXTRACTION_CHUNKS_PER_WORKER, _extract_share, extract_features
     from reconstruction._types import SfmOptions
 
     images = tmp_path / "images"
     names = _sample_frames(images, range(0, 70, 10))
-    dumps = []
+    one_call = tmp_path / "one_call.db"
+    _extract_share(one_call, images, names, SfmOptions())
+    dumps = [list(sqlite3.connect(one_call).iterdump())]
     for workers in (1, 3):
         database = tmp_path / f"workers{workers}.db"
-        extract_features(database, images, names, SfmOptions(extraction_workers=workers))
+        seen: list[int] = []
+        extract_features(database, images, names, SfmOptions(extraction_workers=workers), seen.append)
         dumps.append(list(sqlite3.connect(database).iterdump()))
-        assert sorted(p.name for p in tmp_path.glob("*.db")) == sorted(f"workers{w}.db" for w in (1, 3)[: len(dumps)])
+        chunks = min(len(names), workers * EXTRACTION_CHUNKS_PER_WORKER)  # 4 and 7 chunks
+        assert seen == sorted(seen) and seen[-1] == len(names) and len(seen) == chunks, seen
+    assert sorted(p.name for p in tmp_path.glob("*.db")) == ["one_call.db", "workers1.db", "workers3.db"]
     assert any('INSERT INTO "keypoints"' in line for line in dumps[0])
-    assert dumps[0] == dumps[1]
+    assert dumps[0] == dumps[1] == dumps[2]
 
 
 def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path) -> None:
@@ -244,7 +251,7 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
     the database is the one thread's."""
     import sqlite3
 
-    from reconstruction._sfm import UnmergeableSharesError, extract_features, merge_feature_databases
+    from reconstruction._sfm import UnmergeableSharesError, _extract_share, extract_features, merge_feature_databases
     from reconstruction._types import SfmOptions
 
     images = tmp_path / "images"
@@ -253,12 +260,14 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
         extract_features(tmp_path / name, images, share, SfmOptions(extraction_workers=1))
     with pytest.raises(UnmergeableSharesError, match="cameras"):
         merge_feature_databases([tmp_path / "a.db", tmp_path / "b.db"], tmp_path / "merged.db")
-    dumps = []
+    one_call = tmp_path / "one_call.db"
+    _extract_share(one_call, images, names, SfmOptions())
+    dumps = [list(sqlite3.connect(one_call).iterdump())]
     for workers in (1, 2):
         database = tmp_path / f"workers{workers}.db"
         extract_features(database, images, names, SfmOptions(extraction_workers=workers))
         dumps.append(list(sqlite3.connect(database).iterdump()))
-    assert dumps[0] == dumps[1]
+    assert dumps[0] == dumps[1] == dumps[2]
     assert not list(tmp_path.glob("*.share*"))
 
 
@@ -267,8 +276,9 @@ def test_matching_shared_among_threads_writes_the_one_thread_database(
     tmp_path: Path, frames: range, sequential: bool
 ) -> None:
     """Twenty frames of the sample matched sequentially with loop detection (the pairing lists some pairs twice),
-    and six matched exhaustively, by one thread and in three shares of pairs: the matches and two-view geometries
-    are the same to the last byte, so the speed-up cannot change any reconstruction; no share is left behind."""
+    and six matched exhaustively, by one thread and in three shares of pairs, each matched in chunks: the matches
+    and two-view geometries are the same to the last byte, so the speed-up cannot change any reconstruction; no
+    share is left behind; progress comes chunk by chunk, up to every pair listed."""
     import sqlite3
 
     from reconstruction._sfm import extract_features, match_features
@@ -284,9 +294,19 @@ def test_matching_shared_among_threads_writes_the_one_thread_database(
         shutil.copyfile(features, database)
         work = tmp_path / f"work{workers}"
         work.mkdir()
+        seen: list[tuple[int, int]] = []
+        options = SfmOptions(matching_workers=workers)
         match_features(
-            database, len(names), sequential=sequential, options=SfmOptions(matching_workers=workers), work_dir=work
+            database,
+            len(names),
+            sequential=sequential,
+            options=options,
+            work_dir=work,
+            progress=lambda done, pairs, seen=seen: seen.append((done, pairs)),
         )
+        if workers > 1:  # in chunks, each reported as it finishes; one thread is one COLMAP call
+            assert [done for done, _ in seen] == sorted(done for done, _ in seen) and len(seen) > workers, seen
+            assert seen[-1][0] == seen[-1][1] > len(names) - 2, seen
         dumps.append([line for line in sqlite3.connect(database).iterdump() if "matches" in line or "two_view" in line])
         assert {p.name for p in work.iterdir()} <= {"vocab_tree.bin"}
     assert sorted(p.name for p in tmp_path.glob("*.db")) == ["features.db", "workers1.db", "workers3.db"]
