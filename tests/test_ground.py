@@ -132,7 +132,7 @@ def test_real_apple_video(grounded_apple: Path, shared_data: Path) -> None:
     manifest = json.loads((grounded_apple / "scene.json").read_text())
     assert list(manifest["objects"]) == ["object_0"]  # exactly one object: the apple
     (apple,) = manifest["objects"].values()
-    assert max(apple["extents_m"]) == pytest.approx(0.08, rel=1e-3)
+    assert max(apple["extents_m"]) == pytest.approx(0.08, rel=1e-3)  # the --known-extent given: scale applied
     assert 0.05 < apple["extents_m"][2] < 0.1  # an apple-sized height, resting on the table
     settle = manifest["settle_test"]["objects"]["object_0"]
     assert settle["displacement_m"] <= 0.002 and settle["rotation_deg"] <= 1.0

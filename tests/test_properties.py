@@ -158,11 +158,14 @@ def heldout() -> dict[str, float]:
 
 def test_heldout_density_error_and_coverage(heldout: dict[str, float]) -> None:
     assert heldout["density_mae_log"] <= 0.7 * heldout["baseline_density_mae_log"], heldout
+    # A fixed bound too, not only one relative to a baseline from the same run: measured 0.580 (2026-11-27)
+    assert heldout["density_mae_log"] <= 0.70, heldout
     assert 0.8 <= heldout["coverage90"] <= 0.97, heldout
 
 
 def test_heldout_friction_error(heldout: dict[str, float]) -> None:
     assert heldout["friction_mae"] <= 0.7 * heldout["baseline_friction_mae"], heldout
+    assert heldout["friction_mae"] <= 0.125, heldout  # measured 0.107 (2026-11-27)
 
 
 def test_cli_bad_input_exits_2(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
