@@ -220,10 +220,12 @@ def run_rollout(
     """The ``rollout`` command's library side: returns (predicted trajectories, whether the residual was used).
 
     Uses ``grounder._simulator.Simulator`` when that module exists, the scene folder has a residual and
-    ``use_residual``; plain :func:`grounder._simulate.simulate` otherwise.
+    ``use_residual``; plain :func:`grounder._simulate.simulate` otherwise. Writes the predictions (same file names as
+    the recordings) and ``rollout.json`` (what was rolled out, with or without the residual).
     """
     import importlib
     import importlib.util
+    import json
 
     from grounder._calibrate import load_scene
     from grounder._simulate import simulate
@@ -246,4 +248,12 @@ def run_rollout(
         preds = simulate(model, trajs, stable=True)
     with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir)) as stage:
         save_trajectories(preds, stage)  # the whole folder replaced at once, as every command does
+        record = {
+            "format": "image2sim.rollout/1",
+            "scene": str(scene),
+            "trajectories": str(traj_dir),
+            "residual": used,
+            "files": sorted(f"{t.name}.npz" for t in preds),
+        }
+        (stage / "rollout.json").write_text(json.dumps(record, indent=1) + "\n")  # marks it as an image2sim output
     return list(preds), used

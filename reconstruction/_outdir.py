@@ -23,6 +23,7 @@ MARKER_FILES = (
     "track.json",
     "variants.json",
     "property_net.json",
+    "rollout.json",
 )
 
 
@@ -59,8 +60,9 @@ def check_output_dir(
     `offers_overwrite=False`: the command has no --overwrite, so the error does not suggest one.
 
     Raises:
-        `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False; it is a file or a
-        symbolic link; or it is or holds one of `inputs`.
+        `error` (InputError unless given): `out_dir` exists, is not empty, and `overwrite` is False, or it is not an
+        image2sim output (holds none of `MARKER_FILES`); it is a file, a symbolic link or a mount point; or it is or
+        holds one of `inputs`.
     """
     out_dir = Path(out_dir)
     inputs = tuple(inputs)  # read twice below
@@ -82,6 +84,12 @@ def check_output_dir(
     if out_dir.is_dir() and any(out_dir.iterdir()):
         if overwrite:
             _check_not_part_of_an_input(out_dir, inputs, error)
+            if not _is_image2sim_output(out_dir):  # a mistyped -o with --overwrite would delete someone's folder
+                raise error(
+                    f"output folder {out_dir} is not empty and is not an image2sim output (it holds none of "
+                    f"{', '.join(MARKER_FILES)}), so --overwrite will not replace it; choose a new folder (-o), or "
+                    "empty this one yourself"
+                )
         else:
             what_to_do = (
                 "pass --overwrite (Python: overwrite=True) or another output folder"
@@ -114,6 +122,11 @@ def _mkdir_beside(out_dir: Path, tag: str, error: type[Exception]) -> tuple[Path
     return folder, created
 
 
+def _is_image2sim_output(folder: Path) -> bool:
+    """The folder holds one of the records each command writes at the top of its output (`MARKER_FILES`)."""
+    return any((folder / marker).is_file() for marker in MARKER_FILES)
+
+
 def _check_not_part_of_an_input(out_dir: Path, inputs: Iterable[str | Path | None], error: type[Exception]) -> None:
     """Refuses to replace a folder inside an input folder (a scene's `assets/`, say) unless it is an image2sim
     output (it holds one of `MARKER_FILES`): --overwrite would delete part of the input."""
@@ -121,7 +134,7 @@ def _check_not_part_of_an_input(out_dir: Path, inputs: Iterable[str | Path | Non
     for given in inputs:
         if given is None or not Path(given).is_dir():
             continue
-        if Path(given).resolve() in out.parents and not any((out_dir / m).is_file() for m in MARKER_FILES):
+        if Path(given).resolve() in out.parents and not _is_image2sim_output(out_dir):
             raise error(
                 f"output folder {out_dir} lies inside the input {given} and is not an image2sim output, so "
                 "--overwrite would delete part of the input; choose an output folder outside the inputs"

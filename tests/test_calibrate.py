@@ -692,14 +692,23 @@ def test_cli_output_that_is_a_link_is_refused(
 
 
 def test_cli_rollout_overwrite_replaces_the_whole_folder(traj_dir: Path, tmp_path: Path) -> None:
-    """--overwrite replaces the output folder as one, like every command: no stale file of an earlier run is left
-    among the new predictions."""
+    """--overwrite replaces an earlier rollout (its rollout.json marks it) as one, like every command: no stale file
+    of the earlier run is left among the new predictions. A folder that is no image2sim output is not replaced: a
+    mistyped -o with --overwrite deleted the user's files."""
     out = tmp_path / "pred"
     out.mkdir()
+    (out / "mine.txt").write_text("the user's")
+    result = _cli("rollout", str(CUBE_XML), str(traj_dir), "-o", str(out), "--overwrite", "--no-residual")
+    _assert_exit_2(result, "is not an image2sim output (it holds none of reconstruct.json")
+    assert [p.name for p in out.iterdir()] == ["mine.txt"]
+    (out / "mine.txt").unlink()
+    assert _cli("rollout", str(CUBE_XML), str(traj_dir), "-o", str(out), "--no-residual").exit_code == 0
+    record = json.loads((out / "rollout.json").read_text())
+    assert record["residual"] is False and record["files"] == sorted(p.name for p in traj_dir.iterdir())
     (out / "stale.npz").write_text("from an earlier run")
     result = _cli("rollout", str(CUBE_XML), str(traj_dir), "-o", str(out), "--overwrite", "--no-residual")
     assert result.exit_code == 0, result.output
-    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in traj_dir.iterdir())
+    assert sorted(p.name for p in out.iterdir()) == sorted([*(p.name for p in traj_dir.iterdir()), "rollout.json"])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["pred"]
 
 

@@ -389,6 +389,7 @@ def test_an_output_folder_that_cannot_move_is_refused_early_or_keeps_the_result(
     users = tmp_path / "users"
     users.mkdir()
     (users / "notes.txt").write_text("mine")
+    (users / "reconstruct.json").write_text("{}")  # an earlier output: --overwrite may replace it
     real_rename = Path.rename
 
     def busy_rename(self: Path, target: str | Path) -> Path:
@@ -401,6 +402,7 @@ def test_an_output_folder_that_cannot_move_is_refused_early_or_keeps_the_result(
         with staged_output_dir(users, overwrite=True) as stage:
             (stage / "result.txt").write_text("done")
     assert (users / "notes.txt").read_text() == "mine"  # the user's folder is as it was
+    assert (users / "reconstruct.json").read_text() == "{}"
     kept = [p for p in tmp_path.iterdir() if p.name.startswith(".users.partial-")]
     assert len(kept) == 1 and (kept[0] / "result.txt").read_text() == "done"
 

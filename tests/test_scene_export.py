@@ -605,8 +605,14 @@ def test_bad_pose_and_existing_output_are_rejected(tmp_path: Path) -> None:
     with pytest.raises(OutputExistsError, match="overwrite=True"):
         export_scene([simple_object("box")], TableSpec(), [], tmp_path / "scene")
     assert (tmp_path / "scene" / "keep.txt").read_text() == "user data"
+    with pytest.raises(OutputExistsError, match="not an image2sim output"):  # overwrite replaces outputs only
+        export_scene([simple_object("box")], TableSpec(), [], tmp_path / "scene", overwrite=True)
+    assert (tmp_path / "scene" / "keep.txt").read_text() == "user data"
+    (tmp_path / "scene" / "keep.txt").unlink()
+    export_scene([simple_object("box")], TableSpec(), [], tmp_path / "scene")
+    (tmp_path / "scene" / "stale.obj").write_text("from an earlier export")
     scene = export_scene([simple_object("box")], TableSpec(), [], tmp_path / "scene", overwrite=True)
-    assert scene.scene_xml.is_file() and not (tmp_path / "scene" / "keep.txt").exists()
+    assert scene.scene_xml.is_file() and not (tmp_path / "scene" / "stale.obj").exists()
 
 
 def test_broken_scene_file_gives_a_scene_export_error(tmp_path: Path) -> None:
