@@ -83,13 +83,8 @@ def check_output_dir(
     _remove_empty(created)
     if out_dir.is_dir() and any(out_dir.iterdir()):
         if overwrite:
-            _check_not_part_of_an_input(out_dir, inputs, error)
             if not _is_image2sim_output(out_dir):  # a mistyped -o with --overwrite would delete someone's folder
-                raise error(
-                    f"output folder {out_dir} is not empty and is not an image2sim output (it holds none of "
-                    f"{', '.join(MARKER_FILES)}), so --overwrite will not replace it; choose a new folder (-o), or "
-                    "empty this one yourself"
-                )
+                raise error(_not_replaceable(out_dir, inputs))
         else:
             what_to_do = (
                 "pass --overwrite (Python: overwrite=True) or another output folder"
@@ -127,18 +122,21 @@ def _is_image2sim_output(folder: Path) -> bool:
     return any((folder / marker).is_file() for marker in MARKER_FILES)
 
 
-def _check_not_part_of_an_input(out_dir: Path, inputs: Iterable[str | Path | None], error: type[Exception]) -> None:
-    """Refuses to replace a folder inside an input folder (a scene's `assets/`, say) unless it is an image2sim
-    output (it holds one of `MARKER_FILES`): --overwrite would delete part of the input."""
+def _not_replaceable(out_dir: Path, inputs: Iterable[str | Path | None]) -> str:
+    """Why --overwrite will not replace ``out_dir``, a non-empty folder that is no image2sim output: inside an input
+    folder (a scene's `assets/`, say) it would delete part of that input; elsewhere, someone's folder."""
     out = out_dir.resolve()
     for given in inputs:
-        if given is None or not Path(given).is_dir():
-            continue
-        if Path(given).resolve() in out.parents and not _is_image2sim_output(out_dir):
-            raise error(
+        if given is not None and Path(given).is_dir() and Path(given).resolve() in out.parents:
+            return (
                 f"output folder {out_dir} lies inside the input {given} and is not an image2sim output, so "
                 "--overwrite would delete part of the input; choose an output folder outside the inputs"
             )
+    return (
+        f"output folder {out_dir} is not empty and is not an image2sim output (it holds none of "
+        f"{', '.join(MARKER_FILES)}), so --overwrite will not replace it; choose a new folder (-o), or empty this one "
+        "yourself"
+    )
 
 
 @contextmanager

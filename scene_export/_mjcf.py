@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import mujoco
 import numpy as np
 
-from reconstruction._outdir import staged_output_dir
+from reconstruction._outdir import staged_output_dir, write_image
 from reconstruction._types import CameraIntrinsics, TexturedMesh
 from scene_export._collision import CollisionGeometry
 from scene_export._mesh import as_mesh_arrays, solid_trimesh
@@ -307,10 +307,7 @@ def _write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, uv: np.ndarr
 
 
 def _write_png_rgb(path: Path, image_rgb: np.ndarray) -> None:
-    import cv2
-
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image_rgb[..., ::-1])):
-        raise SceneExportError(f"could not write {path}; check the folder is writable")
+    write_image(path, np.ascontiguousarray(image_rgb[..., ::-1]), error=SceneExportError)
 
 
 # ---------------------------------------------------------------- export
