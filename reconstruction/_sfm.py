@@ -11,8 +11,10 @@ import contextlib
 import itertools
 import logging
 import os
+import pickle
 import shutil
 import sqlite3
+import subprocess
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -234,14 +236,16 @@ def match_features(
 
     With one matching thread (``options.num_threads`` 1, reproducible) the image pairs COLMAP's pairing would match
     are listed first (its own pair generator, loop detection included), shared out in order among
-    ``options.matching_workers`` threads (0: one per usable core), each matching and verifying its share
+    ``options.matching_workers`` worker processes (0: one per usable core), each matching and verifying its share
     single-threaded in a copy of the database, and the shares' matches and two-view geometries merged back
     (`merge_match_databases`). Every pair's RANSAC starts from the same seed, so that gives the tables one thread
     writes, row for row and byte for byte (`tests/test_reconstruct.py`), in 10 s instead of 14 s on the tabletop
-    sample's 2 cores. Each thread matches its share in a few chunks (`MATCHING_CHUNKS_PER_WORKER`), one after the
-    other in its copy, and ``progress(pairs_done, pairs)`` is called as chunks finish, in the calling thread; Ctrl-C
-    waits for the running chunks only. With more matching threads COLMAP's own threading runs as before (not
-    reproducible).
+    sample's 2 cores. Processes, not threads: pycolmap's matching run in several threads of one process at once
+    came out different now and then (a keypoint match more or less in a pair: 4 tables of 48 wrong with 6 threads
+    matching the same pairs side by side; none of 90 for SIFT extraction, which stays in threads). Each process
+    matches its share in a few chunks (`MATCHING_CHUNKS_PER_WORKER`), one after the other in its copy, and
+    ``progress(pairs_done, pairs)`` is called as chunks finish, in the calling thread; Ctrl-C waits for the running
+    chunks only. With more matching threads COLMAP's own threading runs as before (not reproducible).
     """
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = options.num_threads
@@ -297,14 +301,12 @@ def match_features(
 
     def job(part: Path, listings: list[Path], chunks: list[Sequence[tuple[int, int]]]) -> Callable[..., None]:
         def run(tick: Callable[[int], None]) -> None:
-            for listing, chunk in zip(listings, chunks, strict=True):  # in order, into this share's one copy
-                _match_share(part, listing, matching, verification)  # pycolmap releases the GIL while it matches
-                tick(len(chunk))
+            _match_share_in_process(part, listings, [len(c) for c in chunks], matching, verification, tick)
 
         return run
 
     try:
-        # Every copy is taken before any thread starts: COLMAP opens its databases in WAL mode, and copies taken while
+        # Every copy is taken before any worker starts: COLMAP opens its databases in WAL mode, and copies taken while
         # another thread had the database open came out unreadable ("disk I/O error") or different (tried).
         for part, listings, chunks in zip(parts, lists, chunked, strict=True):
             shutil.copyfile(database_path, part)
@@ -335,21 +337,75 @@ def _unique_pairs(pairs: list[tuple[int, int]]) -> list[tuple[int, int]]:
     return unique
 
 
-def _match_share(
-    database_path: Path,
-    pairs_path: Path,
-    matching: pycolmap.FeatureMatchingOptions,
-    verification: pycolmap.TwoViewGeometryOptions,
-) -> None:
+# Run by `_match_share_in_process` as `python -c`: imports pycolmap alone (0.4 s, against 1.7 s for this package),
+# reads the pickled options from stdin (written by the parent, never from a file), matches the listed pairs chunk by
+# chunk into the one database, and prints a line as each chunk is done.
+_MATCH_SHARE_CHILD = """
+import pickle, sys
+import pycolmap
+matching, verification, database, listings = pickle.loads(sys.stdin.buffer.read())
+if hasattr(getattr(pycolmap, "logging", None), "minloglevel"):
+    pycolmap.logging.minloglevel = 1
+for listing in listings:
     imported = pycolmap.ImportedPairingOptions()
-    imported.match_list_path = pairs_path
+    imported.match_list_path = listing
     pycolmap.match_image_pairs(
-        database_path,
-        matching_options=matching,  # one thread (`match_features`)
+        database,
+        matching_options=matching,
         pairing_options=imported,
         verification_options=verification,
         device=pycolmap.Device.cpu,
     )
+    print(listing, flush=True)
+"""
+
+
+def _match_share_in_process(
+    database_path: Path,
+    listings: list[Path],
+    pairs_per_listing: list[int],
+    matching: pycolmap.FeatureMatchingOptions,
+    verification: pycolmap.TwoViewGeometryOptions,
+    tick: Callable[[int], None],
+) -> None:
+    """Matches the pairs of each listing, in order, into ``database_path``, in a process of its own; ``tick(pairs)``
+    as each listing is done. The process is ended if ``tick`` raises (the run is stopping) or this fails."""
+    payload = pickle.dumps((matching, verification, str(database_path), [str(p) for p in listings]))
+    errors_path = database_path.with_name(database_path.name + ".stderr")
+    try:
+        with errors_path.open("w+b") as errors:
+            proc = subprocess.Popen(
+                [sys.executable, "-c", _MATCH_SHARE_CHILD],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=errors,
+                # One OpenMP thread per process (FAISS, OpenBLAS): the processes already fill the cores; the matches
+                # are the same on any number.
+                env={**os.environ, "OMP_NUM_THREADS": "1"},
+            )
+            try:
+                assert proc.stdin is not None and proc.stdout is not None
+                proc.stdin.write(payload)
+                proc.stdin.close()
+                for count in pairs_per_listing:
+                    if not proc.stdout.readline():
+                        break  # the process ended early: its exit status says why
+                    tick(count)
+                returncode = proc.wait()
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+                if proc.stdout is not None:
+                    proc.stdout.close()
+            if returncode != 0:
+                errors.seek(0)
+                tail = errors.read().decode(errors="replace").strip().splitlines()[-3:]
+                raise ReconstructionError(
+                    f"feature matching failed in its worker process (exit status {returncode}): {' | '.join(tail)}"
+                )
+    finally:
+        errors_path.unlink(missing_ok=True)
 
 
 def merge_match_databases(parts: list[Path], out: Path) -> None:

@@ -74,9 +74,10 @@ class SfmOptions:
             time on 2 cores (`tests/test_reconstruct.py`). 0: one per CPU core this process may use. Shares that
             cannot be merged (frames of different sizes) are extracted again on one thread.
         matching_workers: with ``num_threads`` 1, the image pairs to match are split into this many shares, each
-            matched and verified single-threaded in its own thread, and the matches merged: the tables one thread
-            writes, in about 70% of its time on 2 cores (`reconstruction._sfm.match_features`). 0: one per CPU
-            core this process may use.
+            matched and verified single-threaded in a worker process of its own, and the matches merged: the tables
+            one thread writes, in about 70-80% of its time on 2 cores (`reconstruction._sfm.match_features`;
+            processes, because pycolmap's matching run in several threads of one process gives other matches now
+            and then). 0: one per CPU core this process may use.
         seed: random seed for RANSAC, the mapper and the loop-detection index (deterministic results).
     """
 

@@ -272,13 +272,15 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
 
 
 @pytest.mark.parametrize(("frames", "sequential"), [(range(0, 60, 3), True), (range(0, 60, 10), False)])
-def test_matching_shared_among_threads_writes_the_one_thread_database(
+def test_matching_shared_among_processes_writes_the_one_thread_database(
     tmp_path: Path, frames: range, sequential: bool
 ) -> None:
     """Twenty frames of the sample matched sequentially with loop detection (the pairing lists some pairs twice),
-    and six matched exhaustively, by one thread and in three shares of pairs, each matched in chunks: the matches
-    and two-view geometries are the same to the last byte, so the speed-up cannot change any reconstruction; no
-    share is left behind; progress comes chunk by chunk, up to every pair listed."""
+    and six matched exhaustively, by one thread and in three shares of pairs, each matched in chunks by a worker
+    process: the matches and two-view geometries are the same to the last byte, so the speed-up cannot change any
+    reconstruction; no share is left behind; progress comes chunk by chunk, up to every pair listed. (The shares
+    were matched in threads, and about one run in ten here, and one CI run, gave a pair a keypoint match more or
+    less: pycolmap's matching is not safe to run in several threads of one process.)"""
     import sqlite3
 
     from reconstruction._sfm import extract_features, match_features
@@ -304,7 +306,7 @@ def test_matching_shared_among_threads_writes_the_one_thread_database(
             work_dir=work,
             progress=lambda done, pairs, seen=seen: seen.append((done, pairs)),
         )
-        if workers > 1:  # in chunks, each reported as it finishes; one thread is one COLMAP call
+        if workers > 1:  # in chunks, each reported as it finishes; one worker is one COLMAP call
             assert [done for done, _ in seen] == sorted(done for done, _ in seen) and len(seen) > workers, seen
             assert seen[-1][0] == seen[-1][1] > len(names) - 2, seen
         dumps.append([line for line in sqlite3.connect(database).iterdump() if "matches" in line or "two_view" in line])
@@ -314,6 +316,61 @@ def test_matching_shared_among_threads_writes_the_one_thread_database(
     # exhaustive: every pair; sequential: at least each frame with its next (the sample's frames all overlap)
     assert len(verified) >= (len(names) * (len(names) - 1) // 2 if not sequential else len(names) - 1), len(verified)
     assert dumps[0] == dumps[1]
+
+
+def test_a_matching_worker_that_fails_is_one_error_and_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A worker process that dies (out of memory, a COLMAP check) is a ReconstructionError with its exit status and
+    the last of what it printed, not a hang or a silently short table; its log file is removed."""
+    from reconstruction import _sfm
+    from reconstruction.errors import ReconstructionError
+
+    monkeypatch.setattr(_sfm, "_MATCH_SHARE_CHILD", "import sys; sys.stderr.write('Check failed: x\\n'); sys.exit(3)")
+    ticks: list[int] = []
+    with pytest.raises(ReconstructionError, match=r"worker process \(exit status 3\): Check failed: x"):
+        _sfm._match_share_in_process(
+            tmp_path / "part.db",
+            [tmp_path / "pairs0.txt"],
+            [7],
+            pycolmap.FeatureMatchingOptions(),
+            pycolmap.TwoViewGeometryOptions(),
+            ticks.append,
+        )
+    assert ticks == [] and list(tmp_path.iterdir()) == []
+
+
+def test_a_stopping_run_ends_its_matching_worker_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """When the run stops (Ctrl-C, SIGTERM, another share failing) the next progress tick raises; the worker process
+    is then killed rather than left to match the rest of its share (or to outlive the command)."""
+    import os
+    import time
+
+    from reconstruction import _sfm
+
+    pid_file = tmp_path / "pid"
+    child = f"import os, time; open({str(pid_file)!r}, 'w').write(str(os.getpid())); print('one', flush=True); "
+    child += "time.sleep(60)"
+    monkeypatch.setattr(_sfm, "_MATCH_SHARE_CHILD", child)
+
+    def tick(_pairs: int) -> None:
+        raise KeyboardInterrupt
+
+    start = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        _sfm._match_share_in_process(
+            tmp_path / "part.db",
+            [tmp_path / "a.txt", tmp_path / "b.txt"],
+            [3, 4],
+            pycolmap.FeatureMatchingOptions(),
+            pycolmap.TwoViewGeometryOptions(),
+            tick,
+        )
+    assert time.monotonic() - start < 20  # not the child's 60 s
+    pid = int(pid_file.read_text())
+    with pytest.raises(ProcessLookupError):  # killed and reaped
+        os.kill(pid, 0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pid"]
 
 
 def test_loop_detection_index_is_the_same_on_every_build_in_one_process(
