@@ -387,9 +387,11 @@ def _match_share_in_process(
                 assert proc.stdin is not None and proc.stdout is not None
                 proc.stdin.write(payload)
                 proc.stdin.close()
+                done = 0
                 for count in pairs_per_listing:
                     if not proc.stdout.readline():
                         break  # the process ended early: its exit status says why
+                    done += 1
                     tick(count)
                 returncode = proc.wait()
             finally:
@@ -398,11 +400,12 @@ def _match_share_in_process(
                     proc.wait()
                 if proc.stdout is not None:
                     proc.stdout.close()
-            if returncode != 0:
+            if returncode != 0 or done < len(pairs_per_listing):  # a share left short would be merged silently
                 errors.seek(0)
                 tail = errors.read().decode(errors="replace").strip().splitlines()[-3:]
                 raise ReconstructionError(
-                    f"feature matching failed in its worker process (exit status {returncode}): {' | '.join(tail)}"
+                    f"feature matching failed in its worker process (exit status {returncode}, {done} of "
+                    f"{len(pairs_per_listing)} chunks done): {' | '.join(tail)}"
                 )
     finally:
         errors_path.unlink(missing_ok=True)

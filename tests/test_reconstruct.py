@@ -328,7 +328,7 @@ def test_a_matching_worker_that_fails_is_one_error_and_leaves_nothing(
 
     monkeypatch.setattr(_sfm, "_MATCH_SHARE_CHILD", "import sys; sys.stderr.write('Check failed: x\\n'); sys.exit(3)")
     ticks: list[int] = []
-    with pytest.raises(ReconstructionError, match=r"worker process \(exit status 3\): Check failed: x"):
+    with pytest.raises(ReconstructionError, match=r"process \(exit status 3, 0 of 1 chunks done\): Check failed: x"):
         _sfm._match_share_in_process(
             tmp_path / "part.db",
             [tmp_path / "pairs0.txt"],
@@ -338,6 +338,18 @@ def test_a_matching_worker_that_fails_is_one_error_and_leaves_nothing(
             ticks.append,
         )
     assert ticks == [] and list(tmp_path.iterdir()) == []
+    # One that exits cleanly without doing every chunk would leave its share short, merged as if complete.
+    monkeypatch.setattr(_sfm, "_MATCH_SHARE_CHILD", "print('first chunk', flush=True)")
+    with pytest.raises(ReconstructionError, match=r"exit status 0, 1 of 2 chunks done"):
+        _sfm._match_share_in_process(
+            tmp_path / "part.db",
+            [tmp_path / "pairs0.txt", tmp_path / "pairs1.txt"],
+            [7, 5],
+            pycolmap.FeatureMatchingOptions(),
+            pycolmap.TwoViewGeometryOptions(),
+            ticks.append,
+        )
+    assert ticks == [7] and list(tmp_path.iterdir()) == []
 
 
 def test_a_stopping_run_ends_its_matching_worker_at_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
