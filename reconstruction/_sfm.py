@@ -23,6 +23,7 @@ from typing import TypeVar
 import numpy as np
 import pycolmap
 
+from reconstruction._frames import image_size
 from reconstruction._parallel import run_jobs_reporting, usable_cores
 from reconstruction._types import SfmOptions
 from reconstruction.errors import ReconstructionError, RegistrationError
@@ -60,9 +61,10 @@ def extract_features(
     for byte (the SQLite file's page layout may differ). ``progress(images_done)`` is called as chunks finish, in
     the calling thread; Ctrl-C waits for the running chunks only.
     """
+    first_octave = sift_first_octave(image_dir, image_names, options)
     workers = options.extraction_workers if options.extraction_workers > 0 else usable_cores()
     if options.extraction_threads != 1 or len(image_names) < 2:
-        _extract_share(database_path, image_dir, image_names, options)
+        _extract_share(database_path, image_dir, image_names, options, first_octave)
         if progress is not None:
             progress(len(image_names))
         return
@@ -72,7 +74,8 @@ def extract_features(
 
     def job(part: Path, chunk: Sequence[str]) -> Callable[[Callable[[int], None]], None]:
         def run(tick: Callable[[int], None]) -> None:
-            _extract_share(part, image_dir, list(chunk), options)  # pycolmap releases the GIL while it extracts
+            # pycolmap releases the GIL while it extracts
+            _extract_share(part, image_dir, list(chunk), options, first_octave)
             tick(len(chunk))
 
         return run
@@ -88,7 +91,7 @@ def extract_features(
         except UnmergeableSharesError as exc:  # e.g. frames of different sizes: one thread decides as before
             log.info("%s; extracting the features on one thread instead", exc)
             database_path.unlink(missing_ok=True)
-            _extract_share(database_path, image_dir, image_names, options)
+            _extract_share(database_path, image_dir, image_names, options, first_octave)
     finally:
         for part in parts:
             part.unlink(missing_ok=True)
@@ -105,9 +108,21 @@ def _part_paths(database_path: Path, tag: str, count: int) -> list[Path]:
     return [database_path.with_name(f"{database_path.stem}.{tag}{i}{database_path.suffix}") for i in range(count)]
 
 
-def _extract_share(database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions) -> None:
+def sift_first_octave(image_dir: Path, image_names: Sequence[str], options: SfmOptions) -> int:
+    """COLMAP's SIFT ``first_octave`` for these frames: -1 (work on the frame doubled) when the smallest frame's
+    longest side, capped at ``max_image_size_px``, is below ``upsample_below_px``, else 0 (`SfmOptions`)."""
+    if not image_names:
+        return -1
+    longest_px = min(max(image_size(image_dir / name)) for name in image_names)
+    return -1 if min(longest_px, options.max_image_size_px) < options.upsample_below_px else 0
+
+
+def _extract_share(
+    database_path: Path, image_dir: Path, image_names: list[str], options: SfmOptions, first_octave: int
+) -> None:
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.sift.max_num_features = options.max_num_features
+    extraction.sift.first_octave = first_octave
     extraction.max_image_size = options.max_image_size_px
     extraction.num_threads = options.extraction_threads  # one: reproducible (`SfmOptions.extraction_threads`)
     reader = pycolmap.ImageReaderOptions()

@@ -580,3 +580,37 @@ def test_an_image_that_cannot_be_written_is_one_error(tmp_path: Path) -> None:
     assert (tmp_path / "ok.png").stat().st_size > 0
     with pytest.raises(InputError, match=r"could not write .*gone[/\\]frame\.jpg \(disk full"):
         write_image(tmp_path / "gone" / "frame.jpg", image)
+
+
+def test_sift_doubles_only_frames_too_small_for_enough_features(tmp_path: Path) -> None:
+    """SIFT's first octave works on the doubled frame below `SfmOptions.upsample_below_px` (after the
+    `max_image_size_px` cap) and on the frame itself above it, decided by the smallest frame; the choice reaches
+    COLMAP (the doubled octave finds more keypoints on the same frame)."""
+    import sqlite3
+
+    import cv2
+
+    from reconstruction._sfm import extract_features, sift_first_octave
+    from reconstruction._types import SfmOptions
+
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (720, 1296), dtype=np.uint8), (0, 0), 3)
+    texture = cv2.normalize(texture, None, 0, 255, cv2.NORM_MINMAX)
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "phone.png"), texture)
+    cv2.imwrite(str(images / "small.png"), cv2.resize(texture, (640, 360), interpolation=cv2.INTER_AREA))
+    options = SfmOptions()
+    assert sift_first_octave(images, ["phone.png"], options) == 0  # 1296 px, SIFT at 1024 px: not doubled
+    assert sift_first_octave(images, ["small.png"], options) == -1
+    assert sift_first_octave(images, ["phone.png", "small.png"], options) == -1  # the smallest frame decides
+    assert sift_first_octave(images, ["phone.png"], SfmOptions(max_image_size_px=800)) == -1  # SIFT's size counts
+
+    counts = []
+    for below_px in (1000, 2000):  # the phone frame at its own size, then doubled
+        database = tmp_path / f"below{below_px}.db"
+        options = SfmOptions(upsample_below_px=below_px, max_num_features=20000)
+        extract_features(database, images, ["phone.png"], options)
+        with sqlite3.connect(database) as db:
+            counts.append(db.execute("SELECT rows FROM keypoints").fetchone()[0])
+    assert counts[1] > 1.2 * counts[0], counts
