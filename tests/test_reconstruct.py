@@ -226,13 +226,13 @@ def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(
     finish."""
     import sqlite3
 
-    from reconstruction._sfm import EXTRACTION_CHUNKS_PER_WORKER, _extract_share, extract_features
+    from reconstruction._sfm import EXTRACTION_CHUNKS_PER_WORKER, _extract_share, extract_features, sift_first_octave
     from reconstruction._types import SfmOptions
 
     images = tmp_path / "images"
     names = _sample_frames(images, range(0, 70, 10))
     one_call = tmp_path / "one_call.db"
-    _extract_share(one_call, images, names, SfmOptions())
+    _extract_share(one_call, images, names, SfmOptions(), sift_first_octave(images, names, SfmOptions()))
     dumps = [list(sqlite3.connect(one_call).iterdump())]
     for workers in (1, 3):
         database = tmp_path / f"workers{workers}.db"
@@ -251,7 +251,13 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
     the database is the one thread's."""
     import sqlite3
 
-    from reconstruction._sfm import UnmergeableSharesError, _extract_share, extract_features, merge_feature_databases
+    from reconstruction._sfm import (
+        UnmergeableSharesError,
+        _extract_share,
+        extract_features,
+        merge_feature_databases,
+        sift_first_octave,
+    )
     from reconstruction._types import SfmOptions
 
     images = tmp_path / "images"
@@ -261,7 +267,7 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
     with pytest.raises(UnmergeableSharesError, match="cameras"):
         merge_feature_databases([tmp_path / "a.db", tmp_path / "b.db"], tmp_path / "merged.db")
     one_call = tmp_path / "one_call.db"
-    _extract_share(one_call, images, names, SfmOptions())
+    _extract_share(one_call, images, names, SfmOptions(), sift_first_octave(images, names, SfmOptions()))
     dumps = [list(sqlite3.connect(one_call).iterdump())]
     for workers in (1, 2):
         database = tmp_path / f"workers{workers}.db"
