@@ -42,7 +42,6 @@ from __future__ import annotations
 import hashlib
 import math
 import re
-import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -605,42 +604,51 @@ def coverage_gate(stats: CoverageStats, feats: np.ndarray) -> np.ndarray:
     return in_range * (1.0 - smoothstep(dist / stats.coverage_dist - 1.0))
 
 
-class _FastBody(NamedTuple):
-    """Per-body constants and scratch buffers of :meth:`NumpyResidual.correct_one`."""
+class FreeKernelArgs(NamedTuple):
+    """The residual's constants for ``grounder._residual_kernel.correct_free_bodies``, packed once per residual
+    (B bodies, F = 11 features, H hidden units, L hidden-to-hidden layers, K coverage centres, P collision points
+    at most)."""
 
-    qpos_adr: int
-    dof_adr: int
-    radius_m: float
-    gain: float
-    box: tuple[float, ...] | None  # (lo xyz, hi xyz) when the collision points are the corners of such a box
-    points: tuple[tuple[float, ...], ...] | None  # collision points as floats (None: many, use points_array)
-    points_array: np.ndarray
-    range_lo: tuple[float, ...]  # per feature
-    range_hi: tuple[float, ...]
-    inv_margin: tuple[float, ...]
-    feats_bytes: bytearray  # the memory of feats, written with pack_feats (faster than assigning a tuple)
-    pack_feats: Callable[..., None]
-    feats: np.ndarray  # (F + 1,) raw features and a trailing 1
-    first: np.ndarray  # (H + F, F + 1): [f, 1] -> first layer pre-activations, z
-    pre: np.ndarray  # (H + F,) first @ [f, 1], a view of a buffer with a trailing 1
-    pre_hidden: np.ndarray  # views of that buffer: [:H]
-    pre_z: np.ndarray  # z, [H : H + F]
-    z_one: np.ndarray  # [z, 1], [H:]
-    centre_rows: np.ndarray  # (K, F + 1): [z, 1] -> -2 z.c + |c|^2 per coverage centre c
-    centre_terms: np.ndarray  # (K,) centre_rows @ [z, 1]
-    centre_list: tuple[tuple[float, ...], ...]  # the centres as floats
-    nearest_hint: list[int]  # the centre nearest to the last state seen (a hint for speed, never changes results)
-    act_first: np.ndarray  # view of the first hidden activations (without their trailing 1)
-    mids: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], ...]  # (weights | bias, input, output view)
-    act_last: np.ndarray  # last hidden activations with a trailing 1
-    last: np.ndarray  # (12, H + 1) output layer (weights | bias) times scale / bound
-    out: np.ndarray  # (12,)
-    out_bound: np.ndarray  # (12,)
-    coverage_dist: float
-    half_mass: float
-    mass: float
-    half_inertia: tuple[float, ...]  # 0.5 * inertia_body, row-major
-    diagonal_inertia: bool  # its off-diagonal entries are all 0
+    body_i: np.ndarray  # (B, 3) int64: qpos address, dof address, number of collision points
+    body_f: np.ndarray  # (B, 13): radius (m), coverage distance, mass / 2, mass (kg), inertia / 2 (9, kg m^2)
+    out_gain: np.ndarray  # (B,) the residual's own out_gain (the same array: setting its values in place applies)
+    ranges: np.ndarray  # (B, 3, F): feature range low, high, 1 / fade margin
+    points: np.ndarray  # (B, P, 3) collision points in the body frame, m
+    first: np.ndarray  # (B, F + 1, H + F): [f, 1] @ first -> first layer's pre-activations, standardised features
+    mids: np.ndarray  # (B, L, H + 1, H): hidden layers, [a, 1] @ mids[b, l] (weights, then the bias as a row)
+    last: np.ndarray  # (B, H + 1, 12): output layer, [a, 1] @ last[b] (times scale / bound)
+    out_bound: np.ndarray  # (B, 12)
+    centres: np.ndarray  # (B, F, K) coverage centres, standardised (one column per centre)
+    consts: np.ndarray  # (8,): rest speed off, on - off; clearance off, on - off; energy restore fraction; gravity
+
+
+def network_layers(
+    layers: list[tuple[np.ndarray, np.ndarray]],
+    feat_mean: np.ndarray,
+    feat_std: np.ndarray,
+    out_scale_over_bound: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One network as the compiled single-state path takes it (``grounder._residual_kernel._gated_network``):
+    ``(first (F + 1, H + F), mids (L, H + 1, H), last (H + 1, O))`` from its layers ``(weight (in, out), bias
+    (out,))``, the feature standardisation (F,) and the output's scale / bound (O,).
+
+    Every layer takes ``[x, 1]`` (its bias is its last row). The first one works on the raw features: it gives
+    the first layer's pre-activations and the standardised features z (both linear in the raw features, as
+    z = (f - mean) / std), from which the coverage check measures distances.
+    """
+    inv_std = 1.0 / feat_std
+    standardise = np.vstack([np.diag(inv_std), -feat_mean * inv_std])  # (F + 1, F)
+    w1, b1 = layers[0]
+    first_layer = standardise @ w1
+    first_layer[-1] += b1
+    first = np.hstack([first_layer, standardise])
+    hidden = w1.shape[1]
+    mids = np.array([np.vstack([w, bias]) for w, bias in layers[1:-1]], dtype=np.float64).reshape(
+        -1, hidden + 1, hidden
+    )
+    w_out, b_out = layers[-1]
+    last = np.vstack([w_out, b_out]) * out_scale_over_bound
+    return np.ascontiguousarray(first), np.ascontiguousarray(mids), np.ascontiguousarray(last)
 
 
 class NumpyResidual:
@@ -648,7 +656,9 @@ class NumpyResidual:
 
     Same function as the torch model (``grounder._residual_torch.ResidualModel``) and its ONNX export; numpy
     because a single simulation's step is a few microseconds of MuJoCo, where torch's per-call overhead (tens of
-    microseconds) would dominate.
+    microseconds) would dominate. Batches go through :meth:`correct` (vectorised); one state at a time, what
+    ``grounder.Simulator.step`` does, through :meth:`correct_one`, compiled (``grounder._residual_kernel``), since
+    numpy's per-call overhead on so few numbers would dominate there in turn.
     """
 
     def __init__(self, state: dict[str, np.ndarray], meta: ResidualMeta, bodies: list[FreeBody], gravity: np.ndarray):
@@ -660,7 +670,10 @@ class NumpyResidual:
         self.feat_std = state["feat_std"]
         self.out_scale = state["out_scale"]  # (B, 12)
         self.out_bound = state["out_bound"]
-        self.out_gain = np.array(state["out_gain"], dtype=np.float64)  # (B,), chosen on held-out rollouts
+        self.out_gain = np.array(
+            state["out_gain"], dtype=np.float64
+        )  # (B,), chosen on held-out rollouts; set it in place (``out_gain[:] = g``): the
+        # compiled single-state path reads this array
         self.range_lo = state["range_lo"]  # (B, F)
         self.range_hi = state["range_hi"]
         self.centres = state["centres"]  # (B, K, F), standardised
@@ -674,91 +687,48 @@ class NumpyResidual:
                 layers.append((np.ascontiguousarray(weight.T), state[f"nets.{b}.{2 * i}.bias"]))
             self.layers.append(layers)
         self._margin = meta.gate.range_margin * (self.range_hi - self.range_lo) + 1e-9
-        self._centre_sq = np.sum(self.centres**2, axis=-1)  # (B, K)
         self._scale_over_bound = self.out_scale / self.out_bound
-        self._inv_std = 1.0 / self.feat_std
         self._inv_margin = 1.0 / self._margin
-        g = meta.gate
-        gx, gy, gz = self.gravity.tolist()
-        self._fast_constants = (
-            g.rest_speed_m_s[0],
-            g.rest_speed_m_s[1] - g.rest_speed_m_s[0],
-            g.air_clearance_m[0],
-            g.air_clearance_m[1] - g.air_clearance_m[0],
-            g.energy_restore_fraction,
-            gx,
-            gy,
-            gz,
-        )
-        self._fast = [self._fast_body(b) for b in range(num_b)]
+        self.kernel_args = self._kernel_args()
+        self._kernel: Callable[..., None] | None = None
 
-    def _fast_body(self, b: int) -> _FastBody:
-        """Constants and scratch buffers of :meth:`correct_one` for body ``b`` (see there)."""
-        body, layers = self.bodies[b], self.layers[b]
-        w1, b1 = layers[0]  # (F, H), (H,)
-        hidden, centres = w1.shape[1], self.centres[b]  # centres (K, F), standardised
-        # One matrix-vector product with the raw features and a trailing 1, [f, 1], gives the first layer's
-        # pre-activations and the standardised features z (both linear in [f, 1] as z = (f - mean) / std); a
-        # second one with [z, 1], only when needed, gives per coverage centre c the -2 z.c + |c|^2 of
-        # |z - c|^2 = |z|^2 - 2 z.c + |c|^2 (the terms of :meth:`gate`).
-        inv_std = self._inv_std[b]
-        standardise = np.column_stack([np.diag(inv_std), -self.feat_mean[b] * inv_std])  # (F, F + 1)
-        first = np.concatenate(
-            [w1.T @ standardise + np.eye(1, NUM_FEATURES + 1, NUM_FEATURES) * b1[:, None], standardise]
-        )
-        pre_buffer = np.ones(len(first) + 1)  # first @ [f, 1], then a 1
-        centre_rows = np.ascontiguousarray(np.column_stack([-2.0 * centres, self._centre_sq[b]]))
-        # hidden activations with a trailing 1 so that every bias is a column of the next matrix
-        acts = [np.ones(w.shape[1] + 1) for w, _ in layers[:-1]]
-        mids = tuple(
-            (np.ascontiguousarray(np.column_stack([w.T, bias])), acts[i], acts[i + 1][:-1])
-            for i, (w, bias) in enumerate(layers[1:-1])
-        )
-        w_out, b_out = layers[-1]
-        last = np.ascontiguousarray(np.column_stack([w_out.T, b_out]) * self._scale_over_bound[b][:, None])
-        inertia = 0.5 * body.inertia_body
-        points_m = body.points_body_m
-        points = tuple(map(tuple, points_m.tolist())) if len(points_m) <= 16 else None
-        lo_m, hi_m = points_m.min(axis=0), points_m.max(axis=0)
-        is_box = len(points_m) == 8 and len({tuple(p) for p in points_m.tolist()}) == 8
-        is_box = is_box and bool(np.all((points_m == lo_m) | (points_m == hi_m)))
-        feats_bytes = bytearray(8 * (NUM_FEATURES + 1))
-        feats = np.frombuffer(feats_bytes, dtype=np.float64)
-        feats[NUM_FEATURES] = 1.0
-        return _FastBody(
-            qpos_adr=body.qpos_adr,
-            dof_adr=body.dof_adr,
-            radius_m=body.radius_m,
-            gain=float(self.out_gain[b]),
-            box=tuple(lo_m.tolist() + hi_m.tolist()) if is_box else None,
+    def _kernel_args(self) -> FreeKernelArgs:
+        """The constants of :func:`grounder._residual_kernel.correct_free_bodies` (see :meth:`correct_one`)."""
+        num_b = len(self.bodies)
+        most_points = max(len(b.points_body_m) for b in self.bodies)
+        body_i = np.zeros((num_b, 3), dtype=np.int64)
+        body_f = np.zeros((num_b, 13))
+        points = np.zeros((num_b, most_points, 3))
+        networks = []
+        for b, (body, layers) in enumerate(zip(self.bodies, self.layers, strict=True)):
+            body_i[b] = body.qpos_adr, body.dof_adr, len(body.points_body_m)
+            body_f[b, :4] = body.radius_m, self.coverage_dist[b], 0.5 * body.mass_kg, body.mass_kg
+            body_f[b, 4:] = 0.5 * body.inertia_body.ravel()
+            points[b, : len(body.points_body_m)] = body.points_body_m
+            networks.append(network_layers(layers, self.feat_mean[b], self.feat_std[b], self._scale_over_bound[b]))
+        first, mids, last = (np.ascontiguousarray(np.stack(m)) for m in zip(*networks, strict=True))
+        g = self.meta.gate
+        return FreeKernelArgs(
+            body_i=body_i,
+            body_f=body_f,
+            out_gain=self.out_gain,
+            ranges=np.ascontiguousarray(np.stack([self.range_lo, self.range_hi, self._inv_margin], axis=1)),
             points=points,
-            points_array=points_m,
-            range_lo=tuple(self.range_lo[b].tolist()),
-            range_hi=tuple(self.range_hi[b].tolist()),
-            inv_margin=tuple(self._inv_margin[b].tolist()),
-            feats_bytes=feats_bytes,
-            pack_feats=struct.Struct(f"{NUM_FEATURES}d").pack_into,
-            feats=feats,
             first=first,
-            pre=pre_buffer[:-1],
-            pre_hidden=pre_buffer[:hidden],
-            pre_z=pre_buffer[hidden:-1],
-            z_one=pre_buffer[hidden:],
-            centre_rows=centre_rows,
-            centre_terms=np.empty(len(centres)),
-            centre_list=tuple(map(tuple, centres.tolist())),
-            nearest_hint=[0],
-            act_first=acts[0][:-1],
             mids=mids,
-            act_last=acts[-1],
             last=last,
-            out=np.empty(NUM_OUTPUTS),
-            out_bound=np.ascontiguousarray(self.out_bound[b], dtype=np.float64),
-            coverage_dist=float(self.coverage_dist[b]),
-            half_mass=0.5 * body.mass_kg,
-            mass=body.mass_kg,
-            half_inertia=tuple(inertia.ravel().tolist()),
-            diagonal_inertia=bool(np.all(inertia == np.diag(np.diag(inertia)))),
+            out_bound=np.ascontiguousarray(self.out_bound, dtype=np.float64),
+            centres=np.ascontiguousarray(np.swapaxes(self.centres, 1, 2), dtype=np.float64),
+            consts=np.array(
+                [
+                    g.rest_speed_m_s[0],
+                    g.rest_speed_m_s[1] - g.rest_speed_m_s[0],
+                    g.air_clearance_m[0],
+                    g.air_clearance_m[1] - g.air_clearance_m[0],
+                    g.energy_restore_fraction,
+                    *self.gravity.tolist(),
+                ]
+            ),
         )
 
     def gate(self, feats: np.ndarray) -> np.ndarray:
@@ -786,208 +756,21 @@ class NumpyResidual:
         gate = self.gate(feats) * self.out_gain
         return self.raw(feats) * gate[..., None]
 
-    def correct_one(
-        self, qpos0: np.ndarray, qvel0: np.ndarray, qpos: np.ndarray, qvel: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`correct` for one state ((nq,), (nv,)), written for speed: ``qpos``/``qvel`` are modified in place.
+    def correct_one(self, qpos0: np.ndarray, qvel0: np.ndarray, qpos: np.ndarray, qvel: np.ndarray) -> None:
+        """:meth:`correct` for one state, compiled (``grounder._residual_kernel``): ``qpos``/``qvel`` (MuJoCo's
+        prediction after one period from ``qpos0`` (nq,), ``qvel0`` (nv,); all float64 arrays) are corrected in
+        place.
 
-        ``qpos0``/``qvel0`` (the period's starting state) may also be lists of floats.
+        The same function as :meth:`correct` up to rounding (the tests check it), except that where the gate is
+        exactly 0 the state is left exactly as MuJoCo made it (:meth:`correct` still renormalises the quaternion,
+        a change of about 1e-16).
         """
-        qpos_list, qvel_list = qpos.tolist(), qvel.tolist()
-        self.correct_lists(
-            qpos0.tolist() if isinstance(qpos0, np.ndarray) else list(qpos0),
-            qvel0.tolist() if isinstance(qvel0, np.ndarray) else list(qvel0),
-            qpos_list,
-            qvel_list,
-        )
-        qpos[:], qvel[:] = qpos_list, qvel_list
-        return qpos, qvel
+        kernel = self._kernel
+        if kernel is None:  # numba: imported on first use (and compiled on the first use on a machine)
+            from grounder._residual_kernel import correct_free_bodies
 
-    def correct_lists(self, qpos0: list[float], qvel0: list[float], qpos: list[float], qvel: list[float]) -> None:
-        """:meth:`correct_one` on lists of floats (``ndarray.tolist()``): ``qpos``/``qvel`` are modified in place.
-
-        A single simulation steps MuJoCo in microseconds, where numpy's per-call overhead on 3-vectors would
-        dominate, so: the 3-vector algebra (features, at-rest gate, range check, energy cap, applying the
-        correction) is plain Python floats; numpy does one matrix-vector product per layer into preallocated
-        buffers, the first of which also gives the distances to all coverage centres. The network is not
-        evaluated at all when the gate is already exactly 0 (at rest, outside the feature ranges, or far from the
-        training states): the correction is then exactly zero, as in :meth:`correct` (which still renormalises
-        the quaternion, a change of about 1e-16; here the state is left exactly as MuJoCo made it). Same function
-        as :meth:`correct` up to rounding (the tests check it); the model-specific constants (weights with the
-        standardisation and biases folded in, the collision box, inertia) are set up once, in :meth:`_fast_body`.
-        The scratch buffers are shared, so one residual must not be used from several threads at once (as one
-        :class:`grounder.Simulator` must not).
-        """
-        rest_lo, rest_span, air_lo, air_span, fraction, gx, gy, gz = self._fast_constants
-        tanh, dot = np.tanh, np.dot
-        for (
-            p,
-            d,
-            radius_m,
-            gain,
-            box,
-            points,
-            points_array,
-            range_lo,
-            range_hi,
-            inv_margin,
-            feats_bytes,
-            pack_feats,
-            feats_buf,
-            first,
-            pre,
-            pre_hidden,
-            pre_z,
-            z_one,
-            centre_rows,
-            centre_terms,
-            centre_list,
-            nearest_hint,
-            act_first,
-            mids,
-            act_last,
-            last,
-            out,
-            out_bound,
-            coverage_dist,
-            hm,
-            mass,
-            half_inertia,
-            diagonal,
-        ) in self._fast:  # all fields of _FastBody, in order
-            px, py, pz, qw, qx, qy, qz = qpos0[p : p + 7]
-            vx, vy, vz, wx, wy, wz = qvel0[d : d + 6]
-            # rotation matrix (body -> world)
-            r00, r01, r02 = 1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)
-            r10, r11, r12 = 2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)
-            r20, r21, r22 = 2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)
-            if box is not None:  # the lowest corner of a box: per axis the lower of its two faces
-                lx, ly, lz, hx, hy, hz = box
-                clearance = pz + (
-                    (lx if r20 > 0.0 else hx) * r20 + (ly if r21 > 0.0 else hy) * r21 + (lz if r22 > 0.0 else hz) * r22
-                )
-            elif points is not None:
-                clearance = pz + min([bx * r20 + by * r21 + bz * r22 for bx, by, bz in points])
-            else:
-                clearance = pz + float((points_array @ np.array((r20, r21, r22))).min())
-            # at-rest gate: exactly 0 for a slow body near the support
-            moving = (
-                math.sqrt(vx * vx + vy * vy + vz * vz) + radius_m * math.sqrt(wx * wx + wy * wy + wz * wz) - rest_lo
-            ) / rest_span
-            moving = 0.0 if moving <= 0.0 else 1.0 if moving >= 1.0 else moving * moving * (3.0 - 2.0 * moving)
-            flying = (clearance - air_lo) / air_span
-            flying = 0.0 if flying <= 0.0 else 1.0 if flying >= 1.0 else flying * flying * (3.0 - 2.0 * flying)
-            gate = (1.0 - (1.0 - moving) * (1.0 - flying)) * gain
-            if gate == 0.0:  # at rest (or switched off): exactly no correction
-                continue
-            feats = (
-                clearance,
-                pz,
-                r20,
-                r21,
-                r22,
-                r00 * vx + r10 * vy + r20 * vz,
-                r01 * vx + r11 * vy + r21 * vz,
-                r02 * vx + r12 * vy + r22 * vz,
-                wx,
-                wy,
-                wz,
-            )
-            # feature ranges, and the standardised features
-            for f, lo, hi, inv in zip(feats, range_lo, range_hi, inv_margin, strict=True):
-                if f < lo or f > hi:
-                    x = ((lo - f) if f < lo else (f - hi)) * inv
-                    gate *= 0.0 if x >= 1.0 else 1.0 - x * x * (3.0 - 2.0 * x)
-            if gate == 0.0:
-                continue
-            pack_feats(feats_bytes, 0, *feats)
-            dot(first, feats_buf, out=pre)
-            # Distance to the nearest coverage centre. The gate only needs it beyond coverage_dist, so when the
-            # centre nearest to the last state is within that, no other is needed: the factor is exactly 1.
-            z = pre_z.tolist()
-            x = math.dist(z, centre_list[nearest_hint[0]]) / coverage_dist - 1.0
-            if x > 0.0:
-                dot(centre_rows, z_one, out=centre_terms)  # -2 z.c + |c|^2, the same order as |z - c|^2
-                nearest = int(centre_terms.argmin())
-                nearest_hint[0] = nearest
-                x = math.dist(z, centre_list[nearest]) / coverage_dist - 1.0
-            if x > 0.0:
-                gate *= 0.0 if x >= 1.0 else 1.0 - x * x * (3.0 - 2.0 * x)
-                if gate == 0.0:
-                    continue
-            tanh(pre_hidden, out=act_first)
-            for weights, act_in, act_out in mids:
-                tanh(dot(weights, act_in), out=act_out)
-            tanh(dot(last, act_last), out=out)
-            c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11 = (out * out_bound).tolist()
-
-            i00, i01, i02, i10, i11, i12, i20, i21, i22 = half_inertia
-            e_start = (
-                hm * (vx * vx + vy * vy + vz * vz)
-                + (
-                    (i00 * wx * wx + i11 * wy * wy + i22 * wz * wz)
-                    if diagonal
-                    else (
-                        wx * (i00 * wx + i01 * wy + i02 * wz)
-                        + wy * (i10 * wx + i11 * wy + i12 * wz)
-                        + wz * (i20 * wx + i21 * wy + i22 * wz)
-                    )
-                )
-                - mass * (px * gx + py * gy + pz * gz)
-            )
-            sx, sy, sz, sw, sqx, sqy, sqz = qpos[p : p + 7]
-            vx, vy, vz, wx, wy, wz = qvel[d : d + 6]
-            e_sim = (
-                hm * (vx * vx + vy * vy + vz * vz)
-                + (
-                    (i00 * wx * wx + i11 * wy * wy + i22 * wz * wz)
-                    if diagonal
-                    else (
-                        wx * (i00 * wx + i01 * wy + i02 * wz)
-                        + wy * (i10 * wx + i11 * wy + i12 * wz)
-                        + wz * (i20 * wx + i21 * wy + i22 * wz)
-                    )
-                )
-                - mass * (sx * gx + sy * gy + sz * gz)
-            )
-            # the gated correction, rotated to the world by the starting orientation
-            sx += gate * (r00 * c0 + r01 * c1 + r02 * c2)
-            sy += gate * (r10 * c0 + r11 * c1 + r12 * c2)
-            sz += gate * (r20 * c0 + r21 * c1 + r22 * c2)
-            ax = gate * (r00 * c3 + r01 * c4 + r02 * c5)
-            ay = gate * (r10 * c3 + r11 * c4 + r12 * c5)
-            az = gate * (r20 * c3 + r21 * c4 + r22 * c5)
-            vx += gate * (r00 * c6 + r01 * c7 + r02 * c8)
-            vy += gate * (r10 * c6 + r11 * c7 + r12 * c8)
-            vz += gate * (r20 * c6 + r21 * c7 + r22 * c8)
-            wx += gate * c9
-            wy += gate * c10
-            wz += gate * c11
-            angle = math.sqrt(ax * ax + ay * ay + az * az)
-            half_sin = 0.5 - angle * angle / 48.0 if angle < 1e-6 else math.sin(0.5 * angle) / angle
-            dw, dx, dy, dz = math.cos(0.5 * angle), ax * half_sin, ay * half_sin, az * half_sin
-            nw = dw * sw - dx * sqx - dy * sqy - dz * sqz
-            nx = dw * sqx + dx * sw + dy * sqz - dz * sqy
-            ny = dw * sqy - dx * sqz + dy * sw + dz * sqx
-            nz = dw * sqz + dx * sqy - dy * sqx + dz * sw
-            norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-            # energy cap (see cap_energy)
-            cap = max(e_sim, min(e_start, e_sim + fraction * max(e_start - e_sim, 0.0)))
-            potential = -mass * (sx * gx + sy * gy + sz * gz)
-            kinetic = hm * (vx * vx + vy * vy + vz * vz) + (
-                (i00 * wx * wx + i11 * wy * wy + i22 * wz * wz)
-                if diagonal
-                else (
-                    wx * (i00 * wx + i01 * wy + i02 * wz)
-                    + wy * (i10 * wx + i11 * wy + i12 * wz)
-                    + wz * (i20 * wx + i21 * wy + i22 * wz)
-                )
-            )
-            if kinetic + potential > cap + 1e-12:
-                k = math.sqrt(max(cap - potential, 0.0) / max(kinetic, 1e-300))
-                vx, vy, vz, wx, wy, wz = k * vx, k * vy, k * vz, k * wx, k * wy, k * wz
-            qpos[p : p + 7] = (sx, sy, sz, nw / norm, nx / norm, ny / norm, nz / norm)
-            qvel[d : d + 6] = (vx, vy, vz, wx, wy, wz)
+            kernel = self._kernel = correct_free_bodies
+        kernel(qpos0, qvel0, qpos, qvel, *self.kernel_args)
 
     def correct(
         self, qpos0: np.ndarray, qvel0: np.ndarray, qpos_sim: np.ndarray, qvel_sim: np.ndarray

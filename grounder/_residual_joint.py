@@ -20,13 +20,14 @@ is not bounded by its start, and a passive one at rest is already held by the re
 
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import mujoco
 import numpy as np
 
-from grounder._residual import ResidualMeta, coverage_gate, smoothstep
+from grounder._residual import ResidualMeta, coverage_gate, network_layers, smoothstep
 from grounder.errors import GrounderError
 
 JOINT_SPACE = "joint"
@@ -153,10 +154,22 @@ def apply_joint_correction(
     return qpos, qvel
 
 
-def _smoothstep1(x: float) -> float:
-    """:func:`grounder._residual.smoothstep` of one number, in plain Python."""
-    x = min(max(x, 0.0), 1.0)
-    return x * x * (3.0 - 2.0 * x)
+class JointKernelArgs(NamedTuple):
+    """The joint-space residual's constants for ``grounder._residual_kernel.correct_joints`` (J joints, other
+    sizes as in ``grounder._residual.FreeKernelArgs``)."""
+
+    qpos_adr: np.ndarray  # (J,) int64
+    dof_adr: np.ndarray  # (J,) int64
+    hinge: np.ndarray  # (J,) bool: features sin and cos of the angle (else the position, m)
+    consts: np.ndarray  # (3,): rest speed off, on - off; coverage distance
+    out_gain: np.ndarray  # (1,) the residual's own out_gain (the same array: setting its values in place applies)
+    ranges: np.ndarray  # (3, F)
+    first: np.ndarray  # (F + 1, H + F)
+    mids: np.ndarray  # (L, H + 1, H)
+    last: np.ndarray  # (H + 1, 2 J)
+    out_bound: np.ndarray  # (2 J,)
+    centres: np.ndarray  # (F, K)
+    history: int  # periods of earlier controls among the features
 
 
 class NumpyJointResidual:
@@ -170,7 +183,10 @@ class NumpyJointResidual:
         self.feat_std = state["feat_std"]
         self.out_scale = state["out_scale"]  # (1, O)
         self.out_bound = state["out_bound"]
-        self.out_gain = np.array(state["out_gain"], dtype=np.float64)  # (1,)
+        self.out_gain = np.array(
+            state["out_gain"], dtype=np.float64
+        )  # (1,); set it in place (``out_gain[:] = g``): the
+        # compiled single-state path reads this array
         self.range_lo = state["range_lo"]
         self.range_hi = state["range_hi"]
         self.centres = state["centres"]  # (1, K, F)
@@ -180,27 +196,39 @@ class NumpyJointResidual:
             for i in range(meta.layers + 1)
         ]
         self._speed = np.array(space.speed_columns, dtype=np.int64)
-        # single-state constants (``correct_one``)
         g = meta.gate
-        self._rest = (float(g.rest_speed_m_s[0]), float(g.rest_speed_m_s[1] - g.rest_speed_m_s[0]))
-        self._lo, self._hi = self.range_lo[0], self.range_hi[0]
-        self._inv_margin = 1.0 / (g.range_margin * (self._hi - self._lo) + 1e-9)
-        self._mean, self._inv_std = self.feat_mean[0], 1.0 / self.feat_std[0]
-        centres = self.centres[0]
-        self._centre_rows = np.column_stack([-2.0 * centres, np.sum(centres**2, axis=1)])  # [z, 1] -> |c|^2 - 2 z.c
-        self._scale_over_bound = self.out_scale[0] / self.out_bound[0]
-        self._hinge_q = space.qpos_adr[space.hinge]
-        self._slide_q = space.qpos_adr[~space.hinge]
-        names = space.feature_names
-        pairs = list(zip(space.names, space.hinge, strict=True))
-        self._sin_cols = np.array([names.index(f"sin_{n}") for n, h in pairs if h], dtype=np.int64)
-        self._slide_cols = np.array([names.index(f"pos_{n}_m") for n, h in pairs if not h], dtype=np.int64)
-        first_ctrl = len(names) - space.nu * (1 + space.history)
-        self._ctrl_cols = np.arange(first_ctrl, first_ctrl + space.nu)
-        self._prev_cols = np.arange(first_ctrl + space.nu, len(names))
-        self._coverage_dist = float(self.coverage_dist[0])
-        self._feats = np.empty(len(names))
-        self._z_one = np.ones(len(names) + 1)
+        first, mids, last = network_layers(
+            self.layers, self.feat_mean[0], self.feat_std[0], self.out_scale[0] / self.out_bound[0]
+        )
+        self.kernel_args = JointKernelArgs(
+            qpos_adr=np.ascontiguousarray(space.qpos_adr, dtype=np.int64),
+            dof_adr=np.ascontiguousarray(space.dof_adr, dtype=np.int64),
+            hinge=np.ascontiguousarray(space.hinge, dtype=np.bool_),
+            consts=np.array(
+                [
+                    g.rest_speed_m_s[0],
+                    g.rest_speed_m_s[1] - g.rest_speed_m_s[0],
+                    self.coverage_dist[0],
+                ],
+                dtype=np.float64,
+            ),
+            out_gain=self.out_gain,
+            ranges=np.stack(
+                [
+                    self.range_lo[0],
+                    self.range_hi[0],
+                    1.0 / (g.range_margin * (self.range_hi[0] - self.range_lo[0]) + 1e-9),
+                ]
+            ),
+            first=first,
+            mids=mids,
+            last=last,
+            out_bound=np.ascontiguousarray(self.out_bound[0], dtype=np.float64),
+            centres=np.ascontiguousarray(self.centres[0].T, dtype=np.float64),
+            history=space.history,
+        )
+        self._no_ctrl, self._not_given = np.zeros(space.nu), np.zeros(0)
+        self._kernel: Callable[..., None] | None = None
 
     def gate(self, feats: np.ndarray) -> np.ndarray:
         """(N, 1, F) -> (N, 1) in [0, 1]: moving x inside the training ranges x near the training states."""
@@ -229,49 +257,21 @@ class NumpyJointResidual:
         ctrl: np.ndarray | None,
         ctrl_prev: np.ndarray | None = None,
     ) -> None:
-        """:meth:`correct` for one state ((nq,), (nv,), (nu,)), in place on ``qpos``/``qvel``; written for speed
-        (a small arm steps in microseconds): it stops as soon as the gate is 0, so a still mechanism costs a test."""
+        """:meth:`correct` for one state ((nq,), (nv,), (nu,) or None: zeros; ``ctrl_prev`` (history, nu) or None:
+        ``ctrl`` held), in place on ``qpos``/``qvel``, compiled (``grounder._residual_kernel.correct_joints``: a
+        small arm steps in microseconds); it stops as soon as the gate is 0, so a still mechanism costs a test."""
         space = self.space
-        vel = qvel0[space.dof_adr]
-        speed = float(np.max(np.abs(vel)))
-        rest0, rest_span = self._rest
-        if speed <= rest0:
-            return
-        f = self._feats
-        angles = qpos0[self._hinge_q]
-        f[self._sin_cols] = np.sin(angles)
-        f[self._sin_cols + 1] = np.cos(angles)
-        f[self._slide_cols] = qpos0[self._slide_q]
-        f[self._speed] = vel
-        if space.nu:
-            held = np.zeros(space.nu) if ctrl is None else ctrl
-            f[self._ctrl_cols] = held
-            if space.history:
-                f[self._prev_cols] = np.tile(held, space.history) if ctrl_prev is None else np.ravel(ctrl_prev)
-        outside = np.maximum(self._lo - f, f - self._hi) * self._inv_margin
-        worst = float(outside.max())
-        if worst >= 1.0:
-            return
-        in_range = 1.0 if worst <= 0.0 else float(np.prod(1.0 - smoothstep(outside)))
-        z = self._z_one[:-1]
-        np.multiply(f - self._mean, self._inv_std, out=z)
-        dist = math.sqrt(max(float(np.min(self._centre_rows @ self._z_one)) + float(z @ z), 0.0))
-        ratio = dist / self._coverage_dist - 1.0
-        if ratio >= 1.0:
-            return
-        gate = (
-            float(self.out_gain[0]) * in_range * _smoothstep1((speed - rest0) / rest_span) * (1.0 - _smoothstep1(ratio))
-        )
-        if gate == 0.0:
-            return
-        h = z
-        for weight, bias in self.layers[:-1]:
-            h = np.tanh(h @ weight + bias)
-        corr = self.out_bound[0] * np.tanh((h @ self.layers[-1][0] + self.layers[-1][1]) * self._scale_over_bound)
-        corr *= gate
-        j = space.num_joints
-        qpos[space.qpos_adr] += corr[:j]
-        qvel[space.dof_adr] += corr[j:]
+        held = self._no_ctrl if ctrl is None or not space.nu else np.asarray(ctrl, dtype=np.float64)
+        if ctrl_prev is None or not space.history:
+            prev = self._not_given  # the kernel holds ``held`` through the history
+        else:
+            prev = np.ascontiguousarray(ctrl_prev, dtype=np.float64).ravel()
+        kernel = self._kernel
+        if kernel is None:  # numba: imported on first use (and compiled on the first use on a machine)
+            from grounder._residual_kernel import correct_joints
+
+            kernel = self._kernel = correct_joints
+        kernel(qpos0, qvel0, qpos, qvel, held, prev, *self.kernel_args)
 
     def correct(
         self,

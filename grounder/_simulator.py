@@ -133,22 +133,18 @@ class Simulator:
             for _ in range(self.period_steps):
                 mujoco.mj_step(m, d)
             return d.qpos.copy(), d.qvel.copy()
-        if isinstance(residual, NumpyJointResidual):
-            q0, v0 = d.qpos.copy(), d.qvel.copy()
-            for _ in range(self.period_steps):
-                mujoco.mj_step(m, d)
-            qpos1, qvel1 = d.qpos.copy(), d.qvel.copy()
-            held = None if ctrl is None or not m.nu else np.asarray(ctrl)
-            residual.correct_one(q0, v0, qpos1, qvel1, held, ctrl_prev)
-            return qpos1, qvel1
-        q0, v0 = d.qpos.tolist(), d.qvel.tolist()
+        q0, v0 = d.qpos.copy(), d.qvel.copy()
         for _ in range(self.period_steps):
             mujoco.mj_step(m, d)
-        # corrected on lists of floats (faster than numpy for a few numbers); the next call sets _data's state
-        # from its arguments, so _data keeps MuJoCo's own (what carries over, warm starts, is the same either way)
-        q1, v1 = d.qpos.tolist(), d.qvel.tolist()
-        residual.correct_lists(q0, v0, q1, v1)
-        return np.array(q1), np.array(v1)
+        # the next call sets _data's state from its arguments, so _data keeps MuJoCo's own prediction (what carries
+        # over, warm starts, is the same either way)
+        qpos1, qvel1 = d.qpos.copy(), d.qvel.copy()
+        if isinstance(residual, NumpyJointResidual):
+            held = None if ctrl is None or not m.nu else np.asarray(ctrl)
+            residual.correct_one(q0, v0, qpos1, qvel1, held, ctrl_prev)
+        else:
+            residual.correct_one(q0, v0, qpos1, qvel1)
+        return qpos1, qvel1
 
     # --- batches -------------------------------------------------------------------------------------------------
 

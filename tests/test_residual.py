@@ -476,9 +476,9 @@ def test_cli_train(nominal_scene: Path, tmp_path: Path) -> None:
 
 
 def test_fast_single_state_path_equals_reference(trained: Path) -> None:
-    """``correct_one`` (plain-Python floats, fused numpy, skips the network where the gate is 0) is the same
-    function as the vectorised ``correct``: in flight, at rest, near and outside the training ranges, and for
-    every way it finds the lowest collision point."""
+    """``correct_one`` (compiled, skips the network where the gate is 0) is the same function as the vectorised
+    ``correct``: in flight, at rest, near and outside the training ranges; where the gate is 0 it leaves MuJoCo's
+    state exactly as it was."""
     residual = Simulator(trained).residual
     assert residual is not None
     plain = Simulator(trained, use_residual=False)
@@ -500,16 +500,27 @@ def test_fast_single_state_path_equals_reference(trained: Path) -> None:
     assert np.sum(gate == 0.0) >= 10 and np.sum((gate > 0.0) & (gate < 1.0)) >= 5 and np.sum(gate == 1.0) >= 100
     q_ref, v_ref = residual.correct(q0, v0, q_sim, v_sim)
     assert np.abs(q_ref - q_sim).max() > 1e-5  # the correction is not trivially zero
-    fast = residual._fast
-    assert fast[0].box is not None  # the cube's collision points are a box's corners
-    for variant in (fast, [f._replace(box=None) for f in fast], [f._replace(box=None, points=None) for f in fast]):
-        residual._fast = variant
-        for i in range(len(q0)):
-            q, v = q_sim[i].copy(), v_sim[i].copy()
-            residual.correct_one(q0[i], v0[i], q, v)
-            np.testing.assert_allclose(q, q_ref[i], rtol=0, atol=1e-12)
-            np.testing.assert_allclose(v, v_ref[i], rtol=0, atol=1e-10)
-    residual._fast = fast
+    for i in range(len(q0)):
+        q, v = q_sim[i].copy(), v_sim[i].copy()
+        residual.correct_one(q0[i], v0[i], q, v)
+        np.testing.assert_allclose(q, q_ref[i], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(v, v_ref[i], rtol=0, atol=1e-10)
+        if gate[i] == 0.0:  # exactly as MuJoCo made it
+            assert np.array_equal(q, q_sim[i]) and np.array_equal(v, v_sim[i])
+    # the output gain, set in place as training's gain check does, applies to the single-state path too
+    moved = int(np.argmax(gate))
+    gain = residual.out_gain.copy()
+    for scale in (0.0, 0.5):
+        residual.out_gain[:] = scale * gain
+        q, v = q_sim[moved].copy(), v_sim[moved].copy()
+        residual.correct_one(q0[moved], v0[moved], q, v)
+        q_ref, v_ref = residual.correct(
+            q0[moved : moved + 1], v0[moved : moved + 1], q_sim[moved : moved + 1], v_sim[moved : moved + 1]
+        )
+        np.testing.assert_allclose(q, q_ref[0], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(v, v_ref[0], rtol=0, atol=1e-10)
+        assert np.array_equal(q, q_sim[moved]) == (scale == 0.0)
+    residual.out_gain[:] = gain
 
 
 def test_rollout_errors_known_answer(nominal_scene: Path) -> None:
