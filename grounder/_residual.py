@@ -616,25 +616,27 @@ class FreeKernelArgs(NamedTuple):
     points: np.ndarray  # (B, P, 3) collision points in the body frame, m
     first: np.ndarray  # (B, F + 1, H + F): [f, 1] @ first -> first layer's pre-activations, standardised features
     mids: np.ndarray  # (B, L, H + 1, H): hidden layers, [a, 1] @ mids[b, l] (weights, then the bias as a row)
-    last: np.ndarray  # (B, H + 1, 12): output layer, [a, 1] @ last[b] (times scale / bound)
-    out_bound: np.ndarray  # (B, 12)
+    last: np.ndarray  # (B, H + 2, 12): output layer, [a, 1] @ last[b, :-1] (times scale / bound); the bound last
     centres: np.ndarray  # (B, F, K) coverage centres, standardised (one column per centre)
     consts: np.ndarray  # (8,): rest speed off, on - off; clearance off, on - off; energy restore fraction; gravity
+    hints: np.ndarray  # (B,) int64, written by the kernel: per body the coverage centre nearest to the last state
 
 
 def network_layers(
     layers: list[tuple[np.ndarray, np.ndarray]],
     feat_mean: np.ndarray,
     feat_std: np.ndarray,
-    out_scale_over_bound: np.ndarray,
+    out_scale: np.ndarray,
+    out_bound: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One network as the compiled single-state path takes it (``grounder._residual_kernel._gated_network``):
-    ``(first (F + 1, H + F), mids (L, H + 1, H), last (H + 1, O))`` from its layers ``(weight (in, out), bias
-    (out,))``, the feature standardisation (F,) and the output's scale / bound (O,).
+    ``(first (F + 1, H + F), mids (L, H + 1, H), last (H + 2, O))`` from its layers ``(weight (in, out), bias
+    (out,))``, the feature standardisation (F,) and the output's scale and bound (O,).
 
-    Every layer takes ``[x, 1]`` (its bias is its last row). The first one works on the raw features: it gives
-    the first layer's pre-activations and the standardised features z (both linear in the raw features, as
-    z = (f - mean) / std), from which the coverage check measures distances.
+    Every layer takes ``[x, 1]`` (its bias is its last row; the output layer's is times scale / bound, and the
+    bound follows as one more row). The first one works on the raw features: it gives the first layer's
+    pre-activations and the standardised features z (both linear in the raw features, as z = (f - mean) / std),
+    from which the coverage check measures distances.
     """
     inv_std = 1.0 / feat_std
     standardise = np.vstack([np.diag(inv_std), -feat_mean * inv_std])  # (F + 1, F)
@@ -647,8 +649,8 @@ def network_layers(
         -1, hidden + 1, hidden
     )
     w_out, b_out = layers[-1]
-    last = np.vstack([w_out, b_out]) * out_scale_over_bound
-    return np.ascontiguousarray(first), np.ascontiguousarray(mids), np.ascontiguousarray(last)
+    last = np.vstack([np.vstack([w_out, b_out]) * (out_scale / out_bound), out_bound])
+    return np.ascontiguousarray(first), np.ascontiguousarray(mids), np.ascontiguousarray(last, dtype=np.float64)
 
 
 class NumpyResidual:
@@ -687,7 +689,6 @@ class NumpyResidual:
                 layers.append((np.ascontiguousarray(weight.T), state[f"nets.{b}.{2 * i}.bias"]))
             self.layers.append(layers)
         self._margin = meta.gate.range_margin * (self.range_hi - self.range_lo) + 1e-9
-        self._scale_over_bound = self.out_scale / self.out_bound
         self._inv_margin = 1.0 / self._margin
         self.kernel_args = self._kernel_args()
         self._kernel: Callable[..., None] | None = None
@@ -705,7 +706,9 @@ class NumpyResidual:
             body_f[b, :4] = body.radius_m, self.coverage_dist[b], 0.5 * body.mass_kg, body.mass_kg
             body_f[b, 4:] = 0.5 * body.inertia_body.ravel()
             points[b, : len(body.points_body_m)] = body.points_body_m
-            networks.append(network_layers(layers, self.feat_mean[b], self.feat_std[b], self._scale_over_bound[b]))
+            networks.append(
+                network_layers(layers, self.feat_mean[b], self.feat_std[b], self.out_scale[b], self.out_bound[b])
+            )
         first, mids, last = (np.ascontiguousarray(np.stack(m)) for m in zip(*networks, strict=True))
         g = self.meta.gate
         return FreeKernelArgs(
@@ -717,7 +720,6 @@ class NumpyResidual:
             first=first,
             mids=mids,
             last=last,
-            out_bound=np.ascontiguousarray(self.out_bound, dtype=np.float64),
             centres=np.ascontiguousarray(np.swapaxes(self.centres, 1, 2), dtype=np.float64),
             consts=np.array(
                 [
@@ -729,6 +731,7 @@ class NumpyResidual:
                     *self.gravity.tolist(),
                 ]
             ),
+            hints=np.zeros(num_b, dtype=np.int64),
         )
 
     def gate(self, feats: np.ndarray) -> np.ndarray:

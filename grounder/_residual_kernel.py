@@ -80,19 +80,21 @@ def _gated_network(
     first: np.ndarray,
     mids: np.ndarray,
     last: np.ndarray,
-    out_bound: np.ndarray,
     centres: np.ndarray,
     coverage_dist: float,
+    hint: np.ndarray,
     out: np.ndarray,
 ) -> float:
     """The gate times its coverage fades, and the bounded network output of one state.
 
     ``feats`` (F + 1,): the raw features and a trailing 1; ``gate``: the gate so far (at rest, output gain);
     ``ranges`` (3, F): feature range low, high, 1 / fade margin; ``first`` (F + 1, H + F), ``mids`` (L, H + 1, H),
-    ``last`` (H + 1, O): the layers as ``[x, 1] @ layer`` (``first`` also gives the standardised features z);
-    ``centres`` (F, K): the coverage centres, standardised. Returns the gate faded outside the feature ranges and
-    far from the training states; where that is exactly 0 the network is not evaluated and ``out`` (O,) is left
-    as it was, else ``out`` is the bounded output ``bound * tanh(...)`` (the gate not applied).
+    ``last`` (H + 2, O): the layers as ``[x, 1] @ layer`` (``first`` also gives the standardised features z;
+    ``last``'s final row is the output's bound); ``centres`` (F, K): the coverage centres, standardised; ``hint``
+    (1,) int64: the centre nearest to the last state that needed the search, updated here (for speed only: results
+    never depend on it). Returns the gate faded outside the feature ranges and far from the training states; where
+    that is exactly 0 the network is not evaluated and ``out`` (O,) is left as it was, else ``out`` is the bounded
+    output ``bound * tanh(...)`` (the gate not applied).
     """
     num_feats = ranges.shape[1]
     for f in range(num_feats):  # fading over the margin beyond each feature's training range
@@ -111,16 +113,25 @@ def _gated_network(
         x = feats[c]
         for r in range(pre.shape[0]):
             pre[r] += x * first[c, r]
-    # distance to the nearest coverage centre (standardised units)
-    dist_sq = np.zeros(centres.shape[1])
+    # Distance to the nearest coverage centre (standardised units). The fade is exactly 1 within coverage_dist,
+    # so when the centre nearest to the last state seen (``hint``) is that close no other is needed.
+    nearest_sq = 0.0
     for f in range(num_feats):
-        z = pre[hidden + f]
-        for k in range(dist_sq.shape[0]):
-            diff = z - centres[f, k]
-            dist_sq[k] += diff * diff
-    nearest_sq = dist_sq[0]
-    for k in range(1, dist_sq.shape[0]):
-        nearest_sq = min(nearest_sq, dist_sq[k])
+        diff = pre[hidden + f] - centres[f, hint[0]]
+        nearest_sq += diff * diff
+    if nearest_sq > coverage_dist * coverage_dist:
+        dist_sq = np.zeros(centres.shape[1])
+        for f in range(num_feats):
+            z = pre[hidden + f]
+            for k in range(dist_sq.shape[0]):
+                diff = z - centres[f, k]
+                dist_sq[k] += diff * diff
+        nearest = 0
+        for k in range(1, dist_sq.shape[0]):
+            if dist_sq[k] < dist_sq[nearest]:
+                nearest = k
+        hint[0] = nearest
+        nearest_sq = dist_sq[nearest]
     gate *= 1.0 - _smoothstep(math.sqrt(nearest_sq) / coverage_dist - 1.0)
     if gate == 0.0:
         return 0.0
@@ -144,7 +155,7 @@ def _gated_network(
         for r in range(out.shape[0]):
             out[r] += x * last[c, r]
     for r in range(out.shape[0]):
-        out[r] = out_bound[r] * _tanh(out[r])
+        out[r] = last[hidden + 1, r] * _tanh(out[r])
     return gate
 
 
@@ -162,9 +173,9 @@ def correct_free_bodies(
     first: np.ndarray,
     mids: np.ndarray,
     last: np.ndarray,
-    out_bound: np.ndarray,
     centres: np.ndarray,
     consts: np.ndarray,
+    hints: np.ndarray,
 ) -> None:
     """Corrects MuJoCo's prediction ``(qpos (nq,), qvel (nv,))`` after one period from ``(qpos0, qvel0)`` in place
     (the other arguments: the fields of ``grounder._residual.FreeKernelArgs``, in order)."""
@@ -198,7 +209,16 @@ def correct_free_bodies(
         feats[7] = r02 * vx + r12 * vy + r22 * vz
         feats[8], feats[9], feats[10] = wx, wy, wz
         gate = _gated_network(
-            feats, gate, ranges[b], first[b], mids[b], last[b], out_bound[b], centres[b], bf[BODY_F_COVERAGE], out
+            feats,
+            gate,
+            ranges[b],
+            first[b],
+            mids[b],
+            last[b],
+            centres[b],
+            bf[BODY_F_COVERAGE],
+            hints[b : b + 1],
+            out,
         )
         if gate == 0.0:
             continue
@@ -253,18 +273,15 @@ def correct_joints(
     qvel: np.ndarray,
     ctrl: np.ndarray,
     ctrl_prev: np.ndarray,
-    qpos_adr: np.ndarray,
-    dof_adr: np.ndarray,
-    hinge: np.ndarray,
+    joints: np.ndarray,
     consts: np.ndarray,
     out_gain: np.ndarray,
     ranges: np.ndarray,
     first: np.ndarray,
     mids: np.ndarray,
     last: np.ndarray,
-    out_bound: np.ndarray,
     centres: np.ndarray,
-    history: int,
+    ints: np.ndarray,
 ) -> None:
     """The joint-space residual's correction of MuJoCo's prediction ``(qpos, qvel)`` after one period from
     ``(qpos0, qvel0)`` under the control ``ctrl`` (nu,), the earlier periods' controls ``ctrl_prev`` (history * nu,
@@ -274,10 +291,10 @@ def correct_joints(
     Same function as ``grounder._residual_joint.NumpyJointResidual.correct``; it stops where the gate is 0, so a
     mechanism at rest costs one test.
     """
-    num_joints = qpos_adr.shape[0]
+    num_joints = joints.shape[0]
     speed = 0.0
     for j in range(num_joints):
-        speed = max(speed, abs(qvel0[dof_adr[j]]))
+        speed = max(speed, abs(qvel0[joints[j, 1]]))
     gate = out_gain[0] * _smoothstep((speed - consts[0]) / consts[1])
     if gate == 0.0:  # every joint slower than the rest threshold (or switched off): exactly no correction
         return
@@ -285,30 +302,30 @@ def correct_joints(
     feats[-1] = 1.0
     i = 0
     for j in range(num_joints):
-        q = qpos0[qpos_adr[j]]
-        if hinge[j]:
+        q = qpos0[joints[j, 0]]
+        if joints[j, 2]:
             feats[i], feats[i + 1] = math.sin(q), math.cos(q)
             i += 2
         else:
             feats[i] = q
             i += 1
     for j in range(num_joints):
-        feats[i + j] = qvel0[dof_adr[j]]
+        feats[i + j] = qvel0[joints[j, 1]]
     i += num_joints
     for u in range(ctrl.shape[0]):
         feats[i + u] = ctrl[u]
     i += ctrl.shape[0]
     if ctrl_prev.shape[0] == 0:  # not given: this period's control, held through the history as well
-        for k in range(history):
+        for k in range(ints[0]):
             for u in range(ctrl.shape[0]):
                 feats[i + k * ctrl.shape[0] + u] = ctrl[u]
     else:
         for u in range(ctrl_prev.shape[0]):
             feats[i + u] = ctrl_prev[u]
     out = np.empty(last.shape[1])
-    gate = _gated_network(feats, gate, ranges, first, mids, last, out_bound, centres, consts[2], out)
+    gate = _gated_network(feats, gate, ranges, first, mids, last, centres, consts[2], ints[1:2], out)
     if gate == 0.0:
         return
     for j in range(num_joints):
-        qpos[qpos_adr[j]] += gate * out[j]
-        qvel[dof_adr[j]] += gate * out[num_joints + j]
+        qpos[joints[j, 0]] += gate * out[j]
+        qvel[joints[j, 1]] += gate * out[num_joints + j]
