@@ -12,15 +12,29 @@ exactly 0 (at rest, outside the feature ranges, or far from the training states)
 exactly as MuJoCo made it (the reference renormalises the quaternion, a change of about 1e-16).
 
 Compiled on first use and cached on disk (numba's ``cache=True``: next to this file, or in the user's cache
-directory where that is not writable), so only the first use on a machine pays the compilation (seconds).
+directory where that is not writable), so only the first use on a machine pays the compilation (seconds). Where
+neither is writable, each process compiles on its first use instead.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any
 
 import numba
 import numpy as np
+
+
+def _jit(func: Callable[..., Any]) -> Any:
+    """numba's ``njit`` (no Python objects, the GIL released, numpy's rules for division by 0), cached on disk
+    where numba finds a writable folder for it; where it finds none (a read-only install and user cache, which
+    numba reports by raising ``RuntimeError`` when the function is defined) compiled anew in each process."""
+    try:
+        return numba.njit(cache=True, nogil=True, error_model="numpy")(func)
+    except RuntimeError:
+        return numba.njit(nogil=True, error_model="numpy")(func)
+
 
 # order of grounder._residual.FreeKernelArgs.body_f's columns
 BODY_F_RADIUS, BODY_F_COVERAGE, BODY_F_HALF_MASS, BODY_F_MASS, BODY_F_INERTIA = 0, 1, 2, 3, 4
@@ -28,7 +42,7 @@ BODY_F_RADIUS, BODY_F_COVERAGE, BODY_F_HALF_MASS, BODY_F_MASS, BODY_F_INERTIA = 
 CONST_REST_LO, CONST_REST_SPAN, CONST_AIR_LO, CONST_AIR_SPAN, CONST_FRACTION, CONST_GRAVITY = 0, 1, 2, 3, 4, 5
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@_jit
 def _smoothstep(x: float) -> float:
     if x <= 0.0:
         return 0.0
@@ -37,7 +51,7 @@ def _smoothstep(x: float) -> float:
     return x * x * (3.0 - 2.0 * x)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@_jit
 def _tanh(x: float) -> float:
     """tanh from one exp: a third of libm's tanh time here (the network's ~140 tanh were a third of its cost),
     within 2.3e-16 of it in absolute terms (checked from 1e-300 to 1e4 either side of 0)."""
@@ -45,7 +59,7 @@ def _tanh(x: float) -> float:
     return math.copysign((1.0 - e) / (1.0 + e), x)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@_jit
 def _energy(
     vx: float,
     vy: float,
@@ -72,7 +86,7 @@ def _energy(
     return kinetic, potential
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@_jit
 def _gated_network(
     feats: np.ndarray,
     gate: float,
@@ -159,7 +173,7 @@ def _gated_network(
     return gate
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@_jit
 def correct_free_bodies(
     qpos0: np.ndarray,
     qvel0: np.ndarray,
@@ -265,7 +279,7 @@ def correct_free_bodies(
         qvel[d], qvel[d + 1], qvel[d + 2], qvel[d + 3], qvel[d + 4], qvel[d + 5] = vx, vy, vz, wx, wy, wz
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@_jit
 def correct_joints(
     qpos0: np.ndarray,
     qvel0: np.ndarray,

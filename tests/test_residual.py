@@ -587,3 +587,22 @@ def test_output_inside_the_scene_folder(tmp_path: Path) -> None:
         ["scene.xml", "notes.txt", WEIGHTS_FILE, META_FILE, ONNX_FILE, "report.html"]
     )
     assert sorted(p.name for p in scene.iterdir()) == ["notes.txt", "res", "scene.xml"]
+
+
+def test_compiled_path_works_where_no_cache_folder_is_writable(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A read-only install and user cache: numba finds no folder to cache in (it raises when the function is
+    defined); the single-state path is then compiled in the process instead of failing to import."""
+    import numba
+    from numba.core import caching
+
+    from grounder._residual_kernel import _jit
+
+    def half(x: float) -> float:
+        return 0.5 * x
+
+    monkeypatch.setattr(caching.CacheImpl, "_locator_classes", [])
+    with pytest.raises(RuntimeError, match="no locator available"):
+        numba.njit(cache=True)(half)
+    compiled = _jit(half)
+    assert compiled(3.0) == 1.5
+    assert isinstance(compiled._cache, caching.NullCache)  # compiled here, not cached
