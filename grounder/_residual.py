@@ -622,6 +622,13 @@ class FreeKernelArgs(NamedTuple):
     hints: np.ndarray  # (B,) int64, written by the kernel: per body the coverage centre nearest to the last state
 
 
+def fade_ranges(range_lo: np.ndarray, range_hi: np.ndarray, range_margin: float) -> np.ndarray:
+    """(..., 3, F): each feature's training range, low and high, and 1 / the margin the gate fades over beyond it
+    (:func:`coverage_gate`'s), as the compiled single-state path takes them."""
+    inv_margin = 1.0 / (range_margin * (range_hi - range_lo) + 1e-9)
+    return np.ascontiguousarray(np.stack([range_lo, range_hi, inv_margin], axis=-2), dtype=np.float64)
+
+
 def network_layers(
     layers: list[tuple[np.ndarray, np.ndarray]],
     feat_mean: np.ndarray,
@@ -672,10 +679,8 @@ class NumpyResidual:
         self.feat_std = state["feat_std"]
         self.out_scale = state["out_scale"]  # (B, 12)
         self.out_bound = state["out_bound"]
-        self.out_gain = np.array(
-            state["out_gain"], dtype=np.float64
-        )  # (B,), chosen on held-out rollouts; set it in place (``out_gain[:] = g``): the
-        # compiled single-state path reads this array
+        # (B,), chosen on held-out rollouts; set it in place (``out_gain[:] = g``): the compiled path reads this array
+        self.out_gain = np.array(state["out_gain"], dtype=np.float64)
         self.range_lo = state["range_lo"]  # (B, F)
         self.range_hi = state["range_hi"]
         self.centres = state["centres"]  # (B, K, F), standardised
@@ -688,8 +693,6 @@ class NumpyResidual:
                 weight = state[f"nets.{b}.{2 * i}.weight"]
                 layers.append((np.ascontiguousarray(weight.T), state[f"nets.{b}.{2 * i}.bias"]))
             self.layers.append(layers)
-        self._margin = meta.gate.range_margin * (self.range_hi - self.range_lo) + 1e-9
-        self._inv_margin = 1.0 / self._margin
         self.kernel_args = self._kernel_args()
         self._kernel: Callable[..., None] | None = None
 
@@ -715,7 +718,7 @@ class NumpyResidual:
             body_i=body_i,
             body_f=body_f,
             out_gain=self.out_gain,
-            ranges=np.ascontiguousarray(np.stack([self.range_lo, self.range_hi, self._inv_margin], axis=1)),
+            ranges=fade_ranges(self.range_lo, self.range_hi, g.range_margin),
             points=points,
             first=first,
             mids=mids,

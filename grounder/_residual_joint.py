@@ -27,7 +27,7 @@ from typing import NamedTuple
 import mujoco
 import numpy as np
 
-from grounder._residual import ResidualMeta, coverage_gate, network_layers, smoothstep
+from grounder._residual import ResidualMeta, coverage_gate, fade_ranges, network_layers, smoothstep
 from grounder.errors import GrounderError
 
 JOINT_SPACE = "joint"
@@ -181,10 +181,8 @@ class NumpyJointResidual:
         self.feat_std = state["feat_std"]
         self.out_scale = state["out_scale"]  # (1, O)
         self.out_bound = state["out_bound"]
-        self.out_gain = np.array(
-            state["out_gain"], dtype=np.float64
-        )  # (1,); set it in place (``out_gain[:] = g``): the
-        # compiled single-state path reads this array
+        # (1,); set it in place (``out_gain[:] = g``): the compiled single-state path reads this array
+        self.out_gain = np.array(state["out_gain"], dtype=np.float64)
         self.range_lo = state["range_lo"]
         self.range_hi = state["range_hi"]
         self.centres = state["centres"]  # (1, K, F)
@@ -209,13 +207,7 @@ class NumpyJointResidual:
                 dtype=np.float64,
             ),
             out_gain=self.out_gain,
-            ranges=np.stack(
-                [
-                    self.range_lo[0],
-                    self.range_hi[0],
-                    1.0 / (g.range_margin * (self.range_hi[0] - self.range_lo[0]) + 1e-9),
-                ]
-            ),
+            ranges=fade_ranges(self.range_lo[0], self.range_hi[0], g.range_margin),
             first=first,
             mids=mids,
             last=last,
