@@ -194,7 +194,6 @@ def arm(rounds: int) -> None:
         assert isinstance(residual, NumpyJointResidual)
         feats = joint_features(*(np.stack([r[i] for r in rows]) for i in range(3)), residual.space)
         share = float(np.mean(residual.gate(feats) * residual.out_gain > 0.0))
-        mujoco_s = float(np.median(times[:, 0]))
         _report(
             f"two-link arm (joint-space residual, controls as features): one period ({plain.period_steps} model "
             f"steps) from each of the {len(rows)} recorded states of 20 held-out trajectories",
@@ -202,7 +201,7 @@ def arm(rounds: int) -> None:
             plain.period_steps,
             share,
         )
-        _time_correction_alone(plain, hybrid, rows, mujoco_s)
+        _time_correction_alone(plain, hybrid, rows, float(np.median(times[:, 0])))
 
 
 def main() -> None:

@@ -140,8 +140,7 @@ class Simulator:
         # over, warm starts, is the same either way)
         qpos1, qvel1 = d.qpos.copy(), d.qvel.copy()
         if isinstance(residual, NumpyJointResidual):
-            held = None if ctrl is None or not m.nu else np.asarray(ctrl)
-            residual.correct_one(q0, v0, qpos1, qvel1, held, ctrl_prev)
+            residual.correct_one(q0, v0, qpos1, qvel1, ctrl, ctrl_prev)
         else:
             residual.correct_one(q0, v0, qpos1, qvel1)
         return qpos1, qvel1
