@@ -1,15 +1,19 @@
-"""The free-body residual's single-state correction, compiled (numba): what ``grounder.Simulator.step`` runs.
+"""The residuals' single-state corrections, compiled (numba): what ``grounder.Simulator.step`` runs.
+
+``correct_free_bodies`` for the free-body residual (``grounder._residual``), ``correct_joints`` for the joint-space
+one (``grounder._residual_joint``); both evaluate the gate and network with ``_gated_network``.
 
 A single simulation steps MuJoCo in microseconds per model step. Evaluated from Python, the residual's correction
 (features, gate, a 64-wide network, the energy cap) cost 14-60 us per period depending on the machine, most of it
 the interpreter and numpy's per-call overhead, which took it over the issue's 50% of a single simulation's step
 time on slower machines. Compiled, the same function is a few microseconds.
 
-Same function as the vectorised numpy reference, ``grounder._residual.NumpyResidual.correct`` (the tests check it
-to 1e-12 m and 1e-10 m/s): the correction of the period's starting state ``(qpos0, qvel0)``, applied to MuJoCo's
-prediction ``(qpos, qvel)`` in place, then the energy cap. The network is not evaluated where the gate is already
-exactly 0 (at rest, outside the feature ranges, or far from the training states), and there the state is left
-exactly as MuJoCo made it (the reference renormalises the quaternion, a change of about 1e-16).
+Each is the same function as its vectorised numpy reference (``NumpyResidual.correct``, which the tests check it
+against to 1e-12 m and 1e-10 m/s; ``NumpyJointResidual.correct``). For free bodies: the correction of the period's
+starting state ``(qpos0, qvel0)``, applied to MuJoCo's prediction ``(qpos, qvel)`` in place, then the energy cap.
+The network is not evaluated where the gate is already exactly 0 (at rest, outside the feature ranges, or far from
+the training states), and there the state is left exactly as MuJoCo made it (the reference renormalises the
+quaternion, a change of about 1e-16).
 
 Compiled on first use and cached on disk (numba's ``cache=True``: next to this file, or in the user's cache
 directory where that is not writable), so only the first use on a machine pays the compilation (seconds). Where

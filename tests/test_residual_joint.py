@@ -305,7 +305,11 @@ def test_driven_arm_single_batch_and_rollout_agree(tmp_path: Path) -> None:
         q_s, v_s = sim.step(traj.qpos[i], traj.qvel[i], ctrl[i], earlier(i))
         np.testing.assert_allclose(q_s, q_b[row], atol=1e-9)
         np.testing.assert_allclose(v_s, v_b[row], atol=1e-9)
-    assert not np.allclose(sim.step(traj.qpos[5], traj.qvel[5], ctrl[5])[1], v_b[2])  # the history matters
+    held_q, held_v = sim.step(traj.qpos[5], traj.qvel[5], ctrl[5])  # no history given: the control held through it
+    assert not np.allclose(held_v, v_b[2])  # the history matters
+    q_held_b, v_held_b = sim.step_batch(traj.qpos[5:6], traj.qvel[5:6], ctrl[5:6])
+    np.testing.assert_allclose(held_q, q_held_b[0], atol=1e-9)
+    np.testing.assert_allclose(held_v, v_held_b[0], atol=1e-9)
     assert result.one_step_rms_after[2] < result.one_step_rms_before[2]  # the weak motors are learnt
 
 
