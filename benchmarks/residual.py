@@ -50,6 +50,17 @@ velocity refitted by free flight over the frames before it (the same fit as ``--
 over the rest of the toss; beside it, from the recorded state at that frame, and this project's metric from the
 first recorded state, on the same tosses. Context only: the issues' targets are on this project's metric.
 
+``--twins`` (with ``--calibrated DIR``) asks whether tosses that the calibrated scene calls alike end alike. The
+board is level and uniform and the cube has 24 rotational symmetries, so the motion of a toss carried by a turn of
+the board about the vertical, a shift along it and a relabelling of the cube's faces is a motion just as possible.
+Every pair of tosses with a free-flight start (the ``--noise-floor`` fit) is so aligned (the relabelling and turn
+that bring the second start's orientation nearest the first's) and compared over their common frames with the
+metric, both as recorded and as the calibrated scene rolls them out from those starts. Pairs whose records
+coincide (copies of one toss in the data, see docs/residual_cube.md) are counted apart. For any model, the two
+tosses' errors add up to at least the records' distance less the model's distance between its two roll-outs (the
+triangle inequality), so where the calibrated roll-outs are close and the records far apart, a model within the
+target on both would have to tell the two starts apart far more than the calibrated scene does.
+
 ``--ablation`` also rolls the validation tosses out with only the pose outputs (position, rotation) or only the
 velocity outputs of the trained residual, at forced gains 0.25, 0.5 and 1, to show which part helps or hurts.
 """
@@ -58,6 +69,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import itertools
 import re
 import sys
 import tempfile
@@ -665,6 +677,135 @@ def synthetic_drag(options: ResidualOptions) -> None:
             print(f"held-out {name:22s} {fmt(pos * CUBE_WIDTH_M / width, rot)}  (position / 0.1 m cube width)")
 
 
+def _cube_rotations() -> np.ndarray:
+    """(24, 3, 3) the proper rotations that map a cube onto itself (signed permutations, det +1)."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((-1.0, 1.0), repeat=3):
+            m = np.zeros((3, 3))
+            m[range(3), perm] = signs
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return np.array(out)
+
+
+def _yaw_m(psi_rad: float) -> np.ndarray:
+    c, s = np.cos(psi_rad), np.sin(psi_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _angle_rad(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) x2 -> (...) angle between rotation matrices."""
+    cosine = (np.trace(np.swapaxes(a, -1, -2) @ b, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cosine, -1.0, 1.0))
+
+
+def _alignment(rot_a: np.ndarray, rot_b: np.ndarray, faces_all: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The turn of the board (yaw, (3, 3)) and relabelling of the faces (one of `faces_all`) that bring orientation
+    rot_b nearest rot_a (yaw @ rot_b @ faces ~ rot_a), and the angle left between them (rad)."""
+    # for each relabelling S, the yaw nearest Q = R_a (R_b S)^T, and the angle of yaw^T Q
+    q = rot_a[None] @ np.swapaxes(rot_b[None] @ faces_all, -1, -2)
+    psi = np.arctan2(q[:, 1, 0] - q[:, 0, 1], q[:, 0, 0] + q[:, 1, 1])
+    trace = np.cos(psi) * (q[:, 0, 0] + q[:, 1, 1]) + np.sin(psi) * (q[:, 1, 0] - q[:, 0, 1]) + q[:, 2, 2]
+    left = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+    k = int(np.argmin(left))
+    return float(left[k]), _yaw_m(float(psi[k])), faces_all[k]
+
+
+def _aligned(
+    pos_m: np.ndarray, rot: np.ndarray, from_xy_m: np.ndarray, to_xy_m: np.ndarray, yaw: np.ndarray, faces: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A motion turned by `yaw` about the vertical through its start (from_xy_m), moved to to_xy_m, faces
+    relabelled by `faces` (body frame)."""
+    moved = pos_m.copy()
+    moved[:, :2] -= from_xy_m
+    moved = moved @ yaw.T
+    moved[:, :2] += to_xy_m
+    return moved, yaw @ rot @ faces
+
+
+def _motion_distance(pos_a: np.ndarray, rot_a: np.ndarray, pos_b: np.ndarray, rot_b: np.ndarray) -> tuple[float, float]:
+    """The metric between two motions over their common frames: position / cube width, rotation (deg)."""
+    n = min(len(pos_a), len(pos_b))
+    position = float(np.mean(np.linalg.norm(pos_a[:n] - pos_b[:n], axis=1))) / CUBE_WIDTH_M
+    return position, float(np.degrees(np.mean(_angle_rad(rot_a[:n], rot_b[:n]))))
+
+
+def twin_tosses(scene: Path) -> None:
+    """Pairs of tosses the calibrated scene rolls out alike, against how far apart they were recorded."""
+    train, val = split(load_dair_pll_cube(DATA))
+    model = Simulator(scene, use_residual=False).model
+    corners_body_m = _cube_corners_body_m(model)
+    gravity_m_s2 = float(-model.opt.gravity[2])
+    tosses = []
+    for toss in train + val:
+        frames = _leading_flight_frames(toss, corners_body_m)
+        if frames >= MIN_FLIGHT_FRAMES:
+            fit = _free_flight_start(toss, frames, gravity_m_s2)
+            tosses.append(_started_at(toss, fit.qpos0, fit.qvel0))
+    rolled = _rollouts(model, tosses)
+    rot_real = [quat_to_mat(t.qpos[:, 3:]) for t in tosses]
+    rot_sim = [quat_to_mat(t.qpos[:, 3:]) for t in rolled]
+    start_rot = np.array([r[0] for r in rot_real])
+    faces_all = _cube_rotations()
+    print(f"\n{len(tosses)} tosses with a free-flight start; every ordered pair aligned (turn of the board, faces)")
+    rows = []  # a, b, start angle (deg), |dv| (m/s), |dw| (rad/s), |dz| (m), sim pos, sim rot, real pos, real rot
+    for a in range(len(tosses)):
+        for b in range(len(tosses)):
+            if a == b:
+                continue
+            left_rad, yaw, faces = _alignment(start_rot[a], start_rot[b], faces_all)
+            if left_rad > np.radians(20.0):
+                continue
+            qa, qb = tosses[a], tosses[b]
+            xy_a, xy_b = qa.qpos[0, :2], qb.qpos[0, :2]
+            sim_b = _aligned(rolled[b].qpos[:, :3], rot_sim[b], xy_b, xy_a, yaw, faces)
+            real_b = _aligned(qb.qpos[:, :3], rot_real[b], xy_b, xy_a, yaw, faces)
+            rows.append(
+                (
+                    a,
+                    b,
+                    np.degrees(left_rad),
+                    np.linalg.norm(qa.qvel[0, :3] - yaw @ qb.qvel[0, :3]),
+                    np.linalg.norm(qa.qvel[0, 3:] - faces.T @ qb.qvel[0, 3:]),
+                    abs(qa.qpos[0, 2] - qb.qpos[0, 2]),
+                    *_motion_distance(rolled[a].qpos[:, :3], rot_sim[a], *sim_b),
+                    *_motion_distance(qa.qpos[:, :3], rot_real[a], *real_b),
+                )
+            )
+    pairs = np.array(rows)
+    pairs = pairs[pairs[:, 0] < pairs[:, 1]]
+    is_copy = (pairs[:, 2] < 0.05) & (pairs[:, 8] < 0.005) & (pairs[:, 9] < 0.2)
+    val_names = {t.name for t in val}
+    names = [(tosses[int(a)].name, tosses[int(b)].name) for a, b in pairs[is_copy, :2]]
+    across = [n for n in names if (n[0] in val_names) != (n[1] in val_names)]
+    print(
+        f"copies (records within 0.5% / 0.2 deg once aligned): {int(is_copy.sum())} pairs, {len(across)} of them "
+        f"across the split: {', '.join(f'{x}~{y}' for x, y in across)}"
+    )
+    others = pairs[~is_copy]
+    for within, within_deg in ((0.05, 5.0), (0.10, 10.0), (0.15, 15.0)):
+        sel = others[(others[:, 6] < within) & (others[:, 7] < within_deg)]
+        far = int(np.sum((sel[:, 8] > 0.2) | (sel[:, 9] > 20.0)))
+        if not len(sel):
+            print(f"other pairs rolled out within {100 * within:.0f}% / {within_deg:g} deg of each other: none")
+            continue
+        print(
+            f"other pairs rolled out within {100 * within:.0f}% / {within_deg:g} deg of each other: {len(sel)}; "
+            f"roll-outs {100 * sel[:, 6].mean():.1f}% / {sel[:, 7].mean():.1f} deg apart, records "
+            f"{100 * sel[:, 8].mean():.1f}% / {sel[:, 9].mean():.1f} deg (median {100 * np.median(sel[:, 8]):.1f}% / "
+            f"{np.median(sel[:, 9]):.1f}); records over 20% or 20 deg apart: {far}; "
+            f"starts apart (median) {np.median(sel[:, 2]):.1f} deg, {np.median(sel[:, 3]):.2f} m/s, "
+            f"{np.median(sel[:, 4]):.2f} rad/s, {1000 * np.median(sel[:, 5]):.0f} mm"
+        )
+    copied = {a if a in val_names else b for a, b in across}  # the validation member of each pair across
+    base = Simulator(scene, use_residual=False)
+    rest = [t for t in val if t.name not in copied]
+    for label, group in (("validation", val), (f"validation less the {len(copied)} copies of training tosses", rest)):
+        pos, rot = metric(base.rollout(group), group)
+        print(f"calibrated scene, {label} ({len(group)}): {fmt(pos, rot)}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="60 training / 30 validation tosses")
@@ -695,6 +836,9 @@ def main() -> None:
         help="with --calibrated: whether where a toss lands says which contact variant it wants",
     )
     parser.add_argument(
+        "--twins", action="store_true", help="with --calibrated: whether tosses the scene calls alike end alike"
+    )
+    parser.add_argument(
         "--ablation", action="store_true", help="also roll out with only the pose or only the velocity outputs"
     )
     parser.add_argument("--steps", type=int, default=ResidualOptions().steps)
@@ -708,6 +852,7 @@ def main() -> None:
         "noise_floor": start_noise_floor,
         "published_protocol": published_protocol,
         "board_position": board_position,
+        "twins": twin_tosses,
     }
     for flag, analyse in analyses.items():
         if getattr(args, flag):
