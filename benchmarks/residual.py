@@ -787,6 +787,8 @@ def twin_tosses(scene: Path) -> None:
     for within, within_deg in ((0.05, 5.0), (0.10, 10.0), (0.15, 15.0)):
         sel = others[(others[:, 6] < within) & (others[:, 7] < within_deg)]
         far = int(np.sum((sel[:, 8] > 0.2) | (sel[:, 9] > 20.0)))
+        # a model within 10% / 10 deg on both must roll the pair out >= records' distance - 20% / 20 deg apart
+        wider = int(np.sum((sel[:, 8] - 0.2 > sel[:, 6]) | (sel[:, 9] - 20.0 > sel[:, 7])))
         if not len(sel):
             print(f"other pairs rolled out within {100 * within:.0f}% / {within_deg:g} deg of each other: none")
             continue
@@ -794,7 +796,8 @@ def twin_tosses(scene: Path) -> None:
             f"other pairs rolled out within {100 * within:.0f}% / {within_deg:g} deg of each other: {len(sel)}; "
             f"roll-outs {100 * sel[:, 6].mean():.1f}% / {sel[:, 7].mean():.1f} deg apart, records "
             f"{100 * sel[:, 8].mean():.1f}% / {sel[:, 9].mean():.1f} deg (median {100 * np.median(sel[:, 8]):.1f}% / "
-            f"{np.median(sel[:, 9]):.1f}); records over 20% or 20 deg apart: {far}; "
+            f"{np.median(sel[:, 9]):.1f}); records over 20% or 20 deg apart: {far}, "
+            f"over the roll-outs' distance + 20% or 20 deg: {wider}; "
             f"starts apart (median) {np.median(sel[:, 2]):.1f} deg, {np.median(sel[:, 3]):.2f} m/s, "
             f"{np.median(sel[:, 4]):.2f} rad/s, {1000 * np.median(sel[:, 5]):.0f} mm"
         )
