@@ -786,12 +786,12 @@ def twin_tosses(scene: Path) -> None:
     others = pairs[~is_copy]
     for within, within_deg in ((0.05, 5.0), (0.10, 10.0), (0.15, 15.0)):
         sel = others[(others[:, 6] < within) & (others[:, 7] < within_deg)]
-        far = int(np.sum((sel[:, 8] > 0.2) | (sel[:, 9] > 20.0)))
-        # a model within 10% / 10 deg on both must roll the pair out >= records' distance - 20% / 20 deg apart
-        wider = int(np.sum((sel[:, 8] - 0.2 > sel[:, 6]) | (sel[:, 9] - 20.0 > sel[:, 7])))
         if not len(sel):
             print(f"other pairs rolled out within {100 * within:.0f}% / {within_deg:g} deg of each other: none")
             continue
+        far = int(np.sum((sel[:, 8] > 0.2) | (sel[:, 9] > 20.0)))
+        # a model within 10% / 10 deg on both must roll the pair out >= records' distance - 20% / 20 deg apart
+        wider = int(np.sum((sel[:, 8] - 0.2 > sel[:, 6]) | (sel[:, 9] - 20.0 > sel[:, 7])))
         print(
             f"other pairs rolled out within {100 * within:.0f}% / {within_deg:g} deg of each other: {len(sel)}; "
             f"roll-outs {100 * sel[:, 6].mean():.1f}% / {sel[:, 7].mean():.1f} deg apart, records "
