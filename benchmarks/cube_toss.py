@@ -4,8 +4,8 @@ Per toss: rolled out open loop from its first recorded state, the time-average o
 of the cube width (0.1048 m) and of the geodesic rotation error in degrees; mean and std over tosses.
 
 Split: the 400 tosses of ../shared/data/cube_toss, by `grounder._calibrate.split_names` (names shuffled with
-numpy's default_rng(split_seed = 0), 30% validation = 120 tosses); the fit uses a seeded subset of the 280
-training tosses.
+numpy's default_rng(split_seed = 0), 30% validation = 120 tosses; the 18 tosses the data holds twice each stay on one
+side, `grounder._repeats`); the fit uses a seeded subset of the 280 training tosses.
 
     .venv/bin/python benchmarks/cube_toss.py                 # defaults below, a few minutes on 2 cores
     .venv/bin/python benchmarks/cube_toss.py --out out/cube  # also write the calibrated scene folder

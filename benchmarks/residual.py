@@ -2,8 +2,8 @@
 
 Metric (Acosta, Yang & Posa, RA-L 2022): per toss, the time-average of the position error divided by the cube
 width (0.1048 m) and of the geodesic rotation error (deg), rolled out from the first recorded state; mean and std
-over the validation tosses. Split: seeded 70/30 of the toss ids (seed 0), unless the calibration module provides
-its split.
+over the validation tosses. Split: the calibration's (`grounder._calibrate.split_names`: 30% validation, seed 0,
+the tosses the data holds twice kept on one side).
 
 The calibrated scene comes from ``grounder._calibrate.calibrate`` with ``benchmarks/cube_toss.py``'s settings
 (``--calibrated DIR`` reuses one); without that module (or with ``--grid``) this script calibrates friction and
@@ -87,6 +87,7 @@ from cube_toss import DEFAULT_PARAMS as CUBE_TOSS_PARAMS  # noqa: E402  (benchma
 
 from grounder._import import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
 from grounder._interaction_impacts import fit_flight  # noqa: E402
+from grounder._repeats import repeated_motions  # noqa: E402
 from grounder._residual import quat_to_mat, quat_to_rotvec, rotvec_to_quat  # noqa: E402
 from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
 from grounder._simulate import quat_angle_rad, simulate  # noqa: E402
@@ -102,21 +103,17 @@ TRAIN_FRACTION = 0.7
 
 
 def split(trajs: list[Trajectory]) -> tuple[list[Trajectory], list[Trajectory]]:
-    """The calibration's split (``grounder._calibrate.split_names``, 30% validation, seed 0) when it exists, else
-    the same recipe here: names in natural order shuffled with numpy's default_rng(0), the first 30% validation."""
-    by_name = {t.name: t for t in trajs}
-    try:
-        from grounder._calibrate import split_names
+    """The calibration's split (``grounder._calibrate.split_names``, 30% validation, seed 0, copies of one toss
+    kept on one side as `image2sim calibrate` keeps them), so that validation here is validation there."""
+    from grounder._calibrate import split_names
 
-        train_names, val_names = split_names(list(by_name), 1.0 - TRAIN_FRACTION, SPLIT_SEED)
-        print("split: grounder._calibrate.split_names(validation 0.3, seed 0), as benchmarks/cube_toss.py")
-    except ImportError:
-        order = sorted(by_name, key=lambda n: int(n) if n.isdigit() else n)
-        perm = np.random.default_rng(SPLIT_SEED).permutation(len(order))
-        n_val = round((1.0 - TRAIN_FRACTION) * len(order))
-        val_names = sorted(order[i] for i in perm[:n_val])
-        train_names = sorted(order[i] for i in perm[n_val:])
-        print("split: seeded 70/30 of toss ids (numpy default_rng(0) permutation)")
+    by_name = {t.name: t for t in trajs}
+    repeats = repeated_motions(trajs, mujoco.MjModel.from_xml_path(str(NOMINAL_XML)))
+    train_names, val_names = split_names(list(by_name), 1.0 - TRAIN_FRACTION, SPLIT_SEED, repeats)
+    print(
+        f"split: grounder._calibrate.split_names(validation 0.3, seed 0), as benchmarks/cube_toss.py; "
+        f"{len(repeats)} tosses stored twice kept on one side"
+    )
     return [by_name[n] for n in train_names], [by_name[n] for n in val_names]
 
 
@@ -779,9 +776,11 @@ def twin_tosses(scene: Path) -> None:
     val_names = {t.name for t in val}
     names = [(tosses[int(a)].name, tosses[int(b)].name) for a, b in pairs[is_copy, :2]]
     across = [n for n in names if (n[0] in val_names) != (n[1] in val_names)]
+    found = {frozenset(g) for g in repeated_motions(tosses, model)}
     print(
         f"copies (records within 0.5% / 0.2 deg once aligned): {int(is_copy.sum())} pairs, {len(across)} of them "
-        f"across the split: {', '.join(f'{x}~{y}' for x, y in across)}"
+        f"across the split{': ' if across else ''}{', '.join(f'{x}~{y}' for x, y in across)}; the same pairs as "
+        f"grounder._repeats finds (heights and speeds alone): {found == {frozenset(n) for n in names}}"
     )
     others = pairs[~is_copy]
     for within, within_deg in ((0.05, 5.0), (0.10, 10.0), (0.15, 15.0)):
@@ -804,7 +803,10 @@ def twin_tosses(scene: Path) -> None:
     copied = {a if a in val_names else b for a, b in across}  # the validation member of each pair across
     base = Simulator(scene, use_residual=False)
     rest = [t for t in val if t.name not in copied]
-    for label, group in (("validation", val), (f"validation less the {len(copied)} copies of training tosses", rest)):
+    groups = [("validation", val)]
+    if copied:
+        groups.append((f"validation less the {len(copied)} copies of training tosses", rest))
+    for label, group in groups:
         pos, rot = metric(base.rollout(group), group)
         print(f"calibrated scene, {label} ({len(group)}): {fmt(pos, rot)}")
 

@@ -15,7 +15,10 @@ How it fits (raw mode):
 
 1. The trajectories are split once, reproducibly: the names in natural order are shuffled with
    ``numpy.random.default_rng(split_seed)``; the first ``round(validation_fraction * N)`` are validation, the rest
-   training (at least one of each when N >= 2). Optionally a seeded subset of the training split is used.
+   training (at least one of each when N >= 2). Trajectories that record the same motion twice
+   (`grounder._repeats`: e.g. one toss stored again, turned and shifted) stay together, on the side the shuffle
+   put the first of them (in natural order) on, and a warning names them. Optionally a seeded subset of the
+   training split is used.
 2. Loss of a trajectory: re-simulated open loop from its first recorded state (:mod:`grounder._simulate`), for each
    free body the time-average of the position error as a percentage of the body's size (largest extent of its
    collision geoms: the cube's width) plus ``rotation_weight`` times the time-average geodesic rotation error in
@@ -63,6 +66,7 @@ from grounder._calibrate_params import (
     resolve_parameters,
 )
 from grounder._json_files import read_json_file
+from grounder._repeats import repeated_motions, split_keeping_together
 from grounder._report import write_text_atomic
 from grounder._residual import RESIDUAL_FILES
 from grounder._trajectory import Trajectory, _natural_key, validate_against_model
@@ -341,16 +345,19 @@ def load_scene(scene: Path) -> tuple[mujoco.MjSpec, mujoco.MjModel]:
     return spec, model
 
 
-def split_names(names: Sequence[str], validation_fraction: float, seed: int) -> tuple[list[str], list[str]]:
-    """The documented train/validation split (module docstring, step 1): returns (train, validation)."""
+def split_names(
+    names: Sequence[str], validation_fraction: float, seed: int, together: Sequence[Sequence[str]] = ()
+) -> tuple[list[str], list[str]]:
+    """The documented train/validation split (module docstring, step 1): returns (train, validation). Each group
+    in ``together`` (copies of one motion, `grounder._repeats.repeated_motions`) stays on one side: the side the
+    shuffle put its first member on."""
     ordered = sorted(names, key=_natural_key)
     if len(ordered) < 2 or validation_fraction <= 0:
         return ordered, []
     perm = np.random.default_rng(seed).permutation(len(ordered))
     n_val = min(max(1, round(validation_fraction * len(ordered))), len(ordered) - 1)
-    val = sorted((ordered[i] for i in perm[:n_val]), key=_natural_key)
-    train = sorted((ordered[i] for i in perm[n_val:]), key=_natural_key)
-    return train, val
+    val, train = split_keeping_together([ordered[i] for i in perm], n_val, together)
+    return sorted(train, key=_natural_key), sorted(val, key=_natural_key)
 
 
 def training_subset(train: Sequence[str], max_count: int | None, seed: int) -> list[str]:
@@ -899,7 +906,14 @@ def calibrate(
         sim.check_links_stay_inside(scene, NOT_COPIED)
     _check_trajectories(base, trajs)
     by_name = {t.name: t for t in trajs}
-    train_names, val_names = split_names(list(by_name), options.validation_fraction, options.split_seed)
+    repeats = repeated_motions(trajs, base)
+    for group in repeats:
+        log.warning(
+            "trajectories %s record the same motion (up to a turn about the vertical and a shift): kept on one "
+            "side of the train/validation split; remove the copies if they are not meant to weigh double",
+            ", ".join(group),
+        )
+    train_names, val_names = split_names(list(by_name), options.validation_fraction, options.split_seed, repeats)
     fit_names = training_subset(train_names, options.max_train_trajectories, options.split_seed)
     fit_trajs = [by_name[n] for n in fit_names]
     common: dict[str, Any] = {
@@ -963,6 +977,7 @@ def calibrate(
             **extra,
             "scene": str(scene),
             "fit_trajectories": fit_names,
+            "repeated_trajectories": [list(g) for g in repeats],
             "options": {
                 k: (list(v) if isinstance(v, tuple) else v) for k, v in options.__dict__.items() if k != "nthread"
             },

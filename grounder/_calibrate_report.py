@@ -98,7 +98,8 @@ def write_report(path: Path, result: CalibrationResult, base: mujoco.MjModel, tr
     sections.append(
         Section(
             title="Errors",
-            text="Open-loop from each trajectory's first recorded state; time-average per trajectory, mean ± std.",
+            text="Open-loop from each trajectory's first recorded state; time-average per trajectory, mean ± std."
+            + _repeats_note(result.extra.get("repeated_trajectories", [])),
             table=err_table,
             figures=tuple(figs),
         )
@@ -147,3 +148,16 @@ def write_report(path: Path, result: CalibrationResult, base: mujoco.MjModel, tr
             figs.append(fig)
         sections.append(Section(title="Real vs simulated", figures=tuple(figs)))
     return write_html_report(path, "Calibration report", sections)
+
+
+def _repeats_note(groups: list[list[str]]) -> str:
+    """The copies of one motion the split kept together (`grounder._repeats`), or nothing when there were none."""
+    if not groups:
+        return ""
+    listed = "; ".join(", ".join(g) for g in groups[:10]) + (
+        f"; and {len(groups) - 10} more" if len(groups) > 10 else ""
+    )
+    return (
+        f" {len(groups)} groups of trajectories record the same motion (up to a turn about the vertical and a "
+        f"shift) and were kept on one side of the split: {listed}."
+    )

@@ -24,6 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from grounder._repeats import repeated_motion_indices, split_keeping_together
 from grounder._residual import (
     META_FILE,
     NUM_OUTPUTS,
@@ -212,9 +213,11 @@ def _group_rms(err: np.ndarray, joint: bool = False) -> tuple[float, float, floa
 
 
 class _Trainer:
-    def __init__(self, scene_xml: Path, trajs: Sequence[Trajectory], options: ResidualOptions):
+    def __init__(
+        self, scene_xml: Path, trajs: Sequence[Trajectory], options: ResidualOptions, sim: Simulator | None = None
+    ):
         self.options = options
-        self.sim = Simulator(scene_xml, use_residual=False)
+        self.sim = sim or Simulator(scene_xml, use_residual=False)
         self.model = self.sim.model
         for traj in trajs:
             validate_against_model(traj, self.model)
@@ -499,14 +502,24 @@ def train_residual(
     torch.set_num_threads(options.num_threads)
     try:
         torch.manual_seed(options.seed)
-        fit_trajs, select_trajs = _selection_split(trajs, options)
+        sim = Simulator(scene_xml, use_residual=False)
+        for traj in trajs:
+            validate_against_model(traj, sim.model)
+        repeats = repeated_motion_indices(trajs, sim.model)
+        for group in repeats:
+            log.warning(
+                "trajectories %s record the same motion (up to a turn about the vertical and a shift): kept on "
+                "one side of the fit/gain-check split",
+                ", ".join(trajs[i].name or f"#{i}" for i in group),
+            )
+        fit_trajs, select_trajs = _selection_split(trajs, options, repeats)
         if not select_trajs:
             log.warning(
                 "no trajectory held out to check the residual's output gain (%d trajectories; it takes 5): the "
                 "residual ships at gain 1 unchecked",
                 len(trajs),
             )
-        trainer = _Trainer(scene_xml, fit_trajs, options)
+        trainer = _Trainer(scene_xml, fit_trajs, options, sim)
         report("residual: one-step targets", 0, 1)
         base = trainer.one_step()
         report("residual: one-step targets", 1, 1)
@@ -657,14 +670,17 @@ def _held_out_one_step(
 
 
 def _selection_split(
-    trajs: Sequence[Trajectory], options: ResidualOptions
+    trajs: Sequence[Trajectory], options: ResidualOptions, together: Sequence[Sequence[int]] = ()
 ) -> tuple[list[Trajectory], list[Trajectory]]:
-    """Seeded split of the trajectories into (fit, gain selection); all fit when there are fewer than 5."""
+    """Seeded split of the trajectories into (fit, gain selection); all fit when there are fewer than 5. Each group
+    of indices in ``together`` (copies of one motion) stays on one side
+    (`grounder._repeats.split_keeping_together`)."""
     count = round(options.selection_fraction * len(trajs))
     if len(trajs) < 5 or count < 1 or not options.gains:
         return list(trajs), []
-    perm = np.random.default_rng(options.seed + 7919).permutation(len(trajs))
-    chosen = set(perm[:count].tolist())
+    perm = np.random.default_rng(options.seed + 7919).permutation(len(trajs)).tolist()
+    chosen_list, _ = split_keeping_together(perm, count, together)
+    chosen = set(chosen_list)
     return [t for i, t in enumerate(trajs) if i not in chosen], [t for i, t in enumerate(trajs) if i in chosen]
 
 

@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from grounder import _simulate as sim
 from grounder._calibrate import CalibrateOptions, calibrate, split_names
 from grounder._calibrate_params import apply_to_model, apply_to_spec, resolve_parameters
+from grounder._repeats import split_keeping_together
 from grounder._trajectory import Trajectory, load_trajectories, save_trajectories
 from grounder.errors import GrounderError
 
@@ -123,6 +124,31 @@ def test_split_is_reproducible_and_disjoint() -> None:
     assert not set(train) & set(val) and set(train) | set(val) == set(names)
     assert (train, val) == split_names(list(reversed(names)), 0.3, seed=0)
     assert split_names(names, 0.3, seed=1) != (train, val)
+
+
+def test_split_keeps_copies_of_one_motion_together() -> None:
+    names = [str(i) for i in range(20)]
+    train, val = split_names(names, 0.3, seed=0)
+    # one group straddling the split each way, one inside validation, one inside training
+    groups = [(train[0], val[0]), (val[1], train[1]), (val[2], val[3]), (train[2], train[3], train[4])]
+    train_g, val_g = split_names(names, 0.3, seed=0, together=groups)
+    assert set(train_g) | set(val_g) == set(names) and not set(train_g) & set(val_g)
+    for group in groups:  # whole, on the side its first member had
+        assert set(group) <= set(train_g if group[0] in train else val_g)
+    others = set(names) - {n for g in groups for n in g}
+    assert set(train_g) & others == set(train) & others and set(val_g) & others == set(val) & others
+    assert len(val_g) == len(val)  # here one moved each way
+
+
+def test_split_keeping_together_keeps_both_sides() -> None:
+    # a group that would fill one side gives way so that the other keeps a unit; a single unit is all training
+    assert split_keeping_together(["a", "b", "c"], 2, [("a", "b", "c")]) == ([], ["a", "b", "c"])
+    assert split_keeping_together(["a", "b", "c"], 2, [("b", "c")]) == (["a"], ["b", "c"])
+    assert split_keeping_together(["a", "b", "c"], 1, [("a", "b")]) == (["a", "b"], ["c"])
+    assert split_keeping_together(["a", "b", "c"], 1, [("c", "a")]) == (["b"], ["a", "c"])
+    assert split_keeping_together([3, 1, 2, 0], 1, [(0, 3)]) == ([2], [3, 1, 0])  # the group follows 0, not 3
+    train, val = split_names(["x", "y", "z"], 0.5, 0, together=[("x", "y", "z")])
+    assert (train, val) == (["x", "y", "z"], [])
 
 
 def _true_cube(friction: float, timeconst: float) -> mujoco.MjModel:

@@ -9,7 +9,11 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+import pytest
 
+from grounder._calibrate import split_names
+from grounder._import import load_dair_pll_cube
+from grounder._repeats import repeated_motion_indices, repeated_motions
 from grounder._residual import quat_to_mat
 from grounder._simulate import simulate
 from grounder._track_smooth import quat_from_matrix
@@ -22,6 +26,7 @@ from residual import _aligned, _alignment, _cube_rotations, _motion_distance, _y
 # The nominal model of the real cube tosses, with the elliptic friction cone the calibration fits (a pyramidal
 # cone's facets are fixed in the world, so a turned toss is not quite the same motion there).
 NOMINAL_CUBE_XML = Path(__file__).resolve().parents[1] / "samples" / "cube_toss" / "cube.xml"
+SHARED_CUBE = Path(__file__).resolve().parents[2] / "shared" / "data" / "cube_toss"
 
 
 def _cube_model() -> mujoco.MjModel:
@@ -86,3 +91,39 @@ def test_a_turned_relabelled_toss_is_found_to_be_the_same_motion() -> None:
     left_o, yaw_o, faces_o = _alignment(rot_a[0], rot_o[0], faces_all)
     moved_o = _aligned(other.qpos[:, :3], rot_o, other.qpos[0, :2], original.qpos[0, :2], yaw_o, faces_o)
     assert left_o < 1e-6 and _motion_distance(original.qpos[:, :3], rot_a, *moved_o)[0] > 0.5
+
+
+def test_repeated_motions_groups_a_turned_copy_and_nothing_else() -> None:
+    """`grounder._repeats` finds the copy by what a turn, a shift and relabelled faces leave alone (heights,
+    vertical velocity, horizontal speed), and keeps a toss 5 cm/s faster apart: it is another motion."""
+    model = _cube_model()
+    quat0 = np.array([0.9, 0.3, -0.2, 0.25])
+    qpos0 = np.r_[0.1, -0.05, 0.2, quat0 / np.linalg.norm(quat0)]
+    qvel0 = np.array([0.8, 0.3, -0.5, 4.0, -6.0, 2.5])
+    original = _toss(model, qpos0, qvel0, "toss_2")
+    copy = _toss(
+        model, *_turned(qpos0, qvel0, _yaw_m(np.radians(137.0)), _cube_rotations()[17], np.r_[-0.3, 0.25]), "toss_10"
+    )
+    faster = _toss(model, qpos0, qvel0 + np.r_[0.05, 0, 0, 0, 0, 0], "toss_3")
+    spun = _toss(model, qpos0, qvel0 + np.r_[0, 0, 0, 0, 0, 1.0], "toss_4")
+    assert repeated_motions([copy, faster, original, spun], model) == [("toss_2", "toss_10")]
+    assert repeated_motion_indices([copy, faster, original, spun], model) == [(0, 2)]
+    # the same start a few cm higher is another motion too; a copy with 0.1 mm of tracking noise is still a copy
+    higher = _toss(model, qpos0 + np.r_[0, 0, 0.03, 0, 0, 0, 0], qvel0, "toss_5")
+    noisy_qpos = original.qpos.copy()
+    noisy_qpos[:, :3] += np.random.default_rng(0).normal(scale=1e-4, size=(original.num_steps, 3))
+    noisy = Trajectory(time_s=original.time_s + 5.0, qpos=noisy_qpos, qvel=original.qvel, name="toss_6")
+    assert repeated_motions([original, higher, noisy], model) == [("toss_2", "toss_6")]
+
+
+def test_the_real_tosses_hold_18_copies_kept_on_one_side_of_the_split() -> None:
+    if not (SHARED_CUBE / "tosses").is_dir():
+        pytest.skip(f"real cube tosses not available ({SHARED_CUBE} is absent)")
+    trajs = load_dair_pll_cube(SHARED_CUBE)
+    groups = repeated_motions(trajs, mujoco.MjModel.from_xml_path(str(NOMINAL_CUBE_XML)))
+    # the 18 pairs `benchmarks/residual.py --twins` found by aligning every pair of tosses (docs/residual_cube.md)
+    assert groups[:3] == [("41", "505"), ("43", "507"), ("44", "508")] and len(groups) == 18
+    assert all(len(g) == 2 for g in groups)
+    train, val = split_names([t.name for t in trajs], 0.3, 0, groups)
+    assert len(val) == 120 and len(train) == 280
+    assert all(set(g) <= set(train) or set(g) <= set(val) for g in groups)
