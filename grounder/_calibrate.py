@@ -66,7 +66,7 @@ from grounder._calibrate_params import (
     resolve_parameters,
 )
 from grounder._json_files import read_json_file
-from grounder._repeats import repeated_motions, split_keeping_together
+from grounder._repeats import describe_repeats, repeated_motions, split_keeping_together
 from grounder._report import write_text_atomic
 from grounder._residual import RESIDUAL_FILES
 from grounder._trajectory import Trajectory, _natural_key, validate_against_model
@@ -907,12 +907,8 @@ def calibrate(
     _check_trajectories(base, trajs)
     by_name = {t.name: t for t in trajs}
     repeats = repeated_motions(trajs, base)
-    for group in repeats:
-        log.warning(
-            "trajectories %s record the same motion (up to a turn about the vertical and a shift): kept on one "
-            "side of the train/validation split; remove the copies if they are not meant to weigh double",
-            ", ".join(group),
-        )
+    if repeats:
+        log.warning("%s; remove the copies if they are not meant to weigh double", describe_repeats(repeats, "split"))
     train_names, val_names = split_names(list(by_name), options.validation_fraction, options.split_seed, repeats)
     fit_names = training_subset(train_names, options.max_train_trajectories, options.split_seed)
     fit_trajs = [by_name[n] for n in fit_names]

@@ -10,6 +10,7 @@ import mujoco
 import numpy as np
 
 from grounder import _simulate as sim
+from grounder._repeats import describe_repeats
 from grounder._report import Section, write_html_report
 from grounder._trajectory import Trajectory
 
@@ -152,12 +153,4 @@ def write_report(path: Path, result: CalibrationResult, base: mujoco.MjModel, tr
 
 def _repeats_note(groups: list[list[str]]) -> str:
     """The copies of one motion the split kept together (`grounder._repeats`), or nothing when there were none."""
-    if not groups:
-        return ""
-    listed = "; ".join(", ".join(g) for g in groups[:10]) + (
-        f"; and {len(groups) - 10} more" if len(groups) > 10 else ""
-    )
-    return (
-        f" {len(groups)} groups of trajectories record the same motion (up to a turn about the vertical and a "
-        f"shift) and were kept on one side of the split: {listed}."
-    )
+    return f" {describe_repeats(groups, 'split')}." if groups else ""

@@ -174,3 +174,12 @@ def split_keeping_together(
     first = [n for n in ordered if unit_of[n] in first_side]
     rest = [n for n in ordered if unit_of[n] not in first_side]
     return first, rest
+
+
+def describe_repeats(groups: Sequence[Sequence[str]], split: str) -> str:
+    """One line naming the copies (``41=505, 43=507, ...``, the first ten groups) and what ``split`` did with them."""
+    listed = ", ".join("=".join(g) for g in groups[:10]) + (f" and {len(groups) - 10} more" if len(groups) > 10 else "")
+    return (
+        f"{len(groups)} {'group' if len(groups) == 1 else 'groups'} of trajectories record the same motion (up to a "
+        f"turn about the vertical and a shift): {listed}; each kept on one side of the {split}"
+    )

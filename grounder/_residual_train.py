@@ -24,7 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from grounder._repeats import repeated_motion_indices, split_keeping_together
+from grounder._repeats import describe_repeats, repeated_motion_indices, split_keeping_together
 from grounder._residual import (
     META_FILE,
     NUM_OUTPUTS,
@@ -506,12 +506,9 @@ def train_residual(
         for traj in trajs:
             validate_against_model(traj, sim.model)
         repeats = repeated_motion_indices(trajs, sim.model)
-        for group in repeats:
-            log.warning(
-                "trajectories %s record the same motion (up to a turn about the vertical and a shift): kept on "
-                "one side of the fit/gain-check split",
-                ", ".join(trajs[i].name or f"#{i}" for i in group),
-            )
+        if repeats:
+            named = [[trajs[i].name or f"#{i}" for i in g] for g in repeats]
+            log.warning("%s", describe_repeats(named, "fit / gain-check split"))
         fit_trajs, select_trajs = _selection_split(trajs, options, repeats)
         if not select_trajs:
             log.warning(

@@ -4,6 +4,7 @@ synthetic tosses, the calibrated scene folder is complete, and bad input gives o
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -214,6 +215,37 @@ def test_calibration_recovers_known_parameters(synthetic, tmp_path: Path) -> Non
     )
     report = (out / "report.html").read_text()
     assert report.count("data:image/png;base64,") >= 3 and "cube.friction.sliding" in report
+
+
+def test_a_copy_of_a_toss_is_named_and_kept_with_it(
+    synthetic, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """One toss stored again, turned 90 deg about the vertical and moved: found, named in one warning line, kept on
+    the side of the split its original is on, and listed in calibration.json and the report."""
+    trajs, _ = synthetic
+    src = trajs[0]
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    qpos, qvel = src.qpos.copy(), src.qvel.copy()
+    qpos[:, :3] = src.qpos[:, :3] @ turn.T + np.array([0.3, -0.2, 0.0])
+    qpos[:, 3:] = [_quat_mul(np.array([np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5)]), q) for q in src.qpos[:, 3:]]
+    qvel[:, :3] = src.qvel[:, :3] @ turn.T  # world-frame linear velocity turns; the body-frame rate does not
+    copy = Trajectory(time_s=src.time_s, qpos=qpos, qvel=qvel, name="toss_copy")
+    options = CalibrateOptions(params=("cube.friction.sliding",), generations=0, local_iterations=0, nthread=1)
+    out = tmp_path / "calibrated"
+    with caplog.at_level(logging.WARNING, logger="grounder._calibrate"):
+        result = calibrate(CUBE_XML, [*trajs, copy], options=options, out=out)
+    lines = [r.getMessage() for r in caplog.records if "record the same motion" in r.getMessage()]
+    assert len(lines) == 1 and "toss0=toss_copy" in lines[0], lines
+    side = result.validation_names if "toss0" in result.validation_names else result.train_names
+    assert "toss_copy" in side
+    assert json.loads((out / "calibration.json").read_text())["repeated_trajectories"] == [["toss0", "toss_copy"]]
+    assert "toss0=toss_copy" in (out / "report.html").read_text()
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    out = np.empty(4)
+    mujoco.mju_mulQuat(out, a, b)
+    return out
 
 
 def test_joint_defaults_recover_a_small_damping(tmp_path: Path) -> None:

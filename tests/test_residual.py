@@ -28,7 +28,7 @@ from grounder._residual import (
     quat_to_rotvec,
     rotvec_to_quat,
 )
-from grounder._residual_train import ResidualOptions, train_residual
+from grounder._residual_train import ResidualOptions, _selection_split, train_residual
 from grounder._simulate import quat_angle_rad, simulate
 from grounder._simulator import Simulator, has_residual
 from grounder._trajectory import Trajectory, save_trajectories
@@ -606,3 +606,18 @@ def test_compiled_path_works_where_no_cache_folder_is_writable(monkeypatch: pyte
     compiled = _jit(half)
     assert compiled(3.0) == 1.5
     assert isinstance(compiled._cache, caching.NullCache)  # compiled here, not cached
+
+
+def test_gain_check_split_keeps_copies_together() -> None:
+    """The trajectories the gain is chosen on and those fitted never share a motion stored twice."""
+    trajs = [
+        Trajectory(time_s=np.arange(3) / 148.0, qpos=np.zeros((3, 1)), qvel=np.full((3, 1), i), name=f"t{i}")
+        for i in range(20)
+    ]
+    options = ResidualOptions(selection_fraction=0.3, seed=0)
+    fit, held = _selection_split(trajs, options)
+    assert len(held) == 6 and {t.name for t in fit} | {t.name for t in held} == {t.name for t in trajs}
+    a, b = fit[0].name, held[0].name
+    together = [(int(a[1:]), int(b[1:]))]  # by position in trajs, first member the fitted one
+    fit_g, held_g = _selection_split(trajs, options, together)
+    assert {a, b} <= {t.name for t in fit_g} and len(held_g) == 5
