@@ -12,9 +12,9 @@ what such a change leaves alone, on a level floor (the plane normal to the model
 Two trajectories are copies when they have the same number of samples at the same times, their free bodies'
 heights differ by at most ``height_tol_m`` and velocities by at most ``speed_tol_m_s`` (root mean square over
 the samples), and everything else agrees within ``other_tol`` (largest difference). The defaults take the tosses'
-copies, which agree to rounding, with room for a recording tracked twice, while different tosses stay apart: the
-nearest two differ in height by 1.4 mm and in speed by 28 mm/s (root mean square).
-A body at rest in the same pose, wherever it stands, is the same motion too, and is grouped as such.
+copies, which agree to rounding, and a copy with 0.1 mm of noise on its positions, while different tosses stay
+apart: the nearest two differ in height by 1.4 mm and in speed by 28 mm/s (root mean square). Bodies at rest at the
+same height for the same time, wherever they stand, are the same motion too, and are grouped as such.
 """
 
 from __future__ import annotations
@@ -125,10 +125,7 @@ def repeated_motion_indices(
                 for i in members
             ]
         )
-        if keys.shape[1] == 0:
-            candidates = {(a, b) for a in range(len(members)) for b in range(a + 1, len(members))}
-        else:
-            candidates = cKDTree(keys).query_pairs(1.0 + 1e-9, p=np.inf)
+        candidates = cKDTree(keys).query_pairs(1.0 + 1e-9, p=np.inf)  # keys hold at least the times' column
         for a, b in sorted(candidates):
             (ha, sa, oa), (hb, sb, ob) = sigs[members[a]], sigs[members[b]]
             same = (
