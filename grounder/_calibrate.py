@@ -908,7 +908,10 @@ def calibrate(
     by_name = {t.name: t for t in trajs}
     repeats = repeated_motions(trajs, base)
     if repeats:
-        log.warning("%s; remove the copies if they are not meant to weigh double", describe_repeats(repeats, "split"))
+        log.warning(
+            "%s; each kept on one side of the split (remove the copies if they are not meant to weigh double)",
+            describe_repeats(repeats),
+        )
     train_names, val_names = split_names(list(by_name), options.validation_fraction, options.split_seed, repeats)
     fit_names = training_subset(train_names, options.max_train_trajectories, options.split_seed)
     fit_trajs = [by_name[n] for n in fit_names]

@@ -153,4 +153,4 @@ def write_report(path: Path, result: CalibrationResult, base: mujoco.MjModel, tr
 
 def _repeats_note(groups: list[list[str]]) -> str:
     """The copies of one motion the split kept together (`grounder._repeats`), or nothing when there were none."""
-    return f" {describe_repeats(groups, 'split')}." if groups else ""
+    return f" {describe_repeats(groups)}; each kept on one side of the split." if groups else ""

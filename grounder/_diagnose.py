@@ -2,7 +2,8 @@
 
 Steps (one fixed setting for every input; see :class:`DiagnoseOptions`):
 
-1. **Split** the trajectories into training and held-out ones (seeded shuffle).
+1. **Split** the trajectories into training and held-out ones (seeded shuffle; copies of one motion,
+   `grounder._repeats`, kept on one side).
 2. **Where.** Re-simulate every trajectory with the nominal model, short-horizon (re-started from the recorded
    state every ``horizon_s``) and open-loop, and break the normalised gap (:data:`grounder._gap.GAP_METRIC`) down by
    body, coordinate group, phase (free flight, impact, sliding, rolling, resting, actuated, free motion; detected
@@ -50,6 +51,7 @@ from grounder._gap import (
     rms,
     score,
 )
+from grounder._repeats import describe_repeats, repeated_motion_indices, split_keeping_together
 from grounder._simulate import default_nthread, load_scene_model
 from grounder._trajectory import Trajectory, load_trajectories, validate_against_model
 from grounder.errors import GrounderError
@@ -250,6 +252,27 @@ def check_inputs(model: mujoco.MjModel, trajs: Sequence[Trajectory], options: Di
 
 def _n_holdout(n: int, fraction: float) -> int:
     return round(n * fraction)
+
+
+def _holdout_split(
+    model: mujoco.MjModel, trajs: Sequence[Trajectory], order: list[int], options: DiagnoseOptions
+) -> tuple[list[int], list[int]]:
+    """(held-out, training) indices: the first ``_n_holdout`` of the shuffled ``order``, copies of one motion
+    (`grounder._repeats`) kept on one side, unless that would leave fewer than 2 on a side (then as shuffled)."""
+    n_hold = _n_holdout(len(trajs), options.holdout_fraction)
+    repeats = repeated_motion_indices(trajs, model)
+    held, train = split_keeping_together(order, n_hold, repeats)
+    if repeats:
+        named = [[trajs[i].name or f"#{i}" for i in g] for g in repeats]
+        if len(held) < 2 or len(train) < 2:
+            log.warning(
+                "%s; too few trajectories to keep each on one side of the held-out split, so held-out scores may "
+                "count copies of training trajectories",
+                describe_repeats(named),
+            )
+            return order[:n_hold], order[n_hold:]
+        log.warning("%s; each kept on one side of the held-out split", describe_repeats(named))
+    return held, train
 
 
 # ------------------------------------------------------------------------------------------------------------- phases
@@ -521,10 +544,9 @@ def diagnose(
     effects = resolve_effects(list(options.effects) if options.effects is not None else None, model)
     report = progress or (lambda stage, done, total: None)
     rng = np.random.default_rng(options.seed)
-    order = rng.permutation(len(trajs))
-    n_hold = _n_holdout(len(trajs), options.holdout_fraction)
-    held = [trajs[i] for i in sorted(order[:n_hold])]
-    train = [trajs[i] for i in sorted(order[n_hold:])]
+    held_idx, train_idx = _holdout_split(model, trajs, rng.permutation(len(trajs)).tolist(), options)
+    held = [trajs[i] for i in sorted(held_idx)]
+    train = [trajs[i] for i in sorted(train_idx)]
     engine = _Engine(model, train, held, options)
     try:
         held_count = engine.count(engine.held_w, len(held))

@@ -173,10 +173,11 @@ def split_keeping_together(
     return first, rest
 
 
-def describe_repeats(groups: Sequence[Sequence[str]], split: str) -> str:
-    """One line naming the copies (``41=505, 43=507, ...``, the first ten groups) and what ``split`` did with them."""
+def describe_repeats(groups: Sequence[Sequence[str]]) -> str:
+    """The start of one line naming the copies: ``N groups of trajectories record the same motion (...): 41=505,
+    43=507, ...`` (the first ten groups); the caller says what it did with them."""
     listed = ", ".join("=".join(g) for g in groups[:10]) + (f" and {len(groups) - 10} more" if len(groups) > 10 else "")
     return (
         f"{len(groups)} {'group' if len(groups) == 1 else 'groups'} of trajectories record the same motion (up to a "
-        f"turn about the vertical and a shift): {listed}; each kept on one side of the {split}"
+        f"turn about the vertical and a shift): {listed}"
     )

@@ -508,7 +508,7 @@ def train_residual(
         repeats = repeated_motion_indices(trajs, sim.model)
         if repeats:
             named = [[trajs[i].name or f"#{i}" for i in g] for g in repeats]
-            log.warning("%s", describe_repeats(named, "fit / gain-check split"))
+            log.warning("%s; each kept on one side of the fit / gain-check split", describe_repeats(named))
         fit_trajs, select_trajs = _selection_split(trajs, options, repeats)
         if not select_trajs:
             log.warning(

@@ -17,7 +17,7 @@ from mujoco import rollout as mj_rollout
 
 from grounder import Trajectory, save_trajectories
 from grounder._cases import BENCHMARK, SCENES, CaseSpec, make_case
-from grounder._diagnose import DiagnoseOptions, detect_phases, diagnose
+from grounder._diagnose import DiagnoseOptions, _holdout_split, detect_phases, diagnose
 from grounder._effects import EFFECT_NAMES, LIBRARY, AppliedEffect, Transforms, apply_effects
 from grounder._gap import coordinate_groups, group_errors_sq, make_windows, predict
 
@@ -556,3 +556,26 @@ def test_benchmark_library_refuses_trajectory_counts_before_the_first_case() -> 
             run_benchmark(num_trajectories=n)  # type: ignore[arg-type]
         with pytest.raises(GrounderError, match=r"num_trajectories=.* but expected"):
             run_case(_spec("pendulum/joint_friction"), num_trajectories=n)  # type: ignore[arg-type]
+
+
+def test_held_out_split_keeps_copies_of_one_motion_together() -> None:
+    """A trajectory stored twice (here moved 0.3 m along the floor) is held out or trained on whole; with too few
+    trajectories to do so the split stays as shuffled (and a warning says so)."""
+    model = mujoco.MjModel.from_xml_string(BALL_XML)
+    assert model.njnt == 1 and model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE
+
+    def resting(height_m: float, x_m: float, name: str) -> Trajectory:
+        qpos = np.tile([x_m, 0.0, height_m, 1.0, 0.0, 0.0, 0.0], (5, 1))
+        return Trajectory(time_s=np.arange(5) / 100.0, qpos=qpos, qvel=np.zeros((5, 6)), name=name)
+
+    trajs = [resting(0.1 + 0.01 * i, 0.0, f"t{i}") for i in range(9)] + [resting(0.1, 0.3, "t0_copy")]
+    options = DiagnoseOptions(holdout_fraction=0.3)
+    order = [2, 9, 5, 0, 1, 3, 4, 6, 7, 8]  # the copy (9) is held out, its original (0) trained on
+    held, train = _holdout_split(model, trajs, order, options)
+    assert {0, 9} <= set(train) and sorted(held + train) == list(range(10)) and held == [2, 5]
+    order = [0, 2, 9, 5, 1, 3, 4, 6, 7, 8]  # the original held out first: both held out
+    held, train = _holdout_split(model, trajs, order, options)
+    assert {0, 9} <= set(held) and held == [0, 2, 9]
+    few = [trajs[0], trajs[9], trajs[1], trajs[2]]  # 4 trajectories, 1 held out at 0.3: keeping the pair together
+    held, train = _holdout_split(model, few, [1, 2, 3, 0], DiagnoseOptions(holdout_fraction=0.5))
+    assert (held, train) == ([1, 2], [3, 0])  # would leave 1 held out and 3 trained on: kept as shuffled
