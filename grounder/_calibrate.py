@@ -906,7 +906,7 @@ def calibrate(
         sim.check_links_stay_inside(scene, NOT_COPIED)
     _check_trajectories(base, trajs)
     by_name = {t.name: t for t in trajs}
-    repeats = repeated_motions(trajs, base)
+    repeats = repeated_motions(trajs, base) if options.validation_fraction > 0 else []  # no split, nothing to keep
     if repeats:
         log.warning(
             "%s; each kept on one side of the split (remove the copies if they are not meant to weigh double)",

@@ -505,11 +505,7 @@ def train_residual(
         sim = Simulator(scene_xml, use_residual=False)
         for traj in trajs:
             validate_against_model(traj, sim.model)
-        repeats = repeated_motion_indices(trajs, sim.model)
-        if repeats:
-            named = [[trajs[i].name or f"#{i}" for i in g] for g in repeats]
-            log.warning("%s; each kept on one side of the fit / gain-check split", describe_repeats(named))
-        fit_trajs, select_trajs = _selection_split(trajs, options, repeats)
+        fit_trajs, select_trajs = _selection_split(trajs, options, sim.model)
         if not select_trajs:
             log.warning(
                 "no trajectory held out to check the residual's output gain (%d trajectories; it takes 5): the "
@@ -667,16 +663,19 @@ def _held_out_one_step(
 
 
 def _selection_split(
-    trajs: Sequence[Trajectory], options: ResidualOptions, together: Sequence[Sequence[int]] = ()
+    trajs: Sequence[Trajectory], options: ResidualOptions, model: mujoco.MjModel
 ) -> tuple[list[Trajectory], list[Trajectory]]:
-    """Seeded split of the trajectories into (fit, gain selection); all fit when there are fewer than 5. Each group
-    of indices in ``together`` (copies of one motion) stays on one side
-    (`grounder._repeats.split_keeping_together`)."""
+    """Seeded split of the trajectories (which fit ``model``) into (fit, gain selection); all fit when there are
+    fewer than 5. Copies of one motion (`grounder._repeats`) stay on one side, and a warning names them."""
     count = round(options.selection_fraction * len(trajs))
     if len(trajs) < 5 or count < 1 or not options.gains:
         return list(trajs), []
+    repeats = repeated_motion_indices(trajs, model)
+    if repeats:
+        named = [[trajs[i].name or f"#{i}" for i in g] for g in repeats]
+        log.warning("%s; each kept on one side of the fit / gain-check split", describe_repeats(named))
     perm = np.random.default_rng(options.seed + 7919).permutation(len(trajs)).tolist()
-    chosen_list, _ = split_keeping_together(perm, count, together)
+    chosen_list, _ = split_keeping_together(perm, count, repeats)
     chosen = set(chosen_list)
     return [t for i, t in enumerate(trajs) if i not in chosen], [t for i, t in enumerate(trajs) if i in chosen]
 

@@ -610,14 +610,20 @@ def test_compiled_path_works_where_no_cache_folder_is_writable(monkeypatch: pyte
 
 def test_gain_check_split_keeps_copies_together() -> None:
     """The trajectories the gain is chosen on and those fitted never share a motion stored twice."""
-    trajs = [
-        Trajectory(time_s=np.arange(3) / 148.0, qpos=np.zeros((3, 1)), qvel=np.full((3, 1), i), name=f"t{i}")
-        for i in range(20)
-    ]
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><body><joint type="slide"/><geom size="0.1"/></body></worldbody></mujoco>'
+    )
+
+    def slide(speed: float, name: str) -> Trajectory:
+        return Trajectory(time_s=np.arange(3) / 148.0, qpos=np.zeros((3, 1)), qvel=np.full((3, 1), speed), name=name)
+
+    trajs = [slide(i, f"t{i}") for i in range(20)]
     options = ResidualOptions(selection_fraction=0.3, seed=0)
-    fit, held = _selection_split(trajs, options)
+    fit, held = _selection_split(trajs, options, model)
     assert len(held) == 6 and {t.name for t in fit} | {t.name for t in held} == {t.name for t in trajs}
-    a, b = fit[0].name, held[0].name
-    together = [(int(a[1:]), int(b[1:]))]  # by position in trajs, first member the fitted one
-    fit_g, held_g = _selection_split(trajs, options, together)
-    assert {a, b} <= {t.name for t in fit_g} and len(held_g) == 5
+    a, b = int(fit[0].name[1:]), int(held[0].name[1:])
+    # b recorded again as a copy of a: the pair follows its first member, the lower index, here a: both fitted
+    assert a < b
+    copied = [slide(a if i == b else i, f"t{i}") for i in range(20)]
+    fit_g, held_g = _selection_split(copied, options, model)
+    assert {f"t{a}", f"t{b}"} <= {t.name for t in fit_g} and len(held_g) == 5
