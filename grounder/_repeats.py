@@ -70,20 +70,11 @@ def _signature(traj: Trajectory, model: mujoco.MjModel) -> tuple[np.ndarray, np.
     return stack(heights), stack(speeds), stack(others)
 
 
-def repeated_motions(
-    trajs: Sequence[Trajectory],
-    model: mujoco.MjModel,
-    *,
-    height_tol_m: float = HEIGHT_TOL_M,
-    speed_tol_m_s: float = SPEED_TOL_M_S,
-    other_tol: float = OTHER_TOL,
-) -> list[tuple[str, ...]]:
-    """Groups of two or more trajectory names that record the same motion (module docstring), each in natural
-    order, the groups in the natural order of their first names. Trajectories must fit ``model`` (same nq, nv)."""
-    groups = repeated_motion_indices(
-        trajs, model, height_tol_m=height_tol_m, speed_tol_m_s=speed_tol_m_s, other_tol=other_tol
-    )
-    found = [tuple(sorted((trajs[i].name for i in g), key=_natural_key)) for g in groups]
+def repeated_motions(trajs: Sequence[Trajectory], model: mujoco.MjModel) -> list[tuple[str, ...]]:
+    """Groups of two or more trajectory names that record the same motion (module docstring; default tolerances),
+    each in natural order, the groups in the natural order of their first names. Trajectories must fit ``model``
+    (same nq, nv)."""
+    found = [tuple(sorted((trajs[i].name for i in g), key=_natural_key)) for g in repeated_motion_indices(trajs, model)]
     return sorted(found, key=lambda g: _natural_key(g[0]))
 
 
