@@ -36,6 +36,7 @@ A cluster that cannot be reached is reported before the output folder is created
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -342,7 +343,8 @@ def _write_json_atomic(path: Path, payload: object) -> None:
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # the write's own error is the one to report
+            tmp.unlink(missing_ok=True)
         raise
 
 

@@ -17,6 +17,7 @@ A section is a :class:`Section` or a plain dict with the same keys. Figures may 
 from __future__ import annotations
 
 import base64
+import contextlib
 import html
 import io
 import os
@@ -105,7 +106,8 @@ def write_text_atomic(path: Path, text: str) -> Path:
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # a read-only folder: the write's own error is the one to report
+            tmp.unlink(missing_ok=True)
         raise
     return path
 

@@ -16,6 +16,7 @@ untrusted input, and an object array in a required key is refused, never unpickl
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -398,7 +399,8 @@ def save_trajectory(traj: Trajectory, path: str | os.PathLike[str]) -> Path:
             os.fsync(f.fileno())
         os.replace(tmp, final)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # the write's own error is the one to report
+            tmp.unlink(missing_ok=True)
         raise
     return final
 

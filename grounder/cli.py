@@ -109,6 +109,11 @@ def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
         yield report
         for task_id in tasks.values():  # done: the last stage shows complete too
             progress.update(task_id, completed=progress.tasks[task_id].total)
+    except BaseException:
+        if all(task.completed == 0 for task in progress.tasks):  # refused before any work: the error line alone
+            for task_id in tasks.values():
+                progress.remove_task(task_id)
+        raise
     finally:
         if tasks:
             progress.stop()
@@ -316,6 +321,14 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(exc.exit_code)
     except typer.Abort:  # Ctrl-C outside a command's own handling
         sys.exit(130)
+    except OSError as exc:  # the system refused a read or write no command check foresaw (permissions, disk full)
+        where = f" {exc.filename}" if exc.filename else ""
+        typer.echo(
+            f"image2sim: error: the system refused to read or write{where} ({exc.strerror or exc}); "
+            "check the permissions and free space there, then run again",
+            err=True,
+        )
+        sys.exit(2)
     sys.exit(code if isinstance(code, int) else 0)
 
 

@@ -11,11 +11,17 @@ import typer
 MAX_THREADS = 256  # each thread holds its own MjData; thousands would only exhaust memory
 
 
-def _effect_names(values: list[str] | None) -> tuple[str, ...] | None:
+def _effect_names(flag: str, values: list[str] | None) -> tuple[str, ...] | None:
+    """The names given (comma-separated or repeated); None when the option is left out. A value that names
+    nothing (``--effects ,``) is refused rather than read as "every effect"."""
     if not values:
         return None
     names = [n.strip() for v in values for n in v.split(",") if n.strip()]
-    return tuple(names) or None
+    if not names:
+        from grounder.cli import fail
+
+        fail(f"{flag} {','.join(values)!r} names nothing; give names separated by commas, or leave {flag} out for all")
+    return tuple(names)
 
 
 def register(app: typer.Typer) -> None:
@@ -53,7 +59,11 @@ def register(app: typer.Typer) -> None:
             from grounder._diagnose import DiagnoseOptions, diagnose_files
 
             options = DiagnoseOptions(
-                effects=_effect_names(effects), holdout_fraction=holdout, horizon_s=horizon, seed=seed, nthread=threads
+                effects=_effect_names("--effects", effects),
+                holdout_fraction=holdout,
+                horizon_s=horizon,
+                seed=seed,
+                nthread=threads,
             )
             with stage_progress() as progress:
                 diag = diagnose_files(scene, traj_dir, out, options, overwrite=overwrite, progress=progress)
@@ -92,14 +102,24 @@ def register(app: typer.Typer) -> None:
         if json_out is not None:  # before the benchmark's minutes, not after
             if json_out.exists():
                 fail(f"--json {json_out} already exists; remove it or choose another file")
-            if not json_out.parent.is_dir():
-                fail(f"--json {json_out}: folder {json_out.parent} does not exist; create it or choose another file")
+            folder = json_out.parent
+            if folder.exists() and not folder.is_dir():
+                fail(f"--json {json_out}: {folder} is a file, not a folder; choose another place for the results")
+            if not folder.is_dir():
+                fail(f"--json {json_out}: folder {folder} does not exist; create it or choose another file")
+            try:  # an unwritable place (permissions, a read-only disk) is found now, not after the benchmark
+                import tempfile
+
+                with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{json_out.name}.", suffix=".probe"):
+                    pass
+            except OSError as exc:
+                fail(f"--json {json_out}: cannot write in {folder} ({exc.strerror}); choose a folder you can write to")
         with user_errors_exit_2():
             from grounder._diagnose_bench import format_table, run_benchmark
 
             with stage_progress() as progress:
                 results = run_benchmark(
-                    names=_effect_names(cases), num_trajectories=trajectories, nthread=threads, seed=seed,
+                    names=_effect_names("--cases", cases), num_trajectories=trajectories, nthread=threads, seed=seed,
                     progress=progress,
                 )  # fmt: skip
         typer.echo(format_table(results))

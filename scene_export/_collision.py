@@ -7,6 +7,7 @@ cached on disk because a decomposition costs seconds while a scene is exported m
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -398,7 +399,8 @@ def _save_cache(path: Path, hulls: tuple[np.ndarray, ...]) -> None:
                 np.savez(handle, allow_pickle=False, **arrays)
             os.replace(tmp_name, path)
         except BaseException:
-            Path(tmp_name).unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # the write's own error is the one to report
+                Path(tmp_name).unlink(missing_ok=True)
             raise
     except OSError as exc:
         log.warning("could not write CoACD cache entry %s (%s); continuing without caching", path, exc)

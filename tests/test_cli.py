@@ -325,6 +325,31 @@ def test_diagnose_benchmark_checks_its_json_path_first(tmp_path: Path, cli: Call
     assert_one_line_error(proc, "does not exist", alone=True)
     proc = cli("diagnose-benchmark", "--trajectories", "0", timeout=60)  # named as the flag it is, not --holdout
     assert_one_line_error(proc, "--trajectories 0 must be between 8 and 1000", alone=True)
+    (tmp_path / "a_file").write_text("mine")
+    proc = cli("diagnose-benchmark", "--json", str(tmp_path / "a_file" / "r.json"), timeout=60)
+    assert_one_line_error(proc, "is a file, not a folder", alone=True)
+    # a folder no one can write to (here: /proc, refused even to root) is found before the benchmark's minutes
+    proc = cli("diagnose-benchmark", "--json", "/proc/image2sim_results.json", timeout=60)
+    assert_one_line_error(proc, "cannot write in /proc", alone=True)
+    proc = cli("diagnose-benchmark", "--cases", ",", timeout=60)  # names nothing: not read as "every case"
+    assert_one_line_error(proc, "--cases ',' names nothing", alone=True)
+
+
+def test_a_refused_read_or_write_is_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cli: Callable[..., CliRun]
+) -> None:
+    """An OSError no command foresaw (permissions, a full disk) still ends as one line naming the path, exit 2."""
+    import grounder._import
+
+    def refused(fmt: str, src_dir: Path) -> list[object]:
+        raise PermissionError(13, "Permission denied", str(src_dir / "0.pt"))
+
+    monkeypatch.setattr(grounder._import, "import_trajectories", refused)
+    src, out = tmp_path / "tosses", tmp_path / "out"
+    src.mkdir()
+    proc = cli("import-trajectories", str(src), "-o", str(out), "--format", "dair-pll-cube")
+    assert_one_line_error(proc, "refused to read or write", str(src / "0.pt"), "Permission denied", alone=True)
+    assert not out.exists()
 
 
 def test_fail_joins_a_message_over_several_lines(capsys: pytest.CaptureFixture[str]) -> None:
@@ -417,3 +442,17 @@ def test_sigterm_unwinds_the_output_stage_like_ctrl_c(tmp_path: Path) -> None:
     assert "*** SIGTERM received" not in stderr and "Traceback" not in stderr, stderr[-2000:]
     assert stderr.rstrip().endswith("image2sim: stopped (SIGTERM); nothing half-written was left"), stderr[-2000:]
     assert list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
+
+
+def test_input_refused_at_the_first_stage_leaves_no_progress_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cli: Callable[..., CliRun]
+) -> None:
+    """An image found unreadable once `reconstruct` has begun reading frames: the stage's empty progress bar is
+    taken down, so the error is the only line on stderr (outside CI too, where the bars are drawn)."""
+    monkeypatch.delenv("CI", raising=False)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "0001.png").write_text("not a png")
+    proc = cli("reconstruct", str(frames), "-o", str(tmp_path / "rec"), "--aruco-size", "0.1")
+    assert_one_line_error(proc, "0001.png is not a readable image", alone=True)
+    assert not (tmp_path / "rec").exists()
