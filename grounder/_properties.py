@@ -469,8 +469,17 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
 
     scene_dir = Path(scene_dir)
     manifest_path, xml_path = scene_dir / "scene.json", scene_dir / "scene.xml"
-    if not manifest_path.is_file() or not xml_path.is_file():
-        raise GrounderError(f"{scene_dir} has no scene.json/scene.xml; pass a folder written by `image2sim ground`")
+    if not scene_dir.exists():
+        raise GrounderError(f"{scene_dir} does not exist; pass a scene folder written by `image2sim ground`")
+    if not scene_dir.is_dir():
+        raise GrounderError(
+            f"{scene_dir} is a file; pass the scene folder that holds it (written by `image2sim ground`)"
+        )
+    missing = [p.name for p in (manifest_path, xml_path) if not p.is_file()]
+    if missing:
+        raise GrounderError(
+            f"{scene_dir} has no {' and no '.join(missing)}; pass a folder written by `image2sim ground`"
+        )
     if n < 1:
         raise GrounderError(f"{n=} but expected at least 1 variant")
     scene_files(xml_path)  # nothing outside the scene folder
@@ -481,8 +490,8 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
             f"{manifest_path}: no object has predicted properties to draw from, so every variant would be the same "
             "scene; ground the scene with the property model on (`image2sim ground` without --density)"
         )
-    try:
-        mujoco.MjSpec.from_file(str(xml_path))
+    try:  # compiled, so that a mesh or texture missing from the folder is found here, not while copying it
+        mujoco.MjSpec.from_file(str(xml_path)).compile()
     except ValueError as exc:  # MuJoCo's message spans lines
         raise GrounderError(
             f"{xml_path}: MuJoCo cannot load it ({' '.join(str(exc).split())}); re-run `image2sim ground` to rewrite it"

@@ -18,7 +18,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import CliRun, run_cli
+from conftest import CliRun, assert_one_line_error, run_cli
 
 import grounder
 from grounder._evaluate import compare_to_truth
@@ -388,6 +388,36 @@ def test_sampling_keeps_draws_finite_and_cli_rejects_bad_scene_json(tmp_path: Pa
     proc = cli("properties", "sample", str(bad), "-o", str(tmp_path / "out"), timeout=120)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert proc.stderr.count("\n") == 1 and "scene.xml: MuJoCo cannot load it (XML Error" in proc.stderr, proc.stderr
+
+
+def test_sample_refuses_a_scene_folder_it_cannot_copy_whole(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
+    """A mesh the MJCF loads but the folder lacks was found only while copying it (a traceback, exit 1); the folder
+    itself, a path that is not there and the MJCF passed in its place are each named for what they are."""
+    scene = _tiny_scene(tmp_path / "scene", _entry())
+    (scene / "assets").mkdir()
+    (scene / "assets" / "object_0.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+    )
+    xml = (scene / "scene.xml").read_text()
+    xml = xml.replace("<worldbody>", '<asset><mesh name="m" file="assets/object_0.obj"/></asset><worldbody>')
+    (scene / "scene.xml").write_text(
+        xml.replace("</body>", '<geom type="mesh" mesh="m" contype="0" conaffinity="0"/></body>')
+    )
+    out = tmp_path / "out"
+    proc = cli("properties", "sample", str(scene), "-n", "1", "-o", str(out), timeout=120)
+    assert proc.returncode == 0 and (out / "assets" / "object_0.obj").is_file(), proc.stderr[-2000:]
+    (scene / "assets" / "object_0.obj").unlink()
+    proc = cli("properties", "sample", str(scene), "-o", str(tmp_path / "out2"), timeout=120)
+    assert_one_line_error(proc, "MuJoCo cannot load it", "object_0.obj", alone=True)
+    assert not (tmp_path / "out2").exists()
+    (scene / "scene.json").unlink()
+    proc = cli("properties", "sample", str(scene), "-o", str(tmp_path / "out2"), timeout=120)
+    assert_one_line_error(proc, "has no scene.json;", alone=True)
+    proc = cli("properties", "sample", str(tmp_path / "nope"), "-o", str(tmp_path / "out2"), timeout=120)
+    assert_one_line_error(proc, "nope does not exist", alone=True)
+    proc = cli("properties", "sample", str(scene / "scene.xml"), "-o", str(tmp_path / "out2"), timeout=120)
+    assert_one_line_error(proc, "scene.xml is a file; pass the scene folder", alone=True)
+    assert not (tmp_path / "out2").exists()
 
 
 def _copied_weights(folder: Path, **changes: object) -> Path:
