@@ -27,10 +27,12 @@ Output folder (new, empty, or the output of an earlier batch run, which its ``ba
 
 A job counts as finished when its ``results/<id>.json`` says ``ok``: a re-run (after a crash or Ctrl-C) skips it
 and runs the rest; failed jobs are run again, and so are jobs whose record is unreadable or invalid (with a
-warning). A failing job is recorded and does not stop the others. Jobs run as Ray tasks (one CPU each) on a local
-Ray started for the run, or on an existing cluster given by ``address``: the head node's ``host:port`` (its GCS
-port, 6379 by default), ``auto`` (the cluster ``ray start`` made on this machine) or ``ray://host:10001`` (the Ray
-client, which needs ``pip install 'ray[client]'``); the cluster's nodes need image2sim installed and the paths visible.
+warning). A failing job is recorded and does not stop the others; a scene or trajectory folder that is not there
+is refused before any job runs (not with ``address``: on a cluster the paths need only exist on its nodes). Jobs
+run as Ray tasks (one CPU each) on a local Ray started for the run, or on an existing cluster given by
+``address``: the head node's ``host:port`` (its GCS port, 6379 by default), ``auto`` (the cluster ``ray start``
+made on this machine) or ``ray://host:10001`` (the Ray client, which needs ``pip install 'ray[client]'``); the
+cluster's nodes need image2sim installed and the paths visible.
 A cluster that cannot be reached is reported before the output folder is created.
 """
 
@@ -331,6 +333,31 @@ def load_jobs(path: Path) -> list[Job]:
         except (GrounderError, TypeError, ValueError) as exc:
             raise GrounderError(f"{path}: job {job.id}: {exc}") from exc
     return jobs
+
+
+def check_job_paths(jobs: Sequence[Job]) -> None:
+    """Refuses jobs whose scene or trajectory folder is missing, before Ray starts or the output folder exists.
+
+    Raises:
+        GrounderError: naming the first missing path, its job, and how many paths are missing in all.
+    """
+    missing = [
+        (job.id, what, path)
+        for job in jobs
+        for what, path, ok in (
+            ("scene", job.scene, job.scene.exists()),
+            ("trajectories", job.trajectories, job.trajectories.is_dir()),
+        )
+        if not ok
+    ]
+    if missing:
+        job_id, what, path = missing[0]
+        more = f" (and {len(missing) - 1} more missing path(s))" if len(missing) > 1 else ""
+        kind = "folder" if what == "trajectories" else "scene"
+        raise GrounderError(
+            f"job {job_id}: {what} {path} is not an existing {kind}{more}; fix the path in the jobs file "
+            "(relative paths are relative to the jobs file)"
+        )
 
 
 def _write_json_atomic(path: Path, payload: object) -> None:
@@ -703,8 +730,9 @@ def run_batch(
         The summary; failed jobs are listed, not raised.
 
     Raises:
-        GrounderError: ``out_dir`` is refused by :func:`check_batch_output`, or Ray cannot be started or the
-            cluster at ``address`` joined (both before the output folder is created or any job runs).
+        GrounderError: ``out_dir`` is refused by :func:`check_batch_output`, a pending job's scene or trajectory
+            folder is missing (checked without ``address``), or Ray cannot be started or the cluster at ``address``
+            joined (all before the output folder is created or any job runs).
     """
     tick = time.time()
     out_dir = Path(out_dir)
@@ -715,6 +743,8 @@ def run_batch(
             log.warning("%s: %s; running the job again", result_path(out_dir, job.id), problem)
     skipped = [j.id for j in jobs if is_finished(out_dir, j.id)]
     pending = [j for j in jobs if j.id not in set(skipped)]
+    if address is None:  # on a cluster the paths need only exist on its nodes
+        check_job_paths(pending)
     started_here = False
     if pending and not inline:
         import ray

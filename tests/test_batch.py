@@ -91,7 +91,7 @@ def test_failing_job_is_recorded_and_others_finish(tmp_path: Path, traj_dir: Pat
         tmp_path / "jobs.yaml",
         [
             {"id": "good", "scene": str(CUBE_XML), "trajectories": str(traj_dir)},
-            {"id": "missing_scene", "scene": "nope.xml", "trajectories": str(traj_dir)},
+            {"id": "empty", "scene": str(CUBE_XML), "trajectories": str(tmp_path)},
             {
                 "id": "bad_param",
                 "scene": str(CUBE_XML),
@@ -102,20 +102,41 @@ def test_failing_job_is_recorded_and_others_finish(tmp_path: Path, traj_dir: Pat
     )
     out = tmp_path / "out"
     summary = run_batch(load_jobs(jobs_file), out, inline=True)
-    assert set(summary.ran) == {"good", "missing_scene", "bad_param"}
-    assert set(summary.failed) == {"missing_scene", "bad_param"}
-    assert "does not exist" in (read_result(out, "missing_scene") or {})["error"]
+    assert set(summary.ran) == {"good", "empty", "bad_param"}
+    assert set(summary.failed) == {"empty", "bad_param"}
+    assert "no .npz" in (read_result(out, "empty") or {})["error"]
     assert "unknown parameter" in (read_result(out, "bad_param") or {})["error"]
     good = read_result(out, "good")
     assert good is not None and good["status"] == "ok" and "cube.friction.sliding" in good["parameters"]
     assert (out / "scenes" / "good" / "scene.xml").is_file()
     rows = json.loads((out / "results.json").read_text())
-    assert [r["id"] for r in rows] == ["good", "missing_scene", "bad_param"]
+    assert [r["id"] for r in rows] == ["good", "empty", "bad_param"]
     assert (out / "results.csv").read_text().count("\n") == 4
 
     again = run_batch(load_jobs(jobs_file), out, inline=True)
-    assert again.skipped == ("good",) and set(again.ran) == {"missing_scene", "bad_param"}
+    assert again.skipped == ("good",) and set(again.ran) == {"empty", "bad_param"}
     assert read_result(out, "good") == good
+
+
+def test_a_missing_path_in_the_jobs_file_is_refused_before_any_job(tmp_path: Path, traj_dir: Path) -> None:
+    """A scene or trajectory folder that is not there is known before Ray starts: one line, exit 2, no output
+    folder, and the good jobs are not run either (fixing the path and running again runs them all once)."""
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml",
+        [
+            {"id": "good", "scene": str(CUBE_XML), "trajectories": str(traj_dir)},
+            {"id": "missing_scene", "scene": "nope.xml", "trajectories": str(traj_dir)},
+            {"id": "missing_data", "scene": str(CUBE_XML), "trajectories": "no_such_folder"},
+        ],
+    )
+    out = tmp_path / "out"
+    with pytest.raises(
+        GrounderError, match=r"job missing_scene: scene .*nope.xml is not an existing scene \(and 1 more"
+    ):
+        run_batch(load_jobs(jobs_file), out, inline=True)
+    assert not out.exists()
+    _one_error_line(_cli(["batch", str(jobs_file), "-o", str(out)]), "nope.xml", "fix the path in the jobs file")
+    assert not out.exists()
 
 
 def test_ray_address_is_passed_through(monkeypatch: pytest.MonkeyPatch, tmp_path: Path, traj_dir: Path) -> None:
