@@ -217,7 +217,7 @@ class _Trainer:
         self, scene_xml: Path, trajs: Sequence[Trajectory], options: ResidualOptions, sim: Simulator | None = None
     ):
         self.options = options
-        self.sim = sim or Simulator(scene_xml, use_residual=False)
+        self.sim = sim if sim is not None else Simulator(scene_xml, use_residual=False)
         self.model = self.sim.model
         for traj in trajs:
             validate_against_model(traj, self.model)
@@ -562,7 +562,9 @@ def train_residual(
         residual = _numpy_residual(torch_model, meta, trainer)
         before = _group_rms(base.targets, joint=space is not None)
         after = _group_rms(base.targets - residual(base.feats), joint=space is not None)  # gain 1, before choosing
-        held_rms, held_gate = _held_out_one_step(scene_xml, select_trajs, options, residual, joint=space is not None)
+        held_rms, held_gate = _held_out_one_step(
+            trainer.sim, scene_xml, select_trajs, options, residual, joint=space is not None
+        )
         report("residual: gain on held-out rollouts", 0, 1)
         gain, scores, preds_by_gain, errors_by_gain = _select_gain(trainer.sim, residual, select_trajs, options.gains)
         report("residual: gain on held-out rollouts", 1, 1)
@@ -641,6 +643,7 @@ def train_residual(
 
 
 def _held_out_one_step(
+    sim: Simulator,
     scene_xml: Path,
     trajs: Sequence[Trajectory],
     options: ResidualOptions,
@@ -654,7 +657,7 @@ def _held_out_one_step(
     if not trajs:
         return (nan, nan), np.empty(0)
     try:
-        held = _Trainer(scene_xml, trajs, options).one_step()
+        held = _Trainer(scene_xml, trajs, options, sim).one_step()  # the same MuJoCo-only simulator, loaded once
     except GrounderError:
         return (nan, nan), np.empty(0)
     before = _group_rms(held.targets, joint=joint)

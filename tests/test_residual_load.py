@@ -381,12 +381,12 @@ def test_mesh_edited_since_training_is_refused(trajs: Path, tmp_path: Path) -> N
     assert Simulator(folder).residual is not None
 
 
-def _four_tosses(xml: str) -> list[Trajectory]:
-    """Four short tosses of the cube, simulated in ``xml``."""
+def _four_tosses(xml: str, count: int = 4) -> list[Trajectory]:
+    """Four (or ``count``) short tosses of the cube, simulated in ``xml``."""
     model = mujoco.MjModel.from_xml_string(xml)
     time_s = np.arange(12) / RATE_HZ
     seeds = []
-    for i in range(4):
+    for i in range(count):
         qpos = np.tile([0.0, 0.0, 0.2 + 0.05 * i, 1.0, 0.0, 0.0, 0.0], (12, 1))
         qvel = np.tile([1.0, 0.5 * i, 0.0, 2.0, -1.0, 0.5], (12, 1))
         seeds.append(Trajectory(time_s=time_s, qpos=qpos, qvel=qvel, name=f"t{i}"))
@@ -418,7 +418,9 @@ def test_retraining_on_an_edited_residual_scene_works(valid: Path, tmp_path: Pat
 
 
 @pytest.mark.parametrize("case", ["pt-garbage", "pt-nan-weight", "hidden-not-the-weights"])
-def test_retraining_on_a_broken_residual_works(case: str, valid: Path, tmp_path: Path) -> None:
+def test_retraining_on_a_broken_residual_works(
+    case: str, valid: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """The refusal of a broken residual says "retrain with `image2sim residual train`": that command must not be
     refused for the very residual it is to replace (it is not applied while training)."""
     folder = tmp_path / "res"
@@ -429,6 +431,12 @@ def test_retraining_on_a_broken_residual_works(case: str, valid: Path, tmp_path:
         Simulator(folder)
     out = train_residual(folder, _four_tosses(CUBE_XML), tmp_path / "retrained", _tiny_options()).out
     assert Simulator(out).residual is not None
+    # With trajectories held out for the gain check too, the scene is loaded once: the broken residual is named
+    # in one warning, not one per stage of training.
+    caplog.clear()
+    train_residual(folder, _four_tosses(CUBE_XML, 6), tmp_path / "retrained6", _tiny_options())
+    warned = [r for r in caplog.records if "not using the residual" in r.getMessage()]
+    assert len(warned) == 1, [r.getMessage() for r in caplog.records]
 
 
 @pytest.mark.parametrize("kept", [META_FILE, WEIGHTS_FILE])
