@@ -620,3 +620,22 @@ def test_sift_doubles_only_frames_too_small_for_enough_features(tmp_path: Path) 
         with sqlite3.connect(database) as db:
             counts.append(db.execute("SELECT rows FROM keypoints").fetchone()[0])
     assert counts[1] > 1.2 * counts[0], counts
+
+
+def test_importing_reconstruction_keeps_opencv_png_writing_alive(tmp_path: Path) -> None:
+    """pycolmap loaded before cv2 makes OpenCV's first PNG write abort the process (double free in zlib: the two
+    carry their own copies). The package loads cv2 first, so the README's API snippet (`from reconstruction
+    import ...`, then a grounding that writes PNGs) runs; a user's own earlier `import pycolmap` gets a warning."""
+    png = tmp_path / "x.png"
+    write = f"import numpy as np, cv2; assert cv2.imwrite({str(png)!r}, np.zeros((48, 64, 3), np.uint8))"
+    first = subprocess.run(
+        [sys.executable, "-c", f"import reconstruction, pycolmap; {write}"],
+        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1],
+    )  # fmt: skip
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert png.is_file()
+    late = subprocess.run(
+        [sys.executable, "-W", "always", "-c", "import pycolmap, reconstruction"],
+        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1],
+    )  # fmt: skip
+    assert late.returncode == 0 and "pycolmap was imported before cv2" in late.stderr, late.stderr[-2000:]
