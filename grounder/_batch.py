@@ -38,14 +38,12 @@ A cluster that cannot be reached is reported before the output folder is created
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import logging
 import os
 import re
-import secrets
 import shutil
 import socket
 import time
@@ -361,18 +359,11 @@ def check_job_paths(jobs: Sequence[Job]) -> None:
 
 
 def _write_json_atomic(path: Path, payload: object) -> None:
+    from reconstruction._outdir import atomic_file
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
-    try:
-        with open(tmp, "w") as f:
-            f.write(json.dumps(payload, indent=1) + "\n")
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):  # the write's own error is the one to report
-            tmp.unlink(missing_ok=True)
-        raise
+    with atomic_file(path, "w") as handle:
+        handle.write(json.dumps(payload, indent=1) + "\n")
 
 
 def result_path(out_dir: Path, job_id: str) -> Path:

@@ -17,11 +17,8 @@ A section is a :class:`Section` or a plain dict with the same keys. Figures may 
 from __future__ import annotations
 
 import base64
-import contextlib
 import html
 import io
-import os
-import secrets
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,15 +97,11 @@ def render_html(title: str, sections: Sequence[Section | Mapping[str, Any]]) -> 
 
 def write_text_atomic(path: Path, text: str) -> Path:
     """Writes ``text`` (UTF-8) to a temporary file beside ``path``, then renames it: whole or not at all."""
+    from reconstruction._outdir import atomic_file
+
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):  # a read-only folder: the write's own error is the one to report
-            tmp.unlink(missing_ok=True)
-        raise
+    with atomic_file(path, "w") as handle:
+        handle.write(text)
     return path
 
 

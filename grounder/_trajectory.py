@@ -16,7 +16,6 @@ untrusted input, and an object array in a required key is refused, never unpickl
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import re
@@ -388,20 +387,11 @@ def save_trajectory(traj: Trajectory, path: str | os.PathLike[str]) -> Path:
     arrays: dict[str, Any] = {"time": traj.time_s, "qpos": traj.qpos, "qvel": traj.qvel}
     if traj.ctrl is not None:
         arrays["ctrl"] = traj.ctrl
+    from reconstruction._outdir import atomic_file  # here: importing `reconstruction` loads pycolmap
+
     # The temporary name does not end in .npz, so load_trajectories never picks up a half-written file.
-    tmp = final.with_name(f".{final.name}.{secrets.token_hex(6)}.tmp")
-    try:
-        # os.open with 0o666 honours the umask, unlike tempfile's 0o600.
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, allow_pickle=False, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, final)
-    except BaseException:
-        with contextlib.suppress(OSError):  # the write's own error is the one to report
-            tmp.unlink(missing_ok=True)
-        raise
+    with atomic_file(final) as handle:
+        np.savez(handle, allow_pickle=False, **arrays)
     return final
 
 

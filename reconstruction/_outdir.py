@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import secrets
 import shutil
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 
@@ -188,6 +190,29 @@ def staged_output_dir(
         raise
     if backup is not None:
         shutil.rmtree(backup, ignore_errors=True)
+
+
+@contextmanager
+def atomic_file(path: Path, mode: str = "wb") -> Iterator[IO[Any]]:
+    """A file that appears at ``path`` whole or not at all: written under a hidden temporary name beside it (one
+    that does not end in ``path``'s suffix, so no folder listing picks it up), flushed to disk and renamed over
+    ``path`` once the ``with`` body ends; removed on any error, and a removal that fails too (a read-only folder)
+    does not hide the write's own error. ``mode`` is ``"wb"`` or ``"w"`` (UTF-8 text); the file gets 0o666 less the
+    umask, as ``open`` gives."""
+    if mode not in ("wb", "w"):
+        raise ValueError(f"mode {mode!r}; expected 'wb' or 'w'")
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    try:
+        with os.fdopen(fd, mode, encoding=None if mode == "wb" else "utf-8") as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 def write_image(

@@ -7,12 +7,10 @@ cached on disk because a decomposition costs seconds while a scene is exported m
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
 import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -22,6 +20,7 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
+from reconstruction._outdir import atomic_file
 from scene_export._mesh import as_mesh_arrays, mesh_sha256, solid_trimesh
 from scene_export.errors import DecompositionError, InvalidSceneSpecError
 
@@ -391,16 +390,9 @@ def _save_cache(path: Path, hulls: tuple[np.ndarray, ...]) -> None:
     """Writes atomically (temporary file + rename), so readers never see half a file; failures only warn."""
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as handle:
-                arrays: dict[str, Any] = {"count": np.array(len(hulls))}
-                arrays.update({f"hull_{i}": hull for i, hull in enumerate(hulls)})
-                np.savez(handle, allow_pickle=False, **arrays)
-            os.replace(tmp_name, path)
-        except BaseException:
-            with contextlib.suppress(OSError):  # the write's own error is the one to report
-                Path(tmp_name).unlink(missing_ok=True)
-            raise
+        with atomic_file(path) as handle:
+            arrays: dict[str, Any] = {"count": np.array(len(hulls))}
+            arrays.update({f"hull_{i}": hull for i, hull in enumerate(hulls)})
+            np.savez(handle, allow_pickle=False, **arrays)
     except OSError as exc:
         log.warning("could not write CoACD cache entry %s (%s); continuing without caching", path, exc)

@@ -639,3 +639,24 @@ def test_importing_reconstruction_keeps_opencv_png_writing_alive(tmp_path: Path)
         capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1],
     )  # fmt: skip
     assert late.returncode == 0 and "pycolmap was imported before cv2" in late.stderr, late.stderr[-2000:]
+
+
+def test_atomic_file_is_whole_or_absent(tmp_path: Path) -> None:
+    """The one temporary-file-then-rename writer every atomic file write uses (reports, trajectories, batch
+    records, the CoACD cache): an error inside leaves the old file as it was and no temporary file behind."""
+    from reconstruction._outdir import atomic_file
+
+    path = tmp_path / "record.json"
+    with atomic_file(path, "w") as handle:
+        handle.write("first")
+    assert path.read_text() == "first"
+    with pytest.raises(RuntimeError, match="half way"), atomic_file(path, "w") as handle:
+        handle.write("second, cut short")
+        raise RuntimeError("half way")
+    assert path.read_text() == "first"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["record.json"]
+    with atomic_file(tmp_path / "arrays.npz") as handle:
+        np.savez(handle, a=np.arange(3))
+    assert np.load(tmp_path / "arrays.npz")["a"].tolist() == [0, 1, 2]
+    with pytest.raises(ValueError, match="expected 'wb' or 'w'"), atomic_file(path, "a"):
+        pass
