@@ -51,7 +51,7 @@ from grounder._gap import (
     rms,
     score,
 )
-from grounder._repeats import describe_repeats, repeated_motion_indices, split_keeping_together
+from grounder._repeats import describe_repeated_indices, repeated_motion_indices, split_keeping_together
 from grounder._simulate import default_nthread, load_scene_model
 from grounder._trajectory import Trajectory, load_trajectories, validate_against_model
 from grounder.errors import GrounderError
@@ -263,15 +263,15 @@ def _holdout_split(
     repeats = repeated_motion_indices(trajs, model)
     held, train = split_keeping_together(order, n_hold, repeats)
     if repeats:
-        named = [[trajs[i].name or f"#{i}" for i in g] for g in repeats]
+        named = describe_repeated_indices(trajs, repeats)
         if len(held) < 2 or len(train) < 2:
             log.warning(
                 "%s; too few trajectories to keep each on one side of the held-out split, so held-out scores may "
                 "count copies of training trajectories",
-                describe_repeats(named),
+                named,
             )
             return order[:n_hold], order[n_hold:]
-        log.warning("%s; each kept on one side of the held-out split", describe_repeats(named))
+        log.warning("%s; each kept on one side of the held-out split", named)
     return held, train
 
 

@@ -172,3 +172,8 @@ def describe_repeats(groups: Sequence[Sequence[str]]) -> str:
         f"{len(groups)} {'group' if len(groups) == 1 else 'groups'} of trajectories record the same motion (up to a "
         f"turn about the vertical and a shift): {listed}"
     )
+
+
+def describe_repeated_indices(trajs: Sequence[Trajectory], groups: Sequence[Sequence[int]]) -> str:
+    """`describe_repeats` for groups of indices into ``trajs`` (an unnamed trajectory shows as ``#i``)."""
+    return describe_repeats([[trajs[i].name or f"#{i}" for i in g] for g in groups])

@@ -24,7 +24,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from grounder._repeats import describe_repeats, repeated_motion_indices, split_keeping_together
+from grounder._repeats import describe_repeated_indices, repeated_motion_indices, split_keeping_together
 from grounder._residual import (
     META_FILE,
     NUM_OUTPUTS,
@@ -213,11 +213,10 @@ def _group_rms(err: np.ndarray, joint: bool = False) -> tuple[float, float, floa
 
 
 class _Trainer:
-    def __init__(
-        self, scene_xml: Path, trajs: Sequence[Trajectory], options: ResidualOptions, sim: Simulator | None = None
-    ):
+    def __init__(self, sim: Simulator, trajs: Sequence[Trajectory], options: ResidualOptions):
+        """``sim``: the scene as MuJoCo alone (`Simulator(..., use_residual=False)`), loaded once per training."""
         self.options = options
-        self.sim = sim if sim is not None else Simulator(scene_xml, use_residual=False)
+        self.sim = sim
         self.model = self.sim.model
         for traj in trajs:
             validate_against_model(traj, self.model)
@@ -512,7 +511,7 @@ def train_residual(
                 "residual ships at gain 1 unchecked",
                 len(trajs),
             )
-        trainer = _Trainer(scene_xml, fit_trajs, options, sim)
+        trainer = _Trainer(sim, fit_trajs, options)
         report("residual: one-step targets", 0, 1)
         base = trainer.one_step()
         report("residual: one-step targets", 1, 1)
@@ -562,9 +561,7 @@ def train_residual(
         residual = _numpy_residual(torch_model, meta, trainer)
         before = _group_rms(base.targets, joint=space is not None)
         after = _group_rms(base.targets - residual(base.feats), joint=space is not None)  # gain 1, before choosing
-        held_rms, held_gate = _held_out_one_step(
-            trainer.sim, scene_xml, select_trajs, options, residual, joint=space is not None
-        )
+        held_rms, held_gate = _held_out_one_step(trainer.sim, select_trajs, options, residual, joint=space is not None)
         report("residual: gain on held-out rollouts", 0, 1)
         gain, scores, preds_by_gain, errors_by_gain = _select_gain(trainer.sim, residual, select_trajs, options.gains)
         report("residual: gain on held-out rollouts", 1, 1)
@@ -644,7 +641,6 @@ def train_residual(
 
 def _held_out_one_step(
     sim: Simulator,
-    scene_xml: Path,
     trajs: Sequence[Trajectory],
     options: ResidualOptions,
     residual: NumpyResidual | NumpyJointResidual,
@@ -657,7 +653,7 @@ def _held_out_one_step(
     if not trajs:
         return (nan, nan), np.empty(0)
     try:
-        held = _Trainer(scene_xml, trajs, options, sim).one_step()  # the same MuJoCo-only simulator, loaded once
+        held = _Trainer(sim, trajs, options).one_step()  # the same MuJoCo-only simulator, loaded once
     except GrounderError:
         return (nan, nan), np.empty(0)
     before = _group_rms(held.targets, joint=joint)
@@ -675,8 +671,8 @@ def _selection_split(
         return list(trajs), []
     repeats = repeated_motion_indices(trajs, model)
     if repeats:
-        named = [[trajs[i].name or f"#{i}" for i in g] for g in repeats]
-        log.warning("%s; each kept on one side of the fit / gain-check split", describe_repeats(named))
+        named = describe_repeated_indices(trajs, repeats)
+        log.warning("%s; each kept on one side of the fit / gain-check split", named)
     perm = np.random.default_rng(options.seed + 7919).permutation(len(trajs)).tolist()
     chosen_list, _ = split_keeping_together(perm, count, repeats)
     chosen = set(chosen_list)
