@@ -21,14 +21,22 @@ Output folder (new, empty, or the output of an earlier batch run, which its ``ba
     batch.json          the marker, written before any job runs: ``{"format": "image2sim-batch/1", ...}``. A folder
                         that is not empty and has no marker is refused, since a run replaces what it finds there
     results/<id>.json   one per finished job, written atomically (temporary file, then os.replace): the job's
-                        status (ok or failed with the error), parameters, errors before/after, seconds
+                        status (ok or failed with the error), parameters, errors before/after, seconds, and
+                        ``inputs``: sha256 fingerprints of what it read (:func:`job_inputs`)
     scenes/<id>/        the calibrated scene folder of a successful job (written atomically by calibrate)
-    results.csv, results.json   the table of all jobs of the file, rewritten after each finished job
+    results.csv, results.json   the table of all jobs of the file, rewritten after each finished job and on the way
+                        out (also after SIGINT or SIGTERM); a record whose inputs are not the job's now reads pending
 
-A job counts as finished when its ``results/<id>.json`` says ``ok``: a re-run (after a crash or Ctrl-C) skips it
-and runs the rest; failed jobs are run again, and so are jobs whose record is unreadable or invalid (with a
-warning). A failing job is recorded and does not stop the others; a scene or trajectory folder that is not there
-is refused before any job runs (not with ``address``: on a cluster the paths need only exist on its nodes). Jobs
+A job counts as finished when its ``results/<id>.json`` says ``ok`` and its recorded inputs are the job's inputs now:
+the same settings (canonical JSON), scene files (the MJCF and every file it names; for a scene folder also its other
+top-level files) and trajectory files (names and contents). A re-run (after a crash or Ctrl-C) skips it and runs the
+rest; a job whose settings, scene or trajectories changed runs again, with a warning that names what changed, and so
+does one whose record has no fingerprint (written by an older image2sim). Failed jobs are run again, and so are jobs
+whose record is unreadable or invalid (with a warning). A failing job is recorded and does not stop the others.
+SIGINT or SIGTERM stops a Ray run within a second: the jobs still running are cancelled, Ray is shut down, the
+table is rewritten from the records, and the signal is then handed to the handler the caller had before. A scene or
+trajectory folder that is not there is refused before any job runs (not with ``address``: on a cluster the paths
+need only exist on its nodes, and an input not visible here is left out of the comparison of inputs). Jobs
 run as Ray tasks (one CPU each) on a local Ray started for the run, or on an existing cluster given by
 ``address``: the head node's ``host:port`` (its GCS port, 6379 by default), ``auto`` (the cluster ``ray start``
 made on this machine) or ``ray://host:10001`` (the Ray client, which needs ``pip install 'ray[client]'``); the
@@ -39,13 +47,16 @@ A cluster that cannot be reached is reported before the output folder is created
 from __future__ import annotations
 
 import csv
+import hashlib
 import io
 import json
 import logging
 import os
 import re
 import shutil
+import signal
 import socket
+import threading
 import time
 import traceback
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -68,6 +79,8 @@ _TOP_KEYS = {"defaults", "jobs", "matrix"}
 _MATRIX_KEYS = {"scenes", "trajectories", "settings"}
 MARKER = "batch.json"
 MARKER_FORMAT = "image2sim-batch/1"
+_WAIT_SLICE_S = 0.5  # how long one ray.wait may block: a SIGINT or SIGTERM is acted on within this
+_CANCEL_WAIT_S = 60.0  # at most this long for the workers of cancelled jobs to go (a cluster's may answer slowly)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -358,6 +371,128 @@ def check_job_paths(jobs: Sequence[Job]) -> None:
         )
 
 
+# A job's inputs, fingerprinted so that a re-run can tell a finished job from one whose inputs were edited since.
+# Each is a sha256 hex digest; MISSING stands for a path that is not there (the job then fails, or is refused).
+INPUT_KINDS = ("settings", "scene", "trajectories")
+MISSING = "missing"
+_BLOCK = 1 << 20
+
+
+def _file_sha256(path: Path) -> str:
+    """sha256 of a file's bytes, read in 1 MiB blocks; MISSING, or why it cannot be read, in place of one."""
+    digest = hashlib.sha256()
+    try:
+        with path.open("rb") as handle:
+            for block in iter(lambda: handle.read(_BLOCK), b""):
+                digest.update(block)
+    except FileNotFoundError:
+        return MISSING
+    except OSError as exc:
+        return f"unreadable ({exc.strerror or exc})"
+    return digest.hexdigest()
+
+
+def _files_sha256(base: Path, names: Iterable[str], *, note: str = "") -> str:
+    """One sha256 over the names (relative to ``base``, POSIX) and contents of files, in sorted order."""
+    digest = hashlib.sha256(note.encode())
+    for name in sorted(set(names)):
+        digest.update(f"{name}\0{_file_sha256(base / name)}\n".encode())
+    return digest.hexdigest()
+
+
+def _top_level_files(folder: Path) -> list[str]:
+    try:
+        return [p.name for p in folder.iterdir() if p.is_file()]
+    except OSError:
+        return []
+
+
+def settings_sha256(settings: Mapping[str, Any]) -> str:
+    """sha256 of a job's settings as canonical JSON (sorted keys, no spaces)."""
+    text = json.dumps(dict(settings), sort_keys=True, separators=(",", ":"), ensure_ascii=False, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def scene_sha256(scene: Path) -> str:
+    """sha256 of the files a scene is read from: the MJCF and every file it includes or loads
+    (`grounder._simulate.scene_files`: meshes, textures, included MJCF), and for a scene folder also its other
+    top-level files (``scene.json``, which embedding mode reads). MISSING when ``scene`` is not there."""
+    from grounder._simulate import SCENE_XML, scene_files
+
+    if not scene.exists():
+        return MISSING
+    xml = scene / SCENE_XML if scene.is_dir() else scene
+    names = _top_level_files(scene) if scene.is_dir() else [scene.name]
+    note = ""
+    try:
+        names += [rel.as_posix() for rel in scene_files(xml)]
+    except GrounderError as exc:  # not XML, or names a file outside its folder: the job fails on it
+        note = f"unusable: {exc}"
+    return _files_sha256(xml.parent, names, note=note)
+
+
+def trajectories_sha256(folder: Path, fmt: str | None) -> str:
+    """sha256 of a trajectory folder's top-level files (names and contents) and its ``format``; with a format also
+    of the files one folder down, where an importer may read them (dair-pll-cube: ``tosses/N.pt``), except in a
+    batch output placed there. MISSING when ``folder`` is not a folder.
+
+    Only what a reader could take is hashed: a folder's top level (every command reads its inputs' top level only),
+    so an output written inside the folder later (``-o data/out``) does not count as a change.
+    """
+    if not folder.is_dir():
+        return MISSING
+    names = _top_level_files(folder)
+    if fmt is not None:
+        try:
+            subs = [p for p in folder.iterdir() if p.is_dir() and not (p / MARKER).exists()]
+        except OSError:
+            subs = []
+        for sub in subs:
+            names += [f"{sub.name}/{name}" for name in _top_level_files(sub)]
+    return _files_sha256(folder, names, note=f"format={fmt}")
+
+
+def job_inputs(
+    job: Job, *, seen_here: bool = True, memo: dict[tuple[object, ...], str] | None = None
+) -> dict[str, Any]:
+    """The fingerprints of what ``job`` reads, by kind (:data:`INPUT_KINDS`), as its result record keeps them.
+
+    Args:
+        job: The job.
+        seen_here: False on a driver that only submits to a cluster: a scene or trajectory path that is not there
+            gets None (not compared), since the paths need only exist on the cluster's nodes.
+        memo: Digests already computed in this pass, by path (the jobs of a matrix share scenes and folders).
+    """
+    memo = {} if memo is None else memo
+
+    def cached(key: tuple[object, ...], compute: Callable[[], str]) -> str | None:
+        if key not in memo:
+            memo[key] = compute()
+        return None if memo[key] == MISSING and not seen_here else memo[key]
+
+    return {
+        "settings": settings_sha256(job.settings),
+        "scene": cached(("scene", job.scene), lambda: scene_sha256(job.scene)),
+        "trajectories": cached(
+            ("trajectories", job.trajectories, job.format), lambda: trajectories_sha256(job.trajectories, job.format)
+        ),
+    }
+
+
+def stale_reason(record: Mapping[str, Any], inputs: Mapping[str, Any]) -> str | None:
+    """Why ``record`` is not the result of the job as it is now (``inputs``: :func:`job_inputs`), or None.
+
+    An input that is None in ``inputs`` (not visible here) is not compared.
+    """
+    recorded = record.get("inputs")
+    if not isinstance(recorded, Mapping):
+        return "its result has no fingerprint of its inputs (recorded by an older image2sim)"
+    changed = [kind for kind in INPUT_KINDS if inputs.get(kind) is not None and recorded.get(kind) != inputs[kind]]
+    if not changed:
+        return None
+    return f"{' and '.join(changed)} changed"
+
+
 def _write_json_atomic(path: Path, payload: object) -> None:
     from reconstruction._outdir import atomic_file
 
@@ -386,6 +521,11 @@ def _record_problem(data: object, job_id: str) -> str | None:
         return f"'seconds' is {shown(data['seconds'])}, not a number"
     if not isinstance(data.get("error"), (str, type(None))):
         return f"'error' is {shown(data['error'])}, not text"
+    inputs = data.get("inputs")
+    if "inputs" in data and not (
+        isinstance(inputs, dict) and all(isinstance(inputs.get(k), (str, type(None))) for k in INPUT_KINDS)
+    ):
+        return "'inputs' is not a mapping of settings, scene and trajectories to fingerprints (text)"
     parameters = data.get("parameters")
     if parameters and not (
         isinstance(parameters, dict) and all(isinstance(k, str) and _is_number(v) for k, v in parameters.items())
@@ -434,9 +574,10 @@ def read_result(out_dir: Path, job_id: str) -> dict[str, Any] | None:
     return _load_result(out_dir, job_id)[0]
 
 
-def is_finished(out_dir: Path, job_id: str) -> bool:
-    record = read_result(out_dir, job_id)
-    return bool(record and record.get("status") == "ok" and (Path(out_dir) / SCENES_DIR / job_id).is_dir())
+def current_result(out_dir: Path, job: Job, inputs: Mapping[str, Any]) -> dict[str, Any] | None:
+    """``job``'s result record if it is the result of the job as it is now (``inputs``: :func:`job_inputs`)."""
+    record = read_result(out_dir, job.id)
+    return record if record is not None and stale_reason(record, inputs) is None else None
 
 
 def _is_marker(path: Path) -> bool:
@@ -518,6 +659,7 @@ def run_job(job_json: Mapping[str, Any], out_dir: str) -> dict[str, Any]:
     tick = time.time()
     record: dict[str, Any] = {"id": job.id, "job": job.to_json(), "started_unix": tick, "pid": os.getpid()}
     try:
+        record["inputs"] = job_inputs(job)  # before reading them: what this run read, barring an edit meanwhile
         from grounder._calibrate import calibrate
         from grounder._import import import_trajectories
         from grounder._trajectory import load_trajectories
@@ -597,10 +739,22 @@ def _row(job: Job, record: dict[str, Any] | None) -> dict[str, Any]:
     return row
 
 
-def write_table(out_dir: Path, jobs: Sequence[Job]) -> list[dict[str, Any]]:
-    """Rewrites ``results.csv`` and ``results.json`` from the per-job records; returns the rows."""
+def write_table(
+    out_dir: Path, jobs: Sequence[Job], inputs: Mapping[str, Mapping[str, Any]] | None = None
+) -> list[dict[str, Any]]:
+    """Rewrites ``results.csv`` and ``results.json`` from the per-job records; returns the rows.
+
+    Args:
+        out_dir: The batch output.
+        jobs: The jobs of the file.
+        inputs: Each job's inputs by id (:func:`job_inputs`); None: fingerprinted now. A job whose record was
+            made from other inputs reads ``pending``: that record is not its result.
+    """
     out_dir = Path(out_dir)
-    rows = [_row(job, read_result(out_dir, job.id)) for job in jobs]
+    if inputs is None:
+        memo: dict[tuple[object, ...], str] = {}
+        inputs = {job.id: job_inputs(job, memo=memo) for job in jobs}
+    rows = [_row(job, current_result(out_dir, job, inputs[job.id])) for job in jobs]
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=list(_TABLE_COLUMNS))
     writer.writeheader()
@@ -608,6 +762,15 @@ def write_table(out_dir: Path, jobs: Sequence[Job]) -> list[dict[str, Any]]:
     write_text_atomic(out_dir / "results.csv", buf.getvalue())
     _write_json_atomic(out_dir / "results.json", rows)
     return rows
+
+
+def read_table(out_dir: Path) -> list[dict[str, Any]] | None:
+    """The rows of ``results.json`` (:func:`write_table`), or None when there is none or it cannot be read."""
+    try:
+        rows = json.loads((Path(out_dir) / "results.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, RecursionError):
+        return None
+    return rows if isinstance(rows, list) and all(isinstance(r, dict) for r in rows) else None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -709,6 +872,15 @@ def run_batch(
 ) -> BatchSummary:
     """Runs the jobs not yet finished in ``out_dir`` on Ray (or ``inline``, one after another, without Ray).
 
+    A job is finished when its record says ok and was made from the job's inputs as they are now (module docstring);
+    a finished job whose inputs changed is run again, with a warning naming what changed.
+
+    SIGINT and SIGTERM (on the main thread): inline, the handlers in place raise as usual, in the job that runs. On
+    Ray they are only noted while the jobs run (`_StopSignals`), and the run stops at once: the jobs not yet done are
+    cancelled and waited for, Ray is shut down, the table is rewritten from the records, and then the signal is
+    handed to the handler the caller had before ``ray.init`` replaced SIGTERM's (the CLI's raises; Python's default
+    for SIGINT raises KeyboardInterrupt; SIG_DFL ends the process as the signal would have).
+
     Args:
         jobs: From :func:`load_jobs`.
         out_dir: Output folder (module docstring): created if missing; an earlier batch output is reused to resume.
@@ -728,28 +900,106 @@ def run_batch(
     tick = time.time()
     out_dir = Path(out_dir)
     check_batch_output(out_dir)
+    memo: dict[tuple[object, ...], str] = {}
+    inputs = {job.id: job_inputs(job, seen_here=address is None, memo=memo) for job in jobs}
+    skipped: list[str] = []
     for job in jobs:
-        _, problem = _load_result(out_dir, job.id)
+        record, problem = _load_result(out_dir, job.id)
         if problem:  # e.g. edited by hand or truncated by a full disk: the job's result cannot be trusted
             log.warning("%s: %s; running the job again", result_path(out_dir, job.id), problem)
-    skipped = [j.id for j in jobs if is_finished(out_dir, j.id)]
+        elif record is not None and record.get("status") == "ok":
+            why = stale_reason(record, inputs[job.id])
+            if why:
+                log.warning("job %s: %s, re-running", job.id, why)
+            elif (out_dir / SCENES_DIR / job.id).is_dir():
+                skipped.append(job.id)
     pending = [j for j in jobs if j.id not in set(skipped)]
     if address is None:  # on a cluster the paths need only exist on its nodes
         check_job_paths(pending)
+    ran: list[str] = []
+    rows: list[dict[str, Any]] = []
+    stop = _StopSignals()
+    on_ray = bool(pending) and not inline
     started_here = False
-    if pending and not inline:
-        import ray
-
-        started_here = not ray.is_initialized()
-        if started_here:
-            connect_ray(address, num_cpus)  # before the output exists: a bad address leaves nothing behind
     try:
-        return _run_pending(jobs, pending, skipped, out_dir, inline=inline, progress=progress, tick=tick)
-    finally:
-        if started_here:
+        if on_ray:
             import ray
 
-            ray.shutdown()
+            started_here = not ray.is_initialized()
+            try:
+                if started_here:
+                    connect_ray(address, num_cpus)  # before the output exists: a bad address leaves nothing behind
+                stop.defer()  # after ray.init, which puts its own SIGTERM handler in place of the caller's
+            except SystemExit:  # SIGTERM while ray.init ran: its handler calls sys.exit
+                stop.received.append(signal.SIGTERM)
+        if not stop.received:
+            _prepare_output(out_dir, jobs)
+            _run_pending(jobs, pending, skipped, out_dir, inputs, ran, inline=inline, progress=progress, stop=stop)
+    finally:
+        try:  # a signal meanwhile is still only noted: the table is written whatever comes
+            if started_here:
+                import ray
+
+                ray.shutdown()
+            if _is_marker(out_dir / MARKER):  # true once no worker is left to write a record (also after a signal)
+                rows = write_table(out_dir, jobs, inputs)
+        finally:
+            if on_ray:
+                stop.restore()
+    stop.hand_over()
+    failed = tuple(r["id"] for r in rows if r["status"] == "failed")
+    return BatchSummary(
+        total=len(jobs),
+        skipped=tuple(skipped),
+        ran=tuple(ran),
+        failed=failed,
+        rows=tuple(rows),
+        seconds=time.time() - tick,
+    )
+
+
+class _StopSignals:
+    """SIGINT and SIGTERM noted, not raised, while Ray runs the jobs; then handed to the handlers they replaced.
+
+    Why not let a handler raise: ``ray.init`` replaces the SIGTERM handler with its own, and while ``ray.wait``
+    blocks in Ray's core worker a signal meets Ray's C++ handler (which prints a stack trace and exits 1, the exit
+    code of a failed job) or, for an exception of our own, is held until the task ends and then surfaces as a
+    SystemError. A handler that only notes the signal works whatever Ray does: the loop waits in short slices and
+    stops at the next one, and the exception is raised once Ray is shut down and the table is true.
+
+    Only on the main thread (Python runs handlers there), and not for a signal the caller ignores (SIG_IGN).
+    """
+
+    _SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        on_main = threading.current_thread() is threading.main_thread()
+        self._before: dict[int, Any] = {s: signal.getsignal(s) for s in self._SIGNALS} if on_main else {}
+
+    def __bool__(self) -> bool:
+        return bool(self.received)
+
+    def defer(self) -> None:
+        for signum, before in self._before.items():
+            if before is not signal.SIG_IGN:
+                signal.signal(signum, lambda s, _frame: self.received.append(s))
+
+    def restore(self) -> None:
+        """Puts the caller's handlers back (Ray's SIGTERM handler stays after ``ray.shutdown`` otherwise)."""
+        for signum, before in self._before.items():
+            signal.signal(signum, before if before is not None else signal.SIG_DFL)  # None: not set from Python
+
+    def hand_over(self) -> None:
+        """Delivers the first signal received to the caller's handler, which raises (or, SIG_DFL, ends the process)."""
+        if not self.received:
+            return
+        signum = self.received[0]
+        before = self._before.get(signum, signal.SIG_DFL)
+        if callable(before):
+            before(signum, None)
+        elif before is not signal.SIG_IGN:
+            signal.raise_signal(signum)
 
 
 def _run_pending(
@@ -757,13 +1007,16 @@ def _run_pending(
     pending: Sequence[Job],
     skipped: Sequence[str],
     out_dir: Path,
+    inputs: Mapping[str, Mapping[str, Any]],
+    ran: list[str],
     *,
     inline: bool,
     progress: Progress | None,
-    tick: float,
-) -> BatchSummary:
-    """:func:`run_batch` once Ray (if used) is up: creates the output, runs ``pending``, writes the table."""
-    _prepare_output(out_dir, jobs)
+    stop: _StopSignals,
+) -> None:
+    """:func:`run_batch` once Ray (if used) is up and the output exists: runs ``pending`` (appended to ``ran`` as
+    they end) and rewrites the table after each; on a signal (``stop``), cancels the jobs not done and waits for them.
+    """
     report: Progress = progress or (lambda _s, _d, _t: None)
     # Leftovers of a run that was killed while writing: temporary files and folders (never results).
     for leftover in [*(out_dir / RESULTS_DIR).glob(".*.tmp"), *(out_dir / SCENES_DIR).glob(".*.tmp")]:
@@ -777,15 +1030,14 @@ def _run_pending(
     report(stage, done, total)
     if skipped:
         log.info("skipping %d finished job(s)", len(skipped))
-    write_table(out_dir, jobs)
-    ran: list[str] = []
+    write_table(out_dir, jobs, inputs)
     if pending and inline:
         for job in pending:
             record = run_job(job.to_json(), str(out_dir))
             ran.append(job.id)
             done += 1
             _log_record(record)
-            write_table(out_dir, jobs)
+            write_table(out_dir, jobs, inputs)
             report(stage, done, total)
     elif pending:
         import ray
@@ -793,8 +1045,8 @@ def _run_pending(
         remote = ray.remote(num_cpus=1, max_retries=0)(run_job)
         refs = {remote.remote(job.to_json(), str(out_dir)): job for job in pending}
         waiting = list(refs)
-        while waiting:
-            ready, waiting = ray.wait(waiting, num_returns=1)
+        while waiting and not stop:
+            ready, waiting = ray.wait(waiting, num_returns=1, timeout=_WAIT_SLICE_S)
             for ref in ready:
                 job = refs[ref]
                 try:
@@ -803,6 +1055,7 @@ def _run_pending(
                     record = {
                         "id": job.id,
                         "job": job.to_json(),
+                        "inputs": dict(inputs[job.id]),
                         "status": "failed",
                         "error": f"worker failed: {type(exc).__name__}: {exc}".splitlines()[0],
                     }
@@ -810,18 +1063,13 @@ def _run_pending(
                 ran.append(job.id)
                 done += 1
                 _log_record(record)
-                write_table(out_dir, jobs)
+                write_table(out_dir, jobs, inputs)
                 report(stage, done, total)
-    rows = write_table(out_dir, jobs)
-    failed = tuple(r["id"] for r in rows if r["status"] == "failed")
-    return BatchSummary(
-        total=total,
-        skipped=tuple(skipped),
-        ran=tuple(ran),
-        failed=failed,
-        rows=tuple(rows),
-        seconds=time.time() - tick,
-    )
+        if waiting:  # stopped: no job may write its record after the table is rewritten on the way out
+            for ref in waiting:
+                ray.cancel(ref, force=True)  # a running job's worker is killed; a queued one never starts
+            ray.wait(waiting, num_returns=len(waiting), timeout=_CANCEL_WAIT_S)
+            log.info("stopped: %d job(s) cancelled", len(waiting))
 
 
 def _log_record(record: Mapping[str, Any]) -> None:

@@ -191,18 +191,51 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Run many calibrations on Ray; re-running skips finished jobs. Results in results.csv / results.json.
 
-        Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file or output folder.
+        Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file or output folder, 130 after
+        Ctrl-C and 143 after SIGTERM (the table is true of what finished; re-running resumes).
         """
+        import signal
+        import threading
+
+        class Terminated(BaseException):
+            """SIGTERM during the run: a BaseException, so that no ``except Exception`` on the way swallows it."""
+
+        def terminated(signum: int, frame: object) -> None:
+            raise Terminated
+
         _setup_logging(verbose)
         require(("--num-cpus", num_cpus, num_cpus is None or 1 <= num_cpus <= 256, "between 1 and 256"))
-        with user_errors_exit_2():
-            from grounder._batch import check_batch_output, load_jobs, run_batch
+        out_dir: Path | None = None
+        # SIGTERM as this command's own exception while it runs, not grounder.cli's `_Terminated`: under
+        # `python -m grounder.cli` the handler main() installs raises the __main__ module's copy of that class.
+        on_main = threading.current_thread() is threading.main_thread()
+        before = signal.signal(signal.SIGTERM, terminated) if on_main else None
+        try:
+            with user_errors_exit_2():
+                from grounder._batch import check_batch_output, load_jobs, read_table, run_batch
 
-            jobs = load_jobs(jobs_file)
-            out_dir = out if out is not None else jobs_file.with_name(f"{jobs_file.stem}_results")
-            check_batch_output(out_dir)  # run_batch checks again; this fails before the progress bar appears
-            with stage_progress() as progress:
-                summary = run_batch(jobs, out_dir, address=address, num_cpus=num_cpus, inline=inline, progress=progress)
+                jobs = load_jobs(jobs_file)
+                out_dir = out if out is not None else jobs_file.with_name(f"{jobs_file.stem}_results")
+                check_batch_output(out_dir)  # run_batch checks again; this fails before the progress bar appears
+                with stage_progress() as progress:
+                    summary = run_batch(
+                        jobs, out_dir, address=address, num_cpus=num_cpus, inline=inline, progress=progress
+                    )
+        except (KeyboardInterrupt, Terminated) as exc:  # run_batch has rewritten the table on its way out
+            signum = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
+            rows = read_table(out_dir) if out_dir is not None else None
+            if out_dir is None or rows is None:
+                where = "before any job ran"
+            else:
+                finished = sum(row.get("status") == "ok" for row in rows)
+                where = f"with {finished} of {len(rows)} jobs finished (table: {out_dir / 'results.csv'})"
+            typer.echo(
+                f"image2sim: batch stopped ({signum.name}) {where}; run the same command again to resume", err=True
+            )
+            raise typer.Exit(128 + signum) from None
+        finally:
+            if on_main:
+                signal.signal(signal.SIGTERM, before)
         for row in summary.rows:
             if row["status"] == "failed":
                 typer.echo(f"job {row['id']} failed: {row['error']}", err=True)

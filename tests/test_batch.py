@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import re
@@ -10,6 +11,7 @@ import socket
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -227,9 +229,62 @@ def _kill_session(sid: int) -> None:
     assert not _session_pids(sid), "processes of the killed run survived"
 
 
+# Safety nets only: how long a test waits for an event (a result record, the run's exit) before it gives up. Each
+# wait ends as soon as the event happens; the verdict never rests on how fast the machine is.
+_EVENT_BOUND_S = 900.0
+
+
+def _ok_records(out: Path, job_ids: list[str]) -> list[str]:
+    return [j for j in job_ids if (read_result(out, j) or {}).get("status") == "ok"]
+
+
+def _wait_for_a_finished_job(proc: subprocess.Popen, out: Path, job_ids: list[str]) -> list[str]:
+    """Waits until some job's result record says ok (the run is midway), or fails if the run ends first."""
+    bound = time.monotonic() + _EVENT_BOUND_S
+    while not (finished := _ok_records(out, job_ids)):
+        if proc.poll() is not None:
+            pytest.fail(f"the run ended (exit {proc.returncode}) before any job finished: {proc.communicate()[1]!r}")
+        if time.monotonic() > bound:
+            pytest.fail(f"no job finished in {_EVENT_BOUND_S:.0f} s (the safety bound of this wait)")
+        time.sleep(0.05)
+    return finished
+
+
+def _wait_for_session_end(sid: int) -> None:
+    """Waits until no process of the session is left (Ray's services and workers exit after the driver)."""
+    bound = time.monotonic() + _EVENT_BOUND_S
+    while _session_pids(sid) and time.monotonic() < bound:
+        time.sleep(0.1)
+
+
+def _batch_cmd(jobs_file: Path, out: Path) -> list[str]:
+    return [sys.executable, "-m", "grounder.cli", "batch", str(jobs_file), "-o", str(out), "--num-cpus", "1"]
+
+
+# Ray (no auth prompt); CI: no progress bar on a pipe, so stderr holds only the run's messages.
+_RUN_ENV = {**os.environ, "RAY_AUTH_MODE": "disabled", "CI": "1"}
+
+
+def _start_batch(cmd: list[str]) -> subprocess.Popen:
+    """The batch in its own session, with SIGINT as a shell gives it (a test runner's worker may ignore SIGINT,
+    and an ignored signal stays ignored in a child)."""
+    return subprocess.Popen(
+        cmd,
+        cwd=REPO,
+        env=_RUN_ENV,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the run's processes in /proc")
 def test_ray_run_killed_midway_resumes_without_redoing(tmp_path: Path, traj_dir: Path) -> None:
-    """A real local Ray (one CPU, jobs one at a time): SIGKILL the whole run once some jobs finished, re-run."""
+    """A real local Ray (one CPU, jobs one at a time): SIGKILL the whole run as soon as a job has finished, re-run.
+
+    The kill follows the first result record, not a clock: on a slow or busy machine the wait is only longer."""
     job_ids = [f"job{i}" for i in range(6)]
     jobs_file = _write_jobs(
         tmp_path / "jobs.yaml",
@@ -239,29 +294,19 @@ def test_ray_run_killed_midway_resumes_without_redoing(tmp_path: Path, traj_dir:
         ],
     )
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "grounder.cli", "batch", str(jobs_file), "-o", str(out), "--num-cpus", "1"]
-    env = {**os.environ, "RAY_AUTH_MODE": "disabled"}
-    proc = subprocess.Popen(
-        cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True
-    )
-    deadline = time.monotonic() + 180
-    finished_first: list[str] = []
+    cmd = _batch_cmd(jobs_file, out)
+    proc = _start_batch(cmd)
     try:
-        while time.monotonic() < deadline and proc.poll() is None:
-            finished_first = [j for j in job_ids if (read_result(out, j) or {}).get("status") == "ok"]
-            if finished_first:
-                break
-            time.sleep(0.05)
+        _wait_for_a_finished_job(proc, out, job_ids)
     finally:
         # The driver, Ray's services and its workers (in their own process groups, same session).
         _kill_session(proc.pid)
-        proc.communicate(timeout=60)
-    assert finished_first, "no job finished before the deadline"
-    finished_first = [j for j in job_ids if (read_result(out, j) or {}).get("status") == "ok"]
+        proc.communicate(timeout=_EVENT_BOUND_S)
+    finished_first = _ok_records(out, job_ids)
     assert len(finished_first) < len(job_ids), "the run finished before it could be killed"
     first_records = {j: (out / "results" / f"{j}.json").read_bytes() for j in finished_first}
 
-    rerun = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    rerun = subprocess.run(cmd, cwd=REPO, env=_RUN_ENV, capture_output=True, text=True, timeout=_EVENT_BOUND_S)
     assert rerun.returncode == 0, rerun.stderr[-2000:]
     assert (
         f"{len(finished_first)} already finished, {len(job_ids) - len(finished_first)} run now, 0 failed"
@@ -275,6 +320,164 @@ def test_ray_run_killed_midway_resumes_without_redoing(tmp_path: Path, traj_dir:
     rows = json.loads((out / "results.json").read_text())
     assert [r["status"] for r in rows] == ["ok"] * len(job_ids)
     assert not list((out / "scenes").glob(".*.tmp")) and not list((out / "results").glob(".*.tmp"))
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="finds the run's processes in /proc")
+@pytest.mark.parametrize(("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["TERM", "INT"])
+def test_a_signal_stops_a_ray_run_with_one_line_and_a_true_table(
+    tmp_path: Path, traj_dir: Path, signum: int, code: int
+) -> None:
+    """SIGTERM (`timeout`, `docker stop`) or Ctrl-C midway through a real local Ray run: exit 128 + signal, one line
+    on stderr and no traceback; Ray's processes are gone, and results.csv / results.json say of every job what its
+    record on disk says (a job that finished after the signal does not read pending). Re-running resumes."""
+    job_ids = [f"job{i}" for i in range(30)]
+    jobs_file = _write_jobs(
+        tmp_path / "jobs.yaml",
+        [
+            {"id": j, "scene": str(CUBE_XML), "trajectories": str(traj_dir), "settings": {"seed": i}}
+            for i, j in enumerate(job_ids)
+        ],
+    )
+    out = tmp_path / "out"
+    proc = _start_batch(_batch_cmd(jobs_file, out))
+    try:
+        _wait_for_a_finished_job(proc, out, job_ids)
+        proc.send_signal(signum)
+        _, stderr = proc.communicate(timeout=_EVENT_BOUND_S)
+        _wait_for_session_end(proc.pid)
+        assert not _session_pids(proc.pid), "Ray's processes outlived the stopped run"
+    finally:
+        _kill_session(proc.pid)
+    assert proc.returncode == code, stderr
+    assert "Traceback" not in stderr and "SIGTERM received" not in stderr, stderr
+    lines = [line for line in stderr.splitlines() if line.strip()]
+    name = signal.Signals(signum).name
+    assert len(lines) == 1 and lines[0].startswith(f"image2sim: batch stopped ({name}) with "), stderr
+    finished = _ok_records(out, job_ids)
+    assert f"with {len(finished)} of {len(job_ids)} jobs finished" in lines[0]
+    assert 0 < len(finished) < len(job_ids)
+
+    def on_disk(job_id: str) -> str:
+        record = read_result(out, job_id)
+        return "pending" if record is None else record["status"]
+
+    rows = json.loads((out / "results.json").read_text())
+    assert [(r["id"], r["status"]) for r in rows] == [(j, on_disk(j)) for j in job_ids]
+    with (out / "results.csv").open(newline="") as handle:
+        assert [(r["id"], r["status"]) for r in csv.DictReader(handle)] == [(j, on_disk(j)) for j in job_ids]
+    assert {on_disk(j) for j in job_ids} == {"ok", "pending"}  # cancelled jobs are not recorded as failed
+
+
+def _reran(caplog: pytest.LogCaptureFixture) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.getMessage().endswith(", re-running")]
+
+
+def test_a_job_whose_inputs_changed_runs_again(
+    tmp_path: Path, traj_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Resuming trusts a job's result only while its settings, scene files and trajectory files are the ones it was
+    made from: an edit makes the job run again with one line naming what changed, and until then the table does not
+    show the old result beside the new inputs. An unchanged job is still skipped."""
+    import shutil
+
+    from grounder._batch import write_table
+    from grounder._trajectory import load_trajectory, save_trajectory
+
+    scene = tmp_path / "scene" / "cube.xml"
+    scene.parent.mkdir()
+    shutil.copy(CUBE_XML, scene)
+    data_a, data_b = shutil.copytree(traj_dir, tmp_path / "a"), shutil.copytree(traj_dir, tmp_path / "b")
+    jobs_file = tmp_path / "jobs.yaml"
+
+    def jobs(seed_a: int = 0) -> list:
+        return load_jobs(
+            _write_jobs(
+                jobs_file,
+                [
+                    {"id": "a", "scene": str(scene), "trajectories": str(data_a), "settings": {"seed": seed_a}},
+                    {"id": "b", "scene": str(CUBE_XML), "trajectories": str(data_b)},
+                ],
+            )
+        )
+
+    def run(seed_a: int = 0) -> tuple[tuple[str, ...], list[str]]:
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="grounder._batch"):
+            summary = run_batch(jobs(seed_a), out, inline=True)
+        assert set(summary.ran) | set(summary.skipped) == {"a", "b"} and not summary.failed
+        return summary.ran, _reran(caplog)
+
+    out = tmp_path / "out"
+    assert run() == (("a", "b"), [])
+    assert run() == ((), [])  # nothing changed: both finished
+    first_a = read_result(out, "a")
+
+    # Settings: the table shows job a pending (its record is of the old settings) until it has run again.
+    rows = write_table(out, jobs(seed_a=5))
+    assert [(r["id"], r["status"]) for r in rows] == [("a", "pending"), ("b", "ok")]
+    assert run(seed_a=5) == (("a",), ["job a: settings changed, re-running"])
+    assert (read_result(out, "a") or {})["job"]["settings"]["seed"] == 5
+    assert run(seed_a=5) == ((), [])
+
+    # A trajectory file edited in place (same name, other contents): job b runs again, a does not.
+    t0 = load_trajectory(data_b / "t0.npz")
+    save_trajectory(replace(t0, qpos=t0.qpos + np.array([0.001, 0, 0, 0, 0, 0, 0])), data_b / "t0.npz")
+    assert run(seed_a=5) == (("b",), ["job b: trajectories changed, re-running"])
+    # A file added to the folder counts too.
+    save_trajectory(replace(t0, name="t9"), data_b / "t9.npz")
+    assert run(seed_a=5) == (("b",), ["job b: trajectories changed, re-running"])
+
+    # The scene file edited: job a runs again.
+    scene.write_text(scene.read_text().replace("<mujoco", "<!-- edited -->\n<mujoco", 1))
+    assert run(seed_a=5) == (("a",), ["job a: scene changed, re-running"])
+    assert run(seed_a=5) == ((), [])
+
+    # A record of an older image2sim, without fingerprints: the job runs again, saying why.
+    record_file = out / "results" / "b.json"
+    record = json.loads(record_file.read_text())
+    record_file.write_text(json.dumps({k: v for k, v in record.items() if k != "inputs"}))
+    assert run(seed_a=5) == (
+        ("b",),
+        ["job b: its result has no fingerprint of its inputs (recorded by an older image2sim), re-running"],
+    )
+    assert first_a is not None and (read_result(out, "a") or {})["inputs"] != first_a["inputs"]
+
+
+def test_scene_fingerprint_covers_the_files_it_names(tmp_path: Path) -> None:
+    """A scene is its MJCF and what it loads (a mesh here), and for a scene folder also its manifest; a batch output
+    written inside a trajectory folder is not one of the folder's trajectories."""
+    from grounder._batch import scene_sha256, trajectories_sha256
+
+    folder = tmp_path / "scene"
+    (folder / "assets").mkdir(parents=True)
+    (folder / "assets" / "tet.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    )
+    (folder / "scene.xml").write_text(
+        '<mujoco><asset><mesh name="tet" file="assets/tet.obj"/></asset>'
+        '<worldbody><body><freejoint/><geom type="mesh" mesh="tet"/></body></worldbody></mujoco>'
+    )
+    (folder / "scene.json").write_text("{}")
+    digests = [scene_sha256(folder), scene_sha256(folder / "scene.xml")]
+    (folder / "assets" / "tet.obj").write_text(
+        "v 0 0 0\nv 2 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
+    )
+    assert scene_sha256(folder) != digests[0] and scene_sha256(folder / "scene.xml") != digests[1]
+    digests = [scene_sha256(folder), scene_sha256(folder / "scene.xml")]
+    (folder / "scene.json").write_text('{"edited": true}')
+    assert scene_sha256(folder) != digests[0]  # the folder's manifest is read (embedding mode)
+    assert scene_sha256(folder / "scene.xml") == digests[1]  # the MJCF alone does not read it
+
+    data = tmp_path / "data"
+    (data / "tosses").mkdir(parents=True)
+    (data / "tosses" / "0.pt").write_bytes(b"x")
+    before = {fmt: trajectories_sha256(data, fmt) for fmt in (None, "dair-pll-cube")}
+    (data / "out").mkdir()
+    (data / "out" / "batch.json").write_text("{}")
+    (data / "out" / "results.csv").write_text("id\n")
+    assert {fmt: trajectories_sha256(data, fmt) for fmt in (None, "dair-pll-cube")} == before
+    (data / "tosses" / "0.pt").write_bytes(b"y")  # what the importer reads
+    assert trajectories_sha256(data, "dair-pll-cube") != before["dair-pll-cube"]
 
 
 def test_cli_batch_inline_reports_failures(tmp_path: Path, traj_dir: Path) -> None:
