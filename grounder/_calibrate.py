@@ -45,9 +45,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
-import secrets
-import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -1042,12 +1039,13 @@ def write_calibrated_scene(
     base: mujoco.MjModel,
 ) -> Path:
     """Writes ``out``: calibrated ``scene.xml`` (+ assets), ``calibration.json``, ``report.html``; atomically."""
+    from reconstruction._outdir import staged_output_dir  # here: importing `reconstruction` loads pycolmap
+
     scene = Path(scene)
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    stage = out.with_name(f".{out.name}.{secrets.token_hex(6)}.tmp")
-    stage.mkdir()
-    try:
+    # The claim, the short staging names and the second look at `out` before the move are `staged_output_dir`'s: a
+    # folder that appeared at `out` while calibrating is left as it is, and the result kept beside it.
+    with staged_output_dir(out, error=GrounderError, inputs=(scene,)) as stage:
         sim.copy_scene_files(scene, stage, skip=NOT_COPIED)
         (stage / "scene.xml").write_text(result.spec.to_xml())
         _note_in_manifest(stage / "scene.json", result)
@@ -1059,17 +1057,4 @@ def write_calibrated_scene(
         from grounder._calibrate_report import write_report
 
         write_report(stage / "report.html", result, base, report_trajs)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    try:
-        if out.exists():
-            out.rmdir()  # checked empty by calibrate(); not empty now if something wrote there meanwhile
-        os.replace(stage, out)
-    except OSError as exc:  # the finished result is kept, named, rather than thrown away
-        raise GrounderError(
-            f"cannot move the calibrated scene into {out} ({exc.strerror or exc}; was it written to while "
-            f"calibrating?); it is kept, complete, in {stage}: move it where you want it, or re-run with another "
-            "output folder (-o)"
-        ) from exc
     return out

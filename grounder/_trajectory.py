@@ -19,8 +19,6 @@ from __future__ import annotations
 import math
 import os
 import re
-import secrets
-import shutil
 import zipfile
 import zlib
 from collections.abc import Iterable, Sequence
@@ -506,14 +504,9 @@ def save_trajectories(trajs: Iterable[Trajectory], directory: str | os.PathLike[
         for traj in trajs:
             save_trajectory(traj, directory / f"{traj.name}{_SUFFIX}")
         return directory
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    staging = directory.with_name(f".{directory.name}.{secrets.token_hex(6)}.tmp")
-    staging.mkdir()
-    try:
+    from reconstruction._outdir import staged_output_dir  # here: importing `reconstruction` loads pycolmap
+
+    with staged_output_dir(directory, error=TrajectoryError) as staging:
         for traj in trajs:
             save_trajectory(traj, staging / f"{traj.name}{_SUFFIX}")
-        os.replace(staging, directory)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return directory

@@ -5,6 +5,7 @@ Bad input of any kind ends with one line on stderr, naming the problem and the f
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import signal
@@ -58,6 +59,8 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 def fail(message: str) -> None:
     """Prints one line (a message over several lines is joined into one) and exits with code 2 (bad input)."""
+    for link, given in _ARGUMENT_LINKS.items():  # the user's own path, not the stand-in (`_reachable_arguments`)
+        message = message.replace(link, given)
     typer.echo(f"image2sim: error: {' '.join(message.split())}", err=True)
     raise typer.Exit(EXIT_BAD_INPUT)
 
@@ -294,16 +297,78 @@ def _terminated(signum: int, frame: object) -> None:
     raise _Terminated
 
 
+# Stand-in paths for arguments whose bytes are not UTF-8, and the arguments as given (`_reachable_arguments`).
+_ARGUMENT_LINKS: dict[str, str] = {}
+_OUTPUT_OPTIONS = ("-o", "--out")
+
+
+def _reachable_arguments(argv: list[str], link_dir: Path) -> list[str]:
+    """`argv` with each existing input path whose bytes are not UTF-8 (a name in another encoding: a file system
+    takes any bytes but '/') replaced by a UTF-8 stand-in: a symbolic link in `link_dir` to the deepest folder of the
+    path whose name is not UTF-8 (or to the file itself, when only its name is), followed by the rest of the path.
+    OpenCV, COLMAP and MuJoCo take paths as UTF-8 strings, and crashed (SIGSEGV) or refused (a TypeError) on others; a
+    folder link keeps the files beside a scene (its meshes) where the scene's relative paths look for them. Output
+    folders (`-o`) keep their names: they are staged under UTF-8 names and renamed at the end."""
+    from reconstruction._outdir import is_utf8_path
+
+    out = []
+    for i, arg in enumerate(argv):
+        is_output = (i > 0 and argv[i - 1] in _OUTPUT_OPTIONS) or arg.startswith(
+            tuple(f"{o}=" for o in _OUTPUT_OPTIONS)
+        )
+        if is_utf8_path(arg) or is_output or not os.path.lexists(arg):
+            out.append(arg)
+            continue
+        parts = Path(os.path.abspath(arg)).parts
+        last_odd = max(k for k, part in enumerate(parts) if not is_utf8_path(part))
+        rest: tuple[str, ...] = ()
+        if last_odd == len(parts) - 1 and not Path(arg).is_dir():
+            target = Path(*parts)
+            name = f"arg{i}{''.join(s for s in Path(arg).suffixes if is_utf8_path(s))}"
+        else:
+            target, rest, name = Path(*parts[: last_odd + 1]), parts[last_odd + 1 :], f"arg{i}"
+        link = link_dir / name
+        os.symlink(target, link)
+        stand_in = str(Path(link, *rest))
+        _ARGUMENT_LINKS[stand_in] = arg
+        out.append(stand_in)
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point.
 
     Usage errors (unknown option or command, a value of the wrong type, a missing argument) get the same one line
     as every other bad input, `image2sim: error: ...`, and exit code 2, instead of click's boxed usage message.
     """
+    import shutil
+    import tempfile
+
+    signal.signal(signal.SIGTERM, _terminated)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    link_dir = None
+    try:
+        from reconstruction._outdir import is_utf8_path  # light: no pycolmap
+
+        if not all(map(is_utf8_path, argv)):
+            link_dir = Path(tempfile.mkdtemp(prefix="image2sim-args-"))
+            argv = _reachable_arguments(argv, link_dir)
+        code = _run(argv)
+    finally:
+        from reconstruction._outdir import release_output_claims  # light: no pycolmap
+
+        release_output_claims()  # a command that checked its output and stopped before writing it
+        if link_dir is not None:
+            shutil.rmtree(link_dir, ignore_errors=True)
+            _ARGUMENT_LINKS.clear()
+    sys.exit(code if isinstance(code, int) else 0)
+
+
+def _run(argv: list[str] | None) -> object:
+    """`main`'s work: the command's exit code, or one line and `sys.exit` for what stopped it."""
     # typer 0.29 carries its own click (`constraints.txt` pins it); its exceptions are not re-exported by `typer`.
     from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
 
-    signal.signal(signal.SIGTERM, _terminated)
     try:
         code = app(args=argv, prog_name="image2sim", standalone_mode=False)
     except _Terminated:  # the output stages have removed what they had begun, as for Ctrl-C
@@ -319,17 +384,23 @@ def main(argv: list[str] | None = None) -> None:
     except ClickException as exc:
         typer.echo(f"image2sim: error: {' '.join(exc.format_message().split())}", err=True)
         sys.exit(exc.exit_code)
-    except typer.Abort:  # Ctrl-C outside a command's own handling
-        sys.exit(130)
+    except (typer.Abort, KeyboardInterrupt):  # Ctrl-C: the output stages have cleaned up as for SIGTERM
+        typer.echo("image2sim: stopped (Ctrl-C); nothing half-written was left", err=True)
+        sys.exit(128 + signal.SIGINT)
     except OSError as exc:  # the system refused a read or write no command check foresaw (permissions, disk full)
         where = f" {exc.filename}" if exc.filename else ""
+        if exc.errno == errno.ENOSPC:
+            from reconstruction._outdir import no_space_advice
+
+            typer.echo(f"image2sim: error: {no_space_advice(exc.filename or '.')}", err=True)
+            sys.exit(2)
         typer.echo(
             f"image2sim: error: the system refused to read or write{where} ({exc.strerror or exc}); "
             "check the permissions and free space there, then run again",
             err=True,
         )
         sys.exit(2)
-    sys.exit(code if isinstance(code, int) else 0)
+    return code
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ orbit and needs nothing from the network.
 from __future__ import annotations
 
 import contextlib
+import errno
 import itertools
 import logging
 import os
@@ -24,6 +25,7 @@ import numpy as np
 import pycolmap
 
 from reconstruction._frames import image_size
+from reconstruction._outdir import require_free_space
 from reconstruction._parallel import run_jobs_reporting, usable_cores
 from reconstruction._types import SfmOptions
 from reconstruction.errors import ReconstructionError, RegistrationError
@@ -61,6 +63,12 @@ def extract_features(
     for byte (the SQLite file's page layout may differ). ``progress(images_done)`` is called as chunks finish, in
     the calling thread; Ctrl-C waits for the running chunks only.
     """
+    # COLMAP aborts the process (SIGABRT) when SQLite finds the disk full, leaving its staging behind: refuse first.
+    # Each image's features (a 128-byte descriptor and a 24-byte keypoint each) are written twice: the shares' and
+    # the merged database.
+    require_free_space(
+        database_path.parent, 2 * len(image_names) * options.max_num_features * 152 + 2**20, "SIFT feature extraction"
+    )
     first_octave = sift_first_octave(image_dir, image_names, options)
     workers = options.extraction_workers if options.extraction_workers > 0 else usable_cores()
     if options.extraction_threads != 1 or len(image_names) < 2:
@@ -142,6 +150,18 @@ class UnmergeableSharesError(ReconstructionError):
     """Feature databases extracted from shares of the frames that cannot be merged into one extraction's."""
 
 
+@contextlib.contextmanager
+def _full_disk_as_oserror(database: Path) -> Iterator[None]:
+    """SQLite's "database or disk is full" as the OSError (ENOSPC, naming the file) that the command line turns into
+    one line saying what to free."""
+    try:
+        yield
+    except sqlite3.OperationalError as exc:
+        if "full" not in str(exc):
+            raise
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(database)) from exc
+
+
 def merge_feature_databases(parts: list[Path], out: Path) -> None:
     """Appends the images, frames and features of ``parts[1:]`` to a copy of ``parts[0]`` at ``out``, ids shifted
     to follow on, as if one extraction had read every share in turn.
@@ -152,6 +172,11 @@ def merge_feature_databases(parts: list[Path], out: Path) -> None:
     Raises:
         UnmergeableSharesError: the parts disagree on the camera or rig, a part read no image, or holds pose priors.
     """
+    with _full_disk_as_oserror(out):
+        _merge_feature_databases(parts, out)
+
+
+def _merge_feature_databases(parts: list[Path], out: Path) -> None:
     shutil.copyfile(parts[0], out)
     con = sqlite3.connect(out)
     try:
@@ -262,6 +287,10 @@ def match_features(
     ``progress(pairs_done, pairs)`` is called as chunks finish, in the calling thread; Ctrl-C waits for the running
     chunks only. With more matching threads COLMAP's own threading runs as before (not reproducible).
     """
+    # Each worker matches in a copy of the database, and the matches (about as large as the features, measured on
+    # the tabletop sample) are merged back: refused before COLMAP can abort on a full disk.
+    workers = options.matching_workers if options.matching_workers > 0 else usable_cores()
+    require_free_space(database_path.parent, (workers + 2) * database_path.stat().st_size + 2**20, "feature matching")
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = options.num_threads
     verification = pycolmap.TwoViewGeometryOptions()
@@ -279,7 +308,6 @@ def match_features(
             pairing.loop_detection_period = 5
             pairing.loop_detection_num_images = 5
             pairing.loop_detection_min_index_distance = 2 * options.sequential_overlap
-    workers = options.matching_workers if options.matching_workers > 0 else usable_cores()
     if options.num_threads != 1 or workers <= 1:
         if sequential:
             pycolmap.match_sequential(
@@ -429,16 +457,17 @@ def _match_share_in_process(
 def merge_match_databases(parts: list[Path], out: Path) -> None:
     """Appends the matches and two-view geometries of every part to the database at ``out``, part by part, each in
     pair-id order. The parts are copies of ``out`` (before matching) that each matched their own pairs."""
-    con = sqlite3.connect(out)
-    try:
-        for part in parts:
-            con.execute("ATTACH DATABASE ? AS part", (str(part),))
-            for table in ("matches", "two_view_geometries"):
-                con.execute(f"INSERT INTO main.{table} SELECT * FROM part.{table} ORDER BY pair_id")
-            con.commit()
-            con.execute("DETACH DATABASE part")
-    finally:
-        con.close()
+    with _full_disk_as_oserror(out):
+        con = sqlite3.connect(out)
+        try:
+            for part in parts:
+                con.execute("ATTACH DATABASE ? AS part", (str(part),))
+                for table in ("matches", "two_view_geometries"):
+                    con.execute(f"INSERT INTO main.{table} SELECT * FROM part.{table} ORDER BY pair_id")
+                con.commit()
+                con.execute("DETACH DATABASE part")
+        finally:
+            con.close()
 
 
 def map_incremental(
@@ -463,6 +492,8 @@ def map_incremental(
     # a dozen; local bundle adjustment keeps each new frame consistent, and a final global one still runs.
     pipeline.ba_global_frames_ratio = 1.3
     pipeline.ba_global_points_ratio = 1.3
+    # The mapper works in a copy of the database and writes its models beside it.
+    require_free_space(database_path.parent, 2 * database_path.stat().st_size + 2**22, "incremental mapping")
     out_dir.mkdir(parents=True, exist_ok=True)
     models = pycolmap.incremental_mapping(
         database_path, image_dir, out_dir, options=pipeline, next_image_callback=on_image or (lambda: None)

@@ -97,6 +97,16 @@ class CliRun:
     stderr: str
 
 
+@pytest.fixture(autouse=True)
+def _release_output_claims() -> object:
+    """In-process runs (the `cli` fixture, library calls) release the output folders they claimed, as a process's
+    end does: a test that checked an output and then failed leaves no lock beside it for the next test."""
+    yield
+    from reconstruction._outdir import release_output_claims
+
+    release_output_claims()
+
+
 @pytest.fixture
 def cli(
     capfd: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch

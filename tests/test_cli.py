@@ -433,7 +433,7 @@ def test_sigterm_unwinds_the_output_stage_like_ctrl_c(tmp_path: Path) -> None:
         text=True,
     )
     deadline = time.monotonic() + 120
-    while not list((tmp_path).glob(".out.partial-*/images/*.jpg")) and time.monotonic() < deadline:
+    while not list((tmp_path).glob(".i2s-*.partial/images/*.jpg")) and time.monotonic() < deadline:
         time.sleep(0.2)  # the staging folder is being filled: the work has begun
     time.sleep(2.0)  # into feature extraction (COLMAP's C++)
     proc.send_signal(signal.SIGTERM)

@@ -478,7 +478,7 @@ def test_an_output_folder_that_cannot_move_is_refused_early_or_keeps_the_result(
             (stage / "result.txt").write_text("done")
     assert (users / "notes.txt").read_text() == "mine"  # the user's folder is as it was
     assert (users / "reconstruct.json").read_text() == "{}"
-    kept = [p for p in tmp_path.iterdir() if p.name.startswith(".users.partial-")]
+    kept = [p for p in tmp_path.iterdir() if p.name.startswith("users.image2sim-")]
     assert len(kept) == 1 and (kept[0] / "result.txt").read_text() == "done"
 
 

@@ -1,0 +1,286 @@
+"""Faults a user meets: two runs on one output folder, a folder appearing mid-run, a full disk, a run killed with
+SIGKILL, names in other encodings. The fast cases; `benchmarks/faults.py` runs every case against the real commands.
+
+Each case checks the exit code and the one line, what is left on disk, and that the user's files are byte for byte
+as they were."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+from conftest import REPO, CliRun, assert_one_line_error
+
+from reconstruction._outdir import (
+    check_output_dir,
+    claim_output,
+    release_output_claims,
+    staged_output_dir,
+)
+from reconstruction.errors import InputError
+
+CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
+ODD = os.fsdecode(b"odd_\xff\xfe")  # a name in no UTF-8 (Latin-1 bytes, say): any bytes but '/' are allowed
+
+
+def _tree(root: Path) -> dict[str, bytes | None]:
+    """Every path under `root` with its bytes (None for a folder): what "the user's files, byte for byte" compares."""
+    return {str(p.relative_to(root)): (None if p.is_dir() else p.read_bytes()) for p in sorted(root.rglob("*"))}
+
+
+def _hidden(root: Path) -> list[str]:
+    return sorted(p.name for p in root.iterdir() if p.name.startswith("."))
+
+
+@contextlib.contextmanager
+def _claim_held_by_another_process(out_dir: Path) -> Iterator[subprocess.Popen[str]]:
+    """A second process holding `out_dir`'s claim, as a run that is writing there does; killed with SIGKILL after."""
+    code = (
+        "import sys; from reconstruction._outdir import claim_output; "
+        "claim_output(sys.argv[1]); print('claimed', flush=True); sys.stdin.read()"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(out_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "claimed"
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def test_a_second_run_on_the_same_output_is_refused_and_a_killed_runs_leftovers_are_cleaned(tmp_path: Path) -> None:
+    """Two `ground` runs on one `-o`, started 2 s apart, both exited 0 and the second silently replaced the first.
+    Now the second is refused at once, with one line naming the other run; and once the first is killed with SIGKILL
+    (nothing can clean up after that in the process itself), the next run takes over its claim and removes the
+    staging folder it left."""
+    out = tmp_path / "scene"
+    with _claim_held_by_another_process(out) as other:
+        with pytest.raises(InputError, match=rf"another image2sim run \(process {other.pid}\) is writing to .*scene"):
+            check_output_dir(out)
+        with pytest.raises(InputError, match="another image2sim run"), staged_output_dir(out):
+            pytest.fail("the block ran although another process holds the output")
+        # what a run killed mid-way leaves: its staging folder, with part of a result in it
+        leftover = next(iter(tmp_path.glob(".i2s-*.lock"))).with_suffix("").name + "-0123abcd.partial"
+        (tmp_path / leftover).mkdir()
+        (tmp_path / leftover / "half.bin").write_bytes(b"x" * 100)
+    # the holder is dead now (SIGKILL): its claim is stale, and so is its staging
+    with staged_output_dir(out) as stage:
+        assert not (tmp_path / leftover).exists()  # cleaned when the claim was taken over
+        (stage / "scene.json").write_text("{}")
+    assert (out / "scene.json").read_text() == "{}"
+    assert _hidden(tmp_path) == []  # no lock, no staging left
+
+
+def test_a_folder_that_appears_at_the_output_mid_run_is_never_deleted(tmp_path: Path) -> None:
+    """A folder a user made at `-o` while `ground` ran was deleted without --overwrite (moved aside and removed at the
+    final move). Now it is left as it is, and the finished result is kept beside it under a name of its own."""
+    out = tmp_path / "scene"
+    with pytest.raises(InputError, match=r"appeared while this run worked; it was left as it is.*kept, complete, in"):
+        with staged_output_dir(out) as stage:
+            (stage / "scene.json").write_text("{}")
+            out.mkdir()
+            (out / "notes.txt").write_text("data")
+    assert (out / "notes.txt").read_text() == "data" and sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    kept = [p for p in tmp_path.iterdir() if p.name.startswith("scene.image2sim-")]
+    assert len(kept) == 1 and (kept[0] / "scene.json").read_text() == "{}"
+    assert _hidden(tmp_path) == []
+
+    # With --overwrite, an image2sim output may be replaced, but not a folder that stopped being one meanwhile.
+    previous = tmp_path / "previous"
+    previous.mkdir()
+    (previous / "scene.json").write_text("old")
+    with pytest.raises(InputError, match="no longer an image2sim output; it was left as it is"):
+        with staged_output_dir(previous, overwrite=True) as stage:
+            (stage / "scene.json").write_text("new")
+            (previous / "scene.json").unlink()
+            (previous / "thesis.tex").write_text("mine")
+    assert _tree(previous) == {"thesis.tex": b"mine"}
+    # An empty folder that appeared is simply filled.
+    empty = tmp_path / "empty"
+    with staged_output_dir(empty) as stage:
+        (stage / "scene.json").write_text("{}")
+        empty.mkdir()
+    assert _tree(empty) == {"scene.json": b"{}"}
+
+
+def test_an_output_moved_aside_by_a_killed_run_is_put_back(tmp_path: Path) -> None:
+    """A run killed between its two renames (the old output moved aside, the new one not yet in place) left the
+    user's previous output under a hidden name. The next run on that folder puts it back before anything else."""
+    out = tmp_path / "scene"
+    out.mkdir()
+    (out / "scene.json").write_text("previous")
+    claim_output(out)  # to learn the names beside it
+    key = next(iter(tmp_path.glob(".i2s-*.lock"))).with_suffix("").name
+    release_output_claims()
+    out.rename(tmp_path / f"{key}-89abcdef.old")
+    with pytest.raises(InputError, match="already exists and is not empty"):
+        check_output_dir(out)  # put back first, so it is refused as the existing output it is
+    assert _tree(out) == {"scene.json": b"previous"}
+    assert _hidden(tmp_path) == []
+
+
+def test_names_the_file_system_allows_are_taken(tmp_path: Path) -> None:
+    """A valid 250-character `-o` was refused as too long (the staging name added 18 characters to it)."""
+    out = tmp_path / ("n" * 250)
+    with staged_output_dir(out) as stage:
+        (stage / "scene.json").write_text("{}")
+    assert (out / "scene.json").is_file() and _hidden(tmp_path) == []
+    # a folder that appears at such a name mid-run: the result is kept under a name that fits too
+    long = tmp_path / ("m" * 255)
+    with pytest.raises(InputError, match="kept, complete"), staged_output_dir(long) as stage:
+        (stage / "scene.json").write_text("{}")
+        long.mkdir()
+        (long / "x").write_text("x")
+    assert [p.name for p in tmp_path.iterdir() if ".image2sim-" in p.name]
+
+
+def _falling_cube_trajectories(folder: Path, count: int = 3) -> None:
+    model = mujoco.MjModel.from_xml_path(str(CUBE_XML))
+    data = mujoco.MjData(model)
+    folder.mkdir(parents=True)
+    for k in range(count):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:3] = [0.0, 0.0, 0.1 + 0.02 * k]
+        data.qvel[:3] = [0.2 * k, 0.0, 0.0]
+        times, qpos, qvel = [], [], []
+        for _ in range(40):
+            times.append(data.time)
+            qpos.append(data.qpos.copy())
+            qvel.append(data.qvel.copy())
+            for _ in range(5):
+                mujoco.mj_step(model, data)
+        np.savez(folder / f"toss{k}.npz", time=np.array(times), qpos=np.array(qpos), qvel=np.array(qvel))
+
+
+def test_paths_in_other_encodings_work_in_and_out(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
+    """A name that is not UTF-8 segfaulted `reconstruct` in OpenCV and was a TypeError traceback in `calibrate` and
+    `rollout` (MuJoCo takes UTF-8 paths only; for `calibrate -o`, after the whole fit). Inputs and outputs with
+    such names now work, and the output keeps its exact bytes."""
+    scene_dir = tmp_path / f"scene_{ODD}"
+    scene_dir.mkdir()
+    (scene_dir / f"cube_{ODD}.xml").write_bytes(CUBE_XML.read_bytes())
+    trajs = tmp_path / f"trajs_{ODD}"
+    _falling_cube_trajectories(trajs)
+    out = tmp_path / f"pred_{ODD}"
+    proc = cli("rollout", str(scene_dir / f"cube_{ODD}.xml"), str(trajs), "-o", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["rollout.json", "toss0.npz", "toss1.npz", "toss2.npz"]
+    assert os.fsencode(out.name) == b"pred_odd_\xff\xfe"
+    cal = tmp_path / f"cal_{ODD}"
+    proc = cli("calibrate", str(scene_dir / f"cube_{ODD}.xml"), str(trajs), "-o", str(cal), "--max-train", "2")
+    assert proc.returncode == 0, proc.stderr
+    assert (cal / "scene.xml").is_file() and (cal / "calibration.json").is_file()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    # a refusal names the user's path, not the stand-in the command line used for it
+    proc = cli("rollout", str(scene_dir / f"cube_{ODD}.xml"), str(trajs), "-o", str(out))
+    assert_one_line_error(proc, "already exists and is not empty")
+    assert "image2sim-args-" not in proc.stderr
+
+
+def _tmpfs(path: Path, size: str) -> bool:
+    path.mkdir()
+    try:
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], check=True, capture_output=True
+        )
+    except (OSError, subprocess.CalledProcessError):
+        return False
+    return True
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A 6 MB file system of its own (a tmpfs, where this machine lets the tests mount one)."""
+    disk = tmp_path / "disk"
+    if not _tmpfs(disk, "6m"):
+        pytest.skip("cannot mount a tmpfs here (needs root); benchmarks/faults.py's shim covers a full disk")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(small_disk: Path, cli: Callable[..., CliRun]) -> None:
+    """On a full disk `reconstruct` and `ground` aborted in COLMAP's SIFT (SIGABRT, exit 134: "SQLite error:
+    database or disk is full") and left a 3 MB staging folder, so the disk stayed full; with a little more room, an
+    `sqlite3.OperationalError` traceback. Now: one line naming the folder and what to free, exit 2, and the disk as
+    empty as before."""
+    (small_disk / "mine.txt").write_text("user data")
+    before = _tree(small_disk)
+    video = REPO / "samples" / "tabletop" / "video.mp4"
+    proc = cli("reconstruct", str(video), "-o", str(small_disk / "rec"), "--aruco-size", "0.12", "--max-frames", "30")
+    assert_one_line_error(proc, "MB free", f"df -h {small_disk}", "another disk (-o)")
+    assert proc.returncode == 2
+    assert _tree(small_disk) == before
+
+
+def test_sqlite_finding_the_disk_full_is_an_oserror_naming_the_database(tmp_path: Path) -> None:
+    """The merge of the per-share feature databases was an `sqlite3.OperationalError` traceback on a full disk; it
+    is now the ENOSPC OSError the command line turns into one line."""
+    import sqlite3
+
+    from reconstruction._sfm import _full_disk_as_oserror
+
+    with pytest.raises(OSError) as caught, _full_disk_as_oserror(tmp_path / "database.db"):
+        raise sqlite3.OperationalError("database or disk is full")
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(tmp_path / "database.db")
+    with pytest.raises(sqlite3.OperationalError), _full_disk_as_oserror(tmp_path / "database.db"):
+        raise sqlite3.OperationalError("no such table: images")  # other errors stay what they are
+
+
+def test_an_enospc_anywhere_is_one_line_naming_the_folder(
+    cli: Callable[..., CliRun], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Any write that finds the disk full, where no check foresaw it, ends as one line with what to free, exit 2."""
+    import grounder.cli
+
+    def full(*args: object, **kwargs: object) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device", "/data/out/.i2s-0123456789ab-00000000.partial/x.npz")
+
+    monkeypatch.setattr(grounder.cli, "app", full)
+    proc = cli("rollout", "a", "b", "-o", "c")
+    assert_one_line_error(proc, "no space left on the disk that holds /", "df -h")
+    assert ".i2s-" not in proc.stderr  # the staging folder is no name the user knows
+    assert proc.returncode == 2
+
+
+def test_ground_never_leaves_its_warm_up_thread_running(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """SIGINT or SIGTERM early in `ground`, or input refused after mapping began ("no object found on the table"),
+    printed its line and then crashed (SIGSEGV, exit 139): the warm-up thread (open3d, torch, MuJoCo), a daemon,
+    was still in C++ when the interpreter tore down. `ground` now stops it and waits for it on every way out."""
+    import grounder._ground as ground_module
+    import grounder._properties as properties_module
+    from grounder import ground
+    from reconstruction.errors import RegistrationError
+
+    loading = threading.Event()
+
+    def slow_model(*args: object, **kwargs: object) -> None:
+        loading.set()
+        threading.Event().wait(2.0)  # a load that is still going on when the main thread gives up
+
+    def mapping_then_refused(
+        source: Path, out_dir: Path, options: object, *, progress: object, on_mapping: Callable[[], None]
+    ) -> None:
+        on_mapping()
+        assert loading.wait(30)
+        raise RegistrationError("structure from motion could not start a model")
+
+    monkeypatch.setattr(properties_module, "load_property_model", slow_model)
+    monkeypatch.setattr(ground_module, "reconstruct", mapping_then_refused)
+    video = REPO / "samples" / "tabletop" / "video.mp4"
+    with pytest.raises(RegistrationError):
+        ground(video, tmp_path / "scene")
+    assert not [t for t in threading.enumerate() if t.name == "ground-warm-up"]
+    assert list(tmp_path.iterdir()) == []
