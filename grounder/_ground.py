@@ -141,17 +141,38 @@ def ground(
     """
     options = options or GroundOptions()
     report = progress or (lambda stage, done, total: None)
+    warm_up: list[threading.Thread] = []
+    stop_warm_up = threading.Event()
+    try:
+        return _ground_staged(source, out_dir, options, overwrite, report, warm_up, stop_warm_up)
+    finally:
+        # Never return or raise with the warm-up thread still in native code (an import, MuJoCo): a thread torn
+        # down at interpreter exit while in C++ crashed the process after its last line (SIGSEGV, exit 139).
+        stop_warm_up.set()
+        for thread in warm_up:
+            thread.join()
+
+
+def _ground_staged(
+    source: Path,
+    out_dir: Path,
+    options: GroundOptions,
+    overwrite: bool,
+    report: ProgressFn,
+    warm_up: list[threading.Thread],
+    stop_warm_up: threading.Event,
+) -> GroundResult:
+    """`ground`'s work; `warm_up` collects the warm-up thread, which stops at its next step once `stop_warm_up`."""
     seconds: dict[str, float] = {}
     warnings: list[str] = []
     with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,)) as stage:
-        warm_up: list[threading.Thread] = []
         tick = time.perf_counter()
         rec = reconstruct(
             source,
             stage / "reconstruction",
             options.reconstruct,
             progress=report,
-            on_mapping=lambda: warm_up.append(_start_warm_up(options)),
+            on_mapping=lambda: warm_up.append(_start_warm_up(options, stop_warm_up)),
         )
         seconds["reconstruct"] = time.perf_counter() - tick
         rec = replace(rec, out_dir=stage / "reconstruction")
@@ -250,30 +271,32 @@ def ground(
     )
 
 
-def _start_warm_up(options: GroundOptions) -> threading.Thread:
+def _start_warm_up(options: GroundOptions, stop: threading.Event) -> threading.Thread:
     """Loads, in a background thread, what the later stages need and the reconstruction does not: open3d, torch
     with the property model, and the bounce table that turns predicted restitutions into `solref`
     (`grounder._restitution`), about 10 s of one core's work. Started when mapping starts (`reconstruct`'s
     `on_mapping`), which runs on one thread for a reproducible model and leaves the other cores idle; started
     earlier it slowed the reconstruction's multi-threaded stages by as much as it saved. The results are the same,
     the caches being the ones the stages read. A failure is left to the stage that needs the thing, which then meets
-    the error itself and reports it. Returns the thread, a daemon, so that a run that fails does not wait for it.
+    the error itself and reports it. Returns the thread; once `stop` is set it ends after the step it is in (the
+    caller joins it: a thread still in C++ at interpreter exit crashes the process).
     """
 
     def work() -> None:
         try:
             import open3d  # noqa: F401  (dense fusion and meshing)
 
-            if options.property_model:
+            if options.property_model and not stop.is_set():
                 from grounder._properties import load_property_model
                 from grounder._restitution import contact_solref
 
                 load_property_model()
-                contact_solref(0.5, 0.02)  # what `_natural` asks for: the default export settings' table
+                if not stop.is_set():
+                    contact_solref(0.5, 0.02)  # what `_natural` asks for: the default export settings' table
         except Exception as exc:  # reported where it matters, by the stage that needs it
             log.debug("warm-up stopped: %s", exc)
 
-    thread = threading.Thread(target=work, name="ground-warm-up", daemon=True)
+    thread = threading.Thread(target=work, name="ground-warm-up")
     thread.start()
     return thread
 
