@@ -364,7 +364,7 @@ def main(argv: list[str] | None = None) -> None:
     sys.exit(code if isinstance(code, int) else 0)
 
 
-def _run(argv: list[str] | None) -> object:
+def _run(argv: list[str]) -> object:
     """`main`'s work: the command's exit code, or one line and `sys.exit` for what stopped it."""
     # typer 0.29 carries its own click (`constraints.txt` pins it); its exceptions are not re-exported by `typer`.
     from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
@@ -392,7 +392,9 @@ def _run(argv: list[str] | None) -> object:
         if exc.errno == errno.ENOSPC:
             from reconstruction._outdir import no_space_advice
 
-            typer.echo(f"image2sim: error: {no_space_advice(exc.filename or '.')}", err=True)
+            # A write inside a library (numpy's zip, say) may not name its file: the output folder is where it was.
+            given_out = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a in _OUTPUT_OPTIONS), None)
+            typer.echo(f"image2sim: error: {no_space_advice(exc.filename or given_out or '.')}", err=True)
             sys.exit(2)
         typer.echo(
             f"image2sim: error: the system refused to read or write{where} ({exc.strerror or exc}); "

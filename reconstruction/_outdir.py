@@ -283,6 +283,10 @@ def _mkdir_beside(out_dir: Path, tag: str, error: type[Exception]) -> tuple[Path
     return folder, created
 
 
+def _in_staging(path: str | Path) -> bool:
+    return any(part.startswith(_STAGE_PREFIX) and part.rsplit(".", 1)[-1] in _STAGE_TAGS for part in Path(path).parts)
+
+
 def _existing(path: str | Path) -> Path:
     """The folder a user knows for `path`: above any staging folder (theirs is the one holding the output), and the
     deepest part of it that exists."""
@@ -509,9 +513,16 @@ def write_image(
     import cv2
 
     if not cv2.imwrite(str(path), image, list(params)):
+        try:
+            full = shutil.disk_usage(_existing(path)).free < image.nbytes + 2**20
+        except OSError:
+            full = False
+        shown = path.name if _in_staging(path) else str(path)  # a staging folder is no name the user knows
+        if full:
+            raise error(f"could not write {shown}: {no_space_advice(path)}")
         raise error(
-            f"could not write {path} (disk full, or the folder not writable?); free some space or choose "
-            "another output folder (-o)"
+            f"could not write {shown} (disk full, or the folder {_existing(path)} not writable, or not an image "
+            "type: .png or .jpg?); free some space or choose another output folder (-o)"
         )
 
 

@@ -739,8 +739,7 @@ def write_preview(path: str | Path, frame_bgr: np.ndarray, rendered_rgb: np.ndar
         )
         panels.append(panel)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.concatenate(panels, axis=1)):
-        raise SceneExportError(f"could not write {path}; use a .png or .jpg path in a writable folder")
+    write_image(path, np.concatenate(panels, axis=1), error=SceneExportError)  # a full disk: says what to free
     return path
 
 
