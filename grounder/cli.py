@@ -348,16 +348,16 @@ def main(argv: list[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     link_dir = None
     try:
-        from reconstruction._outdir import is_utf8_path  # light: no pycolmap
-
-        if not all(map(is_utf8_path, argv)):
+        # Bytes that are not UTF-8 reach Python as lone surrogates (surrogateescape): only then is the (heavy)
+        # `reconstruction` package loaded for its path helpers.
+        if any("\udc80" <= c <= "\udcff" for arg in argv for c in arg):
             link_dir = Path(tempfile.mkdtemp(prefix="image2sim-args-"))
             argv = _reachable_arguments(argv, link_dir)
         code = _run(argv)
     finally:
-        from reconstruction._outdir import release_output_claims  # light: no pycolmap
-
-        release_output_claims()  # a command that checked its output and stopped before writing it
+        outdir = sys.modules.get("reconstruction._outdir")  # loaded by every command that claims an output
+        if outdir is not None:
+            outdir.release_output_claims()  # a command that checked its output and stopped before writing it
         if link_dir is not None:
             shutil.rmtree(link_dir, ignore_errors=True)
             _ARGUMENT_LINKS.clear()

@@ -217,6 +217,10 @@ def register(app: typer.Typer) -> None:
                 jobs = load_jobs(jobs_file)
                 out_dir = out if out is not None else jobs_file.with_name(f"{jobs_file.stem}_results")
                 check_batch_output(out_dir)  # run_batch checks again; this fails before the progress bar appears
+                from grounder.errors import GrounderError
+                from reconstruction._outdir import claim_output
+
+                claim_output(out_dir, error=GrounderError)  # a second batch on this folder is refused while this runs
                 with stage_progress() as progress:
                     summary = run_batch(
                         jobs, out_dir, address=address, num_cpus=num_cpus, inline=inline, progress=progress
