@@ -45,8 +45,16 @@ VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log each s
 
 
 @app.callback()
-def _group() -> None:
+def _group(
+    debug: Annotated[
+        bool, typer.Option("--debug", help="On an internal failure, print the traceback too (any position).")
+    ] = False,
+) -> None:
     """Turn a video of a real tabletop into a calibrated MuJoCo simulation."""
+
+
+# The stage the running command last reported (`stage_progress`): an internal failure's line names it.
+_current_stage: list[str] = []
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -99,6 +107,7 @@ def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
     tasks: dict[str, Any] = {}
 
     def report(stage: str, done: int, total: int) -> None:
+        _current_stage[:] = [stage]
         if not tasks:  # shown from the first stage on: input rejected before any work is one error line alone
             progress.start()
         if stage not in tasks:
@@ -346,6 +355,8 @@ def main(argv: list[str] | None = None) -> None:
 
     signal.signal(signal.SIGTERM, _terminated)
     argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv  # taken anywhere on the line, before or after the command
+    argv = [a for a in argv if a != "--debug"]
     link_dir = None
     try:
         # Bytes that are not UTF-8 reach Python as lone surrogates (surrogateescape): only then is the (heavy)
@@ -353,7 +364,7 @@ def main(argv: list[str] | None = None) -> None:
         if any("\udc80" <= c <= "\udcff" for arg in argv for c in arg):
             link_dir = Path(tempfile.mkdtemp(prefix="image2sim-args-"))
             argv = _reachable_arguments(argv, link_dir)
-        code = _run(argv)
+        code = _run(argv, debug=debug)
     finally:
         outdir = sys.modules.get("reconstruction._outdir")  # loaded by every command that claims an output
         if outdir is not None:
@@ -364,7 +375,7 @@ def main(argv: list[str] | None = None) -> None:
     sys.exit(code if isinstance(code, int) else 0)
 
 
-def _run(argv: list[str]) -> object:
+def _run(argv: list[str], *, debug: bool = False) -> object:
     """`main`'s work: the command's exit code, or one line and `sys.exit` for what stopped it."""
     # typer 0.29 carries its own click (`constraints.txt` pins it); its exceptions are not re-exported by `typer`.
     from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
@@ -402,6 +413,21 @@ def _run(argv: list[str]) -> object:
             err=True,
         )
         sys.exit(2)
+    except Exception as exc:  # a failure no check foresaw: a bug, not bad input
+        if debug:
+            import traceback
+
+            traceback.print_exc()
+        command = next((a for a in argv if not a.startswith("-")), "image2sim")
+        stage = f" ({_current_stage[0]})" if _current_stage else ""
+        detail = " ".join(str(exc).split())[:300].rstrip(".") or "no message"
+        hint = "the traceback is above" if debug else "run the same command with --debug for the traceback"
+        typer.echo(
+            f"image2sim: internal error in {command}{stage}: {type(exc).__name__}: {detail}; {hint}, and please "
+            "report it",
+            err=True,
+        )
+        sys.exit(1)
     return code
 
 

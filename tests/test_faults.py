@@ -284,3 +284,26 @@ def test_ground_never_leaves_its_warm_up_thread_running(tmp_path: Path, monkeypa
         ground(video, tmp_path / "scene")
     assert not [t for t in threading.enumerate() if t.name == "ground-warm-up"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_internal_failure_is_one_line_naming_the_stage_and_debug_prints_the_traceback(
+    cli: Callable[..., CliRun], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An exception no check foresaw (a bug) was a bare traceback. It is now one line naming the command, the stage
+    it was in and the error, exit 1; `--debug`, anywhere on the line, prints the traceback as well."""
+    import grounder.cli
+
+    def broken(*args: object, **kwargs: object) -> None:
+        with grounder.cli.stage_progress() as report:
+            report("meshing objects", 1, 4)
+            raise ValueError("Surface level must be within volume data range.")
+
+    monkeypatch.setattr(grounder.cli, "app", broken)
+    proc = cli("ground", "video.mp4", "-o", "scene")
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("image2sim: internal error in ground (meshing objects): ValueError: Surface level"), last
+    assert "--debug" in last and "Traceback" not in proc.stderr
+    assert proc.returncode == 1
+    proc = cli("ground", "video.mp4", "-o", "scene", "--debug")
+    assert proc.returncode == 1 and "Traceback (most recent call last)" in proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("image2sim: internal error in ground")
