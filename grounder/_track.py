@@ -25,8 +25,10 @@ Pipeline, per clip:
 4. **Lost frames are flagged, never invented.** A frame's pose is rejected when too few features agree (inlier
    count or ratio, absolute and relative to the object's own recent values), when the rendering and the frame
    disagree (zero-mean normalised cross-correlation, absolute and relative), when less than half of the object is
-   inside the image, when the pose jumps away from the prediction, or, for the first / last frame of a run next
-   to a gap (typically partly hidden), when it is off the run's motion.
+   inside the image, when it puts the object into the table (or other static geometry) deeper than a tracked
+   depth's error, when it lies farther from the constant-velocity prediction than the object's own speed allows
+   (tracked, detected or tracked backwards alike), or, for the first / last frame of a run next to a gap (typically
+   partly hidden), when it is off the run's motion.
 5. **Output.** The trajectory format has no mask, so the clip is cut into *segments*: maximal runs of frames in
    which every object is tracked (at least `min_segment_frames`). Each segment is one trajectory file in the
    scene's joint order; velocities come from a Savitzky-Golay fit over the segment (window 7, order 2: exact in
@@ -82,6 +84,7 @@ from grounder._track_smooth import (
     rotation_angle_deg,
 )
 from grounder._track_support import (
+    StaticGeometry,
     SupportFit,
     apply_support_scale,
     collision_points_body,
@@ -94,6 +97,8 @@ from reconstruction._frames import opened_video
 from reconstruction._reconstruct import SIZE_RANGE_M
 
 log = logging.getLogger(__name__)
+
+GRAVITY_M_S2 = 9.81
 
 ProgressFn = Callable[[str, int, int], None]
 TRACK_JSON = "track.json"
@@ -128,7 +133,18 @@ class TrackOptions:
             and NCC over its last accepted frames (a partly hidden object falls below them).
         min_in_frame: least fraction of the object's mesh vertices inside the image.
         min_area_px: least visible silhouette area in pixels.
-        max_jump_m: largest accepted distance from the constant-velocity prediction.
+        max_jump_m: largest accepted distance from the constant-velocity prediction, however fast the object moves.
+        max_jump_at_rest_m: largest accepted distance from it for an object at rest. A moving one may also deviate by
+            twice its last frame's displacement (an impact can at most reverse the velocity) and by g dt^2 (gravity
+            over one frame), up to `max_jump_m`. Applies to every pose with a prediction (the object tracked in the
+            frame before): followed, re-detected after a failed step, or tracked backwards. The toss samples'
+            correct poses lie at most 5.9 mm off the prediction at rest (moving camera; 5.0 static) and 1.5x the
+            displacement at impacts; a resting object that is struck is lost for the frame it is struck in, then
+            found again by detection.
+        max_penetration_m: largest accepted depth of the object's collision geometry inside the scene's static
+            geometry (the table; `grounder._track_support.StaticGeometry`). Correct poses of the toss samples reach
+            6.3 mm on a grounded scene (its meshes' size error moves the depth; the support correction removes it
+            later), 3.2 mm on the true one; wrong detections that matched the frame sat 18-65 mm inside the table.
         max_edge_deviation_m: a tracked run's first / last frame next to a gap (often partly hidden) must lie this
             close to the extrapolation of the run's motion, or it is flagged too.
         detect_min_inliers: PnP inliers needed to accept a detection.
@@ -180,6 +196,8 @@ class TrackOptions:
     min_in_frame: float = 0.5
     min_area_px: int = 300
     max_jump_m: float = 0.08
+    max_jump_at_rest_m: float = 0.015
+    max_penetration_m: float = 0.01
     max_edge_deviation_m: float = 0.008
     detect_min_inliers: int = 15
     detect_views: int = 26
@@ -611,6 +629,7 @@ class _Tracker:
         self.camera = renderer.camera
         self.vertices = [self._object_vertices(i) for i in range(len(renderer.names))]
         self.radii = [float(np.linalg.norm(v, axis=1).max()) for v in self.vertices]
+        self.static = StaticGeometry(renderer.model)
         self._features: list[FeatureModel] | None = None
         self._sift = cv2.SIFT.create()
         self._matcher = cv2.BFMatcher(cv2.NORM_L2)
@@ -668,6 +687,18 @@ class _Tracker:
             (uv[:, 0] >= 0) & (uv[:, 0] < self.camera.width_px) & (uv[:, 1] >= 0) & (uv[:, 1] < self.camera.height_px)
         )
         return float(inside.sum()) / len(points)
+
+    def judge(
+        self, index: int, step: _Step, typical: _Typical | None = None, expected: _Expected | None = None
+    ) -> tuple[bool, str, float]:
+        """Whether `step` is a pose of object `index` the frame supports (`_accept`), why not, and its in-image
+        fraction."""
+        if step.pose is None:
+            return False, step.reason, 0.0
+        fraction = self.in_frame(index, step.pose)
+        depth_m = self.static.penetration_m(self.renderer.names[index], step.pose)
+        ok, reason = _accept(step, fraction, self.options, typical, penetration_m=depth_m, expected=expected)
+        return ok, reason, fraction
 
     # ---- render-and-compare
 
@@ -849,6 +880,29 @@ def _predict(history: list[np.ndarray | None]) -> np.ndarray | None:
     return pred
 
 
+@dataclass(frozen=True, kw_only=True)
+class _Expected:
+    """Where an object's own motion puts it in a frame: the constant-velocity prediction and how far off it a pose
+    may lie (`TrackOptions.max_jump_m`, `max_jump_at_rest_m`)."""
+
+    pose: np.ndarray
+    max_jump_m: float
+
+
+def _expected(history: list[np.ndarray | None], dt_s: float, options: TrackOptions) -> _Expected | None:
+    """The prediction from the last two poses of `history` (oldest first) and its allowed deviation; None without
+    the last pose. With one pose the velocity is unknown, and only `max_jump_m` bounds the deviation."""
+    prediction = _predict(history)
+    if prediction is None:
+        return None
+    last, before = history[-1], history[-2] if len(history) >= 2 else None
+    if last is None or before is None:
+        return _Expected(pose=prediction, max_jump_m=options.max_jump_m)
+    step_m = float(np.linalg.norm(last[:3, 3] - before[:3, 3]))
+    allowed = options.max_jump_at_rest_m + 2.0 * step_m + GRAVITY_M_S2 * dt_s**2
+    return _Expected(pose=prediction, max_jump_m=min(options.max_jump_m, allowed))
+
+
 @dataclass
 class _Typical:
     """An object's recent accepted inlier counts and NCCs: a partly hidden object falls well below its own typical
@@ -863,7 +917,18 @@ class _Typical:
         self.ncc = [*self.ncc, step.ncc][-keep:]
 
 
-def _accept(step: _Step, in_frame: float, options: TrackOptions, typical: _Typical | None = None) -> tuple[bool, str]:
+def _accept(
+    step: _Step,
+    in_frame: float,
+    options: TrackOptions,
+    typical: _Typical | None = None,
+    *,
+    penetration_m: float = 0.0,
+    expected: _Expected | None = None,
+) -> tuple[bool, str]:
+    """Whether a refined pose is supported: enough agreeing features, the rendering like the frame, in the image, out
+    of the table (`penetration_m`: depth inside the static geometry) and, where the object was tracked in the frame
+    before (`expected`), near where its motion puts it."""
     if step.pose is None:
         return False, step.reason
     ratio = step.inliers / max(step.followed, 1)
@@ -877,6 +942,13 @@ def _accept(step: _Step, in_frame: float, options: TrackOptions, typical: _Typic
         return False, f"appearance NCC {step.ncc:.2f} (need {min_ncc:.2f})"
     if in_frame < options.min_in_frame:
         return False, f"{in_frame:.0%} in the image"
+    if penetration_m > options.max_penetration_m:
+        return False, f"{1e3 * penetration_m:.0f} mm inside the table or other static geometry"
+    if expected is not None:
+        jump_m = float(np.linalg.norm(step.pose[:3, 3] - expected.pose[:3, 3]))
+        if jump_m > expected.max_jump_m:
+            allowed_mm = 1e3 * expected.max_jump_m
+            return False, f"{1e3 * jump_m:.0f} mm off the prediction (its motion allows {allowed_mm:.0f})"
     return True, ""
 
 
@@ -912,20 +984,12 @@ def track_frames(
         renderer.set_camera(world_from_cam[f])
         gray = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         real_norm = normalise(gray)
-        predicted = [_predict(h) for h in history]
+        expected = [_expected(h, 1.0 / fps, options) for h in history]
+        predicted = [None if e is None else e.pose for e in expected]
         steps = tracker.refine(predicted, [i for i in range(num) if predicted[i] is not None], real_norm)
         accepted: list[np.ndarray | None] = [None] * num
         for i, step in steps.items():
-            prediction = predicted[i]
-            assert prediction is not None
-            fraction = tracker.in_frame(i, step.pose) if step.pose is not None else 0.0
-            ok, reason = _accept(step, fraction, options, typical[i])
-            if (
-                ok
-                and step.pose is not None
-                and np.linalg.norm(step.pose[:3, 3] - prediction[:3, 3]) > options.max_jump_m
-            ):
-                ok, reason = False, "jumped away from the prediction"
+            ok, reason, fraction = tracker.judge(i, step, typical[i], expected[i])
             if ok:
                 accepted[i] = step.pose
                 typical[i].add(step)
@@ -937,21 +1001,24 @@ def track_frames(
             features = tracker.frame_features(gray)
             for i in missing:
                 best: tuple[_Step, float] | None = None
-                failure = ""
+                failure, failure_ncc = "", -np.inf  # why the best-matching rejected candidate was rejected
                 for found in tracker.detect(i, features):
                     # Refine each candidate with the accepted objects in place (they may occlude it).
                     others = [accepted[j] if j != i else found for j in range(num)]
                     step = tracker.refine(others, [i], real_norm).get(i, _Step(pose=None, reason="no refinement"))
-                    fraction = tracker.in_frame(i, step.pose) if step.pose is not None else 0.0
-                    ok, reason = _accept(step, fraction, options, typical[i])
+                    # Where the object was tracked in the frame before (its step failed), its motion bounds the
+                    # detection as it bounds a step: else a pose the jump gate refused would come back here.
+                    ok, reason, fraction = tracker.judge(i, step, typical[i], expected[i])
                     if not ok:
-                        failure = reason
+                        ncc = step.ncc if np.isfinite(step.ncc) else -np.inf
+                        if not failure or ncc > failure_ncc:
+                            failure, failure_ncc = reason, ncc
                     elif best is None or step.ncc > best[0].ncc:
                         best = (step, fraction)
                 if best is None:
-                    row[i] = FrameScore(
-                        reason=f"detected, but {failure}" if failure else (row[i].reason or "not detected")
-                    )
+                    detected = f"detected, but {failure}" if failure else "not detected"
+                    refused = row[i].reason  # the tracked step's, where there was one
+                    row[i] = FrameScore(reason=f"{refused}; {detected}" if refused and failure else refused or detected)
                     continue
                 step, fraction = best
                 accepted[i] = step.pose
@@ -965,7 +1032,7 @@ def track_frames(
                 valid[f, i] = True
         scores.append(row)
     report("tracking", count, count)
-    _track_backwards(tracker, frames_bgr, world_from_cam, poses, valid, scores, typical, progress=report)
+    _track_backwards(tracker, frames_bgr, 1.0 / fps, world_from_cam, poses, valid, scores, typical, progress=report)
     _trim_run_edges(poses, valid, scores, options.max_edge_deviation_m)
     return poses, valid, scores
 
@@ -1016,6 +1083,7 @@ def _trim_run_edges(
 def _track_backwards(
     tracker: _Tracker,
     frames_bgr: list[np.ndarray],
+    dt_s: float,
     world_from_cam: np.ndarray,
     poses: np.ndarray,
     valid: np.ndarray,
@@ -1026,7 +1094,6 @@ def _track_backwards(
 ) -> None:
     """Extends every track backwards into the frames before it, where the forward pass had not found the object yet
     (a wrong first detection, or the end of an occlusion seen only once the object is re-detected). In place."""
-    options = tracker.options
     count, num = valid.shape
     todo = [f for f in range(count - 2, -1, -1) if (~valid[f] & valid[f + 1]).any()]
     if not todo:
@@ -1039,16 +1106,17 @@ def _track_backwards(
         tracker.renderer.set_camera(world_from_cam[f])
         real_norm = normalise(cv2.cvtColor(frames_bgr[f], cv2.COLOR_BGR2GRAY))
         current: list[np.ndarray | None] = [poses[f, j] if valid[f, j] else None for j in range(num)]
+        expected: dict[int, _Expected] = {}
         for i in lost_here:
-            later = [poses[f + 1, i], poses[f + 2, i] if f + 2 < count and valid[f + 2, i] else None]
-            prediction = _predict([later[1], later[0]] if later[1] is not None else [later[0]])
-            assert prediction is not None
-            current[i] = prediction
+            later = [poses[f + 2, i] if f + 2 < count and valid[f + 2, i] else None, poses[f + 1, i]]
+            guess = _expected(later, dt_s, tracker.options)  # the motion run backwards: later frames first
+            assert guess is not None
+            expected[i] = guess
+            current[i] = guess.pose
         steps = tracker.refine(current, lost_here, real_norm)
         for i in lost_here:
             step = steps.get(i, _Step(pose=None, reason="no refinement"))
-            fraction = tracker.in_frame(i, step.pose) if step.pose is not None else 0.0
-            ok, _ = _accept(step, fraction, options, typical[i])
+            ok, _, fraction = tracker.judge(i, step, typical[i], expected[i])
             if ok and step.pose is not None:
                 poses[f, i] = step.pose
                 valid[f, i] = True

@@ -10,6 +10,10 @@ is kept and the height comes right. Then each frame in which the object lies sti
 factor (`snap_resting_depth`): what is left is the depth's jitter from frame to frame, and a velocity fit reads
 it as motion.
 
+The same geometry also rules poses out (`StaticGeometry`): an object cannot sit inside the table. A wrong detection
+(a printed texture repeats across a box's faces) can match the frame well enough and yet put the box 3-6 cm into
+the table; the tracker flags such a pose lost.
+
 Conventions: poses are (4, 4) world-from-body matrices in the gravity-aligned world frame with the table top at
 z = 0; `world_from_cam` uses OpenCV axes (only its translation, the camera centre, is used here).
 """
@@ -17,8 +21,12 @@ z = 0; `world_from_cam` uses OpenCV axes (only its translation, the camera centr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import mujoco
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -214,6 +222,65 @@ def snap_resting_depth(
             out[f, :3, 3] = centre + onto[0] * (out[f, :3, 3] - centre)
             moved += 1
     return out, moved
+
+
+class StaticGeometry:
+    """The scene's static geometry (colliding geoms welded to the world: the table, a floor), to tell how deep an
+    object's collision geometry at a given pose lies inside it.
+
+    Depths are MuJoCo's signed geom distances (`mujoco.mj_geomDistance`: exact for primitives, the convex hull for a
+    mesh), for every object geom and static geom that may collide (contype / conaffinity). Holds its own `MjData`,
+    so the caller's state is never touched.
+
+    Args:
+        model: the scene (objects on free joints).
+    """
+
+    def __init__(self, model: mujoco.MjModel) -> None:
+        import mujoco
+
+        self._model = model
+        self._data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, self._data)  # the static geoms' poses, once
+        static = [g for g in range(model.ngeom) if model.body_weldid[model.geom_bodyid[g]] == 0 and _collides(model, g)]
+        self._pairs: dict[int, list[tuple[int, int]]] = {}
+        self._qpos_address: dict[int, int] = {}
+        for body in range(1, model.nbody):
+            joint = int(model.body_jntadr[body])
+            if joint < 0 or model.jnt_type[joint] != mujoco.mjtJoint.mjJNT_FREE:
+                continue
+            self._qpos_address[body] = int(model.jnt_qposadr[joint])
+            own = [g for g in range(model.ngeom) if model.geom_bodyid[g] == body and _collides(model, g)]
+            self._pairs[body] = [(g, s) for g in own for s in static if _may_touch(model, g, s)]
+
+    def penetration_m(self, body_name: str, world_from_body: np.ndarray) -> float:
+        """How deep (metres, 0 where clear of it) the body at `world_from_body` (4, 4) lies inside the static geometry;
+        0 for a body without a free joint."""
+        import mujoco
+
+        body = int(self._model.body(body_name).id)
+        pairs = self._pairs.get(body, [])
+        if not pairs:
+            return 0.0
+        address = self._qpos_address[body]
+        quat_wxyz = np.zeros(4)
+        mujoco.mju_mat2Quat(quat_wxyz, np.ascontiguousarray(world_from_body[:3, :3], dtype=np.float64).ravel())
+        self._data.qpos[address : address + 3] = world_from_body[:3, 3]
+        self._data.qpos[address + 3 : address + 7] = quat_wxyz
+        mujoco.mj_kinematics(self._model, self._data)
+        # distmax 0: a pair apart reports 0 (MuJoCo stops at their bounding boxes), an overlap minus its depth.
+        depth = min(mujoco.mj_geomDistance(self._model, self._data, g, s, 0.0, None) for g, s in pairs)
+        return max(0.0, -float(depth))
+
+
+def _collides(model: mujoco.MjModel, geom: int) -> bool:
+    return bool(model.geom_contype[geom] or model.geom_conaffinity[geom])
+
+
+def _may_touch(model: mujoco.MjModel, geom_a: int, geom_b: int) -> bool:
+    """MuJoCo's contype / conaffinity filter (either direction)."""
+    contype, conaffinity = model.geom_contype, model.geom_conaffinity
+    return bool((contype[geom_a] & conaffinity[geom_b]) or (contype[geom_b] & conaffinity[geom_a]))
 
 
 def collision_points_body(model: object, body_name: str) -> np.ndarray:

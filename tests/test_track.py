@@ -253,6 +253,94 @@ def test_hidden_object_is_flagged_and_excluded_from_trajectories(tmp_path: Path)
     assert lost_share[1] == 0 and lost_share[2] == 0, lost_share
 
 
+def _box_error_m(result: Any, first: int) -> dict[int, float]:
+    """Clip frame -> distance (m) of each valid box pose from the truth (the true toss scene is tracked)."""
+    qpos = np.load(TOSS / "truth" / "trajectory.npz")["qpos"]
+    return {
+        first + int(f): float(np.linalg.norm(result.world_from_objects[f, 0][:3, 3] - qpos[first + f, :3]))
+        for f in np.nonzero(result.valid[:, 0])[0]
+    }
+
+
+def test_a_detection_through_the_table_is_lost_whatever_its_appearance_score() -> None:
+    """Issue 59: the occluded clip's first frame from frame 12 on gives one box candidate 41 mm off, 61 mm inside
+    the table (the print repeats across the box's faces, and a wrong face matches). Its NCC is 0.39997 here, against
+    a floor of 0.40; on a 2-core AMD EPYC it came out above, and the box was tracked through the table. With the
+    floor at 0.3, below any machine's score of it, the candidate passes every appearance test and must still be
+    lost: an object cannot sit in the table. (Accepted, it was followed 41 mm off through frames 12-19.) The box is
+    then detected where it is (frame 18) and tracked backwards to frame 12."""
+    if not (OCCLUDED / "video.mp4").exists():
+        pytest.skip("samples/toss_occluded is missing: run samples/make_toss_occluded.py")
+    first = 12
+    options = _options(start_frame=first, max_frames=8, detect_views=20, min_segment_frames=3, min_ncc=0.3)
+    result = track(OCCLUDED / "video.mp4", TOSS / "truth", None, options)
+    errors = _box_error_m(result, first)
+    assert all(e < 0.01 for e in errors.values()), errors
+    assert len(errors) >= 6, [row[0].reason for row in result.scores]
+
+
+@pytest.mark.parametrize(
+    ("offset_m", "reason"),
+    [((0.0, 0.0, -0.03), "inside the table"), ((0.04, 0.0, 0.0), "off the prediction")],
+    ids=["3 cm into the table", "4 cm sideways at rest"],
+)
+def test_an_implausible_refined_pose_is_lost(
+    offset_m: tuple[float, float, float], reason: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every refinement of the box in one frame of the toss (frames 12-19: it rests on the table) is moved by
+    `offset_m`, its feature and appearance scores kept: a pose that matches the frame (a wrong face, a shift along a
+    repeated print) yet cannot be. Into the table, or 4 cm sideways while it lies still (its motion allows 27 mm
+    there; the fixed 80 mm bound let it through), it is lost in that frame, tracked, re-detected or tracked
+    backwards alike; the frames around it stay tracked."""
+    import cv2
+
+    import grounder._track as track_module
+
+    first, target = 12, 16
+    frames, _ = read_clip(TOSS / "video.mp4", 2, target)  # (a clip is at least 2 frames)
+    target_norm = track_module.normalise(cv2.cvtColor(frames[0], cv2.COLOR_BGR2GRAY))
+    refine = track_module._Tracker.refine
+
+    def moved_refine(self: Any, poses: Any, active: list[int], real_norm: np.ndarray) -> dict[int, Any]:
+        steps = refine(self, poses, active, real_norm)
+        box = steps.get(0)
+        if box is not None and box.pose is not None and np.array_equal(real_norm, target_norm):
+            box.pose = box.pose.copy()
+            box.pose[:3, 3] += offset_m
+        return steps
+
+    monkeypatch.setattr(track_module._Tracker, "refine", moved_refine)
+    result = track(TOSS / "video.mp4", TOSS / "truth", None, _options(start_frame=first, max_frames=8, detect_views=20))
+    errors = _box_error_m(result, first)
+    assert target not in errors, (errors, result.scores[target - first][0])
+    assert reason in result.scores[target - first][0].reason, result.scores[target - first][0]
+    assert all(e < 0.01 for e in errors.values()), errors
+    assert set(errors) >= {first, first + 1, first + 2, target + 2, target + 3}, errors
+    assert result.valid[:, 1:].all()
+
+
+def test_static_geometry_depth_of_a_box_on_the_table() -> None:
+    """The toss box (12 x 8 x 6 cm) resting on the table is 0 deep in the static geometry (table and floor); lowered
+    by 3 cm, 3 cm deep; tilted 30 deg with its lowest corner 1 cm into the table, 1 cm deep."""
+    from grounder._track_support import StaticGeometry
+
+    model = mujoco.MjModel.from_xml_path(str(TOSS / "truth" / "scene.xml"))
+    static = StaticGeometry(model)
+    resting = np.eye(4)
+    resting[:3, 3] = [0.07, 0.19, 0.03]
+    assert static.penetration_m("box", resting) == 0.0
+    lowered = resting.copy()
+    lowered[2, 3] = 0.0
+    assert static.penetration_m("box", lowered) == pytest.approx(0.03, abs=1e-6)
+    tilted = np.eye(4)
+    angle = np.deg2rad(30.0)
+    tilted[:3, :3] = [[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]]
+    corners = np.array([[sx * 0.06, sy * 0.04, sz * 0.03] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    lowest = float((corners @ tilted[:3, :3].T)[:, 2].min())
+    tilted[:3, 3] = [0.07, 0.19, -lowest - 0.01]
+    assert static.penetration_m("box", tilted) == pytest.approx(0.01, abs=1e-4)
+
+
 def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
     from grounder.cli import app
 
