@@ -249,6 +249,11 @@ def _ground_staged(
         }
         for input_name, physical in properties.items():
             manifest["objects"][exported.body_names[input_name]]["properties"] = physical.to_json()
+        for obj in textured:  # "fallback": meshing failed and the object is the hull of its points (`find_objects`)
+            manifest["objects"][exported.body_names[obj.name]]["mesh"] = {
+                "quality": obj.mesh_quality,
+                "reason": obj.mesh_reason,
+            }
         report("object markers", 0, 1)
         manifest["object_markers"] = _scan_object_markers(views, manifest["objects"], options, warnings)
         manifest["warnings"] = warnings

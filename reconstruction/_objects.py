@@ -286,6 +286,32 @@ class WatertightMesh:
     closed_bottom: bool
 
 
+def fallback_mesh(segment: ObjectSegment) -> WatertightMesh:
+    """A closed surface for an object that `mesh_object` could not mesh: the convex hull of its fused points and of
+    their footprint on the table (z = 0), so that it stands where the object stands. Coarser than the real mesh (a
+    cavity is filled, a handle bridged) but never lost: one object's failure must not lose the scene.
+
+    Raises:
+        SegmentationError: the object has too few points, or they are flat, for any closed surface.
+    """
+    import trimesh
+
+    points = np.asarray(segment.points_world, float)
+    points = points[np.isfinite(points).all(axis=1)]
+    footprint = points.copy()
+    footprint[:, 2] = 0.0
+    try:
+        hull = trimesh.Trimesh(np.vstack([points, footprint])).convex_hull if len(points) >= 4 else None
+    except Exception:  # qhull's errors for flat or degenerate input
+        hull = None
+    if hull is None or not hull.is_watertight or hull.volume <= 0:
+        raise SegmentationError(
+            f"an object of {len(points)} fused points could not be closed even as their convex hull; film it from "
+            "more sides"
+        )
+    return WatertightMesh(vertices_world=np.asarray(hull.vertices), faces=np.asarray(hull.faces), closed_bottom=True)
+
+
 def _oriented_shell(dense: DenseResult, segment: ObjectSegment, cam_centres: np.ndarray) -> np.ndarray:
     """The object's fused faces, flipped if needed so that normals point out, towards the cameras."""
     faces = dense.faces[segment.face_ids]

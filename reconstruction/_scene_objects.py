@@ -114,7 +114,13 @@ def find_objects(
     instances: list[ObjectInstance] = []
     for index, segment in enumerate(segments):
         report("meshing objects", index, len(segments))
-        mesh = _objects.mesh_object(dense, segment, cam_centres, options.mesh)
+        quality, reason = "full", None
+        try:
+            mesh = _objects.mesh_object(dense, segment, cam_centres, options.mesh)
+        except Exception as exc:  # one object's failure must not lose the scene: a coarser surface made another way
+            reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            mesh = _objects.fallback_mesh(segment)  # SegmentationError where even that cannot be closed
+            quality = "fallback"
         volume = _mesh_volume(mesh.vertices_world, mesh.faces)
         if volume < (options.min_object_voxels * dense.voxel_size) ** 3:
             # A cluster whose solid the depth maps see through almost entirely (a shadow, a reflection): not an object.
@@ -130,7 +136,12 @@ def find_objects(
                 world_from_object=world_from_object,
                 num_views=segment.num_views,
                 closed_bottom=mesh.closed_bottom,
-                warnings=segment.warnings,
+                warnings=(
+                    *segment.warnings,
+                    *(() if reason is None else (f"meshed as the convex hull of its points ({reason})",)),
+                ),
+                mesh_quality=quality,
+                mesh_reason=reason,
             )
         )
     report("meshing objects", len(segments), len(segments))

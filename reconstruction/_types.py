@@ -239,6 +239,9 @@ class ObjectInstance:
         num_views: frames in which the object is visible.
         closed_bottom: the unseen underside was closed with a flat cap on the table plane (an assumption).
         warnings: problems noticed (partly out of view, possibly several touching objects, ...).
+        mesh_quality: "full" (meshed from its fused surface) or "fallback" (that failed: the convex hull of its
+            points, `reconstruction._objects.fallback_mesh`).
+        mesh_reason: why the full mesh failed, for a fallback.
     """
 
     name: str
@@ -247,3 +250,5 @@ class ObjectInstance:
     num_views: int = 0
     closed_bottom: bool = True
     warnings: tuple[str, ...] = ()
+    mesh_quality: str = "full"
+    mesh_reason: str | None = None

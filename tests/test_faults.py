@@ -307,3 +307,70 @@ def test_an_internal_failure_is_one_line_naming_the_stage_and_debug_prints_the_t
     proc = cli("ground", "video.mp4", "-o", "scene", "--debug")
     assert proc.returncode == 1 and "Traceback (most recent call last)" in proc.stderr
     assert proc.stderr.strip().splitlines()[-1].startswith("image2sim: internal error in ground")
+
+
+def test_fallback_mesh_is_the_closed_hull_of_the_points_standing_on_the_table() -> None:
+    """The fallback for an object that cannot be meshed: closed, standing on z = 0, the volume of its points' hull."""
+    from reconstruction._objects import ObjectSegment, SegmentationError, fallback_mesh
+
+    rng = np.random.default_rng(0)
+    # the seen surface of a 4 x 6 x 3 cm box standing 1 cm above... its sides and top only (no underside seen)
+    points = rng.uniform([-0.02, -0.03, 0.005], [0.02, 0.03, 0.03], size=(400, 3))
+    points[:100, 2] = 0.03
+    points[100:200, 0] = -0.02
+    points[200:300, 0] = 0.02
+    segment = ObjectSegment(
+        points_world=points, normals_world=np.zeros_like(points), face_ids=np.arange(0), num_views=10, warnings=()
+    )
+    mesh = fallback_mesh(segment)
+    import trimesh
+
+    solid = trimesh.Trimesh(mesh.vertices_world, mesh.faces)
+    assert solid.is_watertight and mesh.closed_bottom
+    assert abs(mesh.vertices_world[:, 2].min()) < 1e-12  # stands on the table
+    np.testing.assert_allclose(solid.volume, 0.04 * 0.06 * 0.03, rtol=0.05)
+    flat = ObjectSegment(
+        points_world=np.zeros((3, 3)), normals_world=np.zeros((3, 3)), face_ids=np.arange(0), num_views=1, warnings=()
+    )
+    with pytest.raises(SegmentationError, match="could not be closed even as their convex hull"):
+        fallback_mesh(flat)
+
+
+def test_one_object_that_cannot_be_meshed_does_not_lose_the_scene(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A thin-walled container on an unseen tabletop: skimage's marching cubes raised "Surface level must be within
+    volume data range" while meshing one of four objects, a traceback, exit 1, and the whole scene lost. Now that
+    object is the closed hull of its points, `scene.json` says so, a warning names it, and the scene is written and
+    rests."""
+    import json
+
+    import reconstruction._objects as objects_module
+    from grounder import GroundOptions, ground
+    from reconstruction import ReconstructOptions
+    from reconstruction._types import FrameSelectionOptions
+
+    real_mesh_object = objects_module.mesh_object
+    calls = []
+
+    def fails_on_the_second(*args: object, **kwargs: object) -> object:
+        calls.append(1)
+        if len(calls) == 2:
+            raise ValueError("Surface level must be within volume data range.")
+        return real_mesh_object(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(objects_module, "mesh_object", fails_on_the_second)
+    options = GroundOptions(
+        reconstruct=ReconstructOptions(aruco_size_m=0.12, frames=FrameSelectionOptions(max_frames=30)),
+        property_model=False,
+    )
+    result = ground(REPO / "samples" / "tabletop" / "video.mp4", tmp_path / "scene", options)
+    manifest = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    qualities = {name: entry["mesh"]["quality"] for name, entry in manifest["objects"].items()}
+    assert sorted(qualities.values()) == ["fallback", "full", "full"], qualities
+    fallback = next(name for name, q in qualities.items() if q == "fallback")
+    assert "ValueError: Surface level" in manifest["objects"][fallback]["mesh"]["reason"]
+    assert any("convex hull of its points" in w for w in result.warnings)
+    assert len(result.object_names) == 3
+    assert max(moved for moved, _turned in result.settle.values()) < 0.002  # the scene rests, the hull too
+    mujoco.MjModel.from_xml_path(str(tmp_path / "scene" / "scene.xml"))
