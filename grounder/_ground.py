@@ -32,6 +32,7 @@ from scene_export import (
     export_scene,
     render_view,
     settle_test,
+    single_hull,
     write_preview,
 )
 
@@ -208,7 +209,7 @@ def _ground_staged(
                     )
                     for f in rec.frames
                 ]
-                textured, coverage = _bake_textures(scene, views, options, report)
+                textured, coverage = _bake_textures(scene, views, options, report, warnings)
                 seconds["texture"] = time.perf_counter() - tick
 
                 tick = time.perf_counter()
@@ -219,7 +220,7 @@ def _ground_staged(
                 textured, cylinders = _snap_cylinders(textured, options.cylinder_snap)
 
                 tick = time.perf_counter()
-                specs = _object_specs(textured, hull_jobs, properties, options, report)
+                specs = _object_specs(textured, hull_jobs, properties, options, report, warnings)
                 seconds["collision"] = time.perf_counter() - tick  # what is left of the decomposition by then
             finally:
                 for job in hull_jobs.values():
@@ -325,7 +326,7 @@ def _scan_object_markers(
 
 
 def _bake_textures(
-    scene: SceneObjects, views: list[TextureView], options: GroundOptions, report: ProgressFn
+    scene: SceneObjects, views: list[TextureView], options: GroundOptions, report: ProgressFn, warnings: list[str]
 ) -> tuple[list[ObjectInstance], dict[str, float]]:
     """Each object's mesh with a colour texture baked from the views (the other objects occlude), and the share of
     its surface the views covered."""
@@ -335,11 +336,25 @@ def _bake_textures(
     for i, obj in enumerate(scene.objects):
         report("baking textures", i, len(scene.objects))
         others = [m for j, m in enumerate(world_meshes) if j != i]
-        bake = bake_texture_report(world_meshes[i][0], obj.mesh.faces, views, options.texture, occluders=others)
+        try:
+            bake = bake_texture_report(world_meshes[i][0], obj.mesh.faces, views, options.texture, occluders=others)
+        except Exception as exc:  # one object's failure must not lose the scene: it stays untextured
+            reason = f"texturing failed ({type(exc).__name__}: {' '.join(str(exc).split())}); left untextured"
+            textured.append(_fallen_back(obj, reason))
+            warnings.append(f"{obj.name}: {reason}")
+            coverage[obj.name] = 0.0
+            continue
         mesh = bake.mesh
         textured.append(replace(obj, mesh=replace(mesh, vertices_m=mesh.vertices_m - obj.world_from_object[:3, 3])))
         coverage[obj.name] = bake.coverage
     return textured, coverage
+
+
+def _fallen_back(obj: ObjectInstance, reason: str) -> ObjectInstance:
+    """`obj` marked as made another way (`mesh.quality` "fallback" in scene.json), with `reason` among its
+    warnings (which `ground` logs, naming the object)."""
+    reasons = "; ".join(r for r in (obj.mesh_reason, reason) if r)
+    return replace(obj, mesh_quality="fallback", mesh_reason=reasons, warnings=(*obj.warnings, reason))
 
 
 def _object_specs(
@@ -348,17 +363,26 @@ def _object_specs(
     properties: dict[str, ObjectProperties],
     options: GroundOptions,
     report: ProgressFn,
+    warnings: list[str],
 ) -> list[SceneObjectSpec]:
-    """The export spec of each object: its textured mesh, its collision hulls (waited for) and its physics."""
+    """The export spec of each object: its textured mesh, its collision hulls (waited for) and its physics. An
+    object whose decomposition failed gets one convex hull, and is marked so in `textured` and `warnings`."""
     specs = []
     for i, obj in enumerate(textured):
         report("collision hulls", i, len(textured))
         physical = properties.get(obj.name)
+        try:
+            collision = hull_jobs[obj.name].result()
+        except Exception as exc:  # one object's failure must not lose the scene: one convex hull instead
+            reason = f"convex decomposition failed ({type(exc).__name__}: {' '.join(str(exc).split())}); one hull"
+            collision = single_hull(obj.mesh.vertices_m, options.collision)
+            textured[i] = obj = _fallen_back(obj, reason)
+            warnings.append(f"{obj.name}: {reason}")
         specs.append(
             SceneObjectSpec(
                 name=obj.name,
                 visual=obj.mesh,
-                collision=hull_jobs[obj.name].result(),
+                collision=collision,
                 world_from_object=obj.world_from_object,
                 density_kg_m3=options.default_density_kg_m3 if physical is None else physical.density_kg_m3,
                 friction=options.default_friction if physical is None else physical.friction,

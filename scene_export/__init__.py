@@ -24,6 +24,7 @@ from scene_export._collision import (
     CollisionOptions,
     convex_decomposition,
     default_cache_dir,
+    single_hull,
 )
 from scene_export._mjcf import (
     CameraSpec,
@@ -71,5 +72,6 @@ __all__ = [
     "mjcf_name",
     "render_view",
     "settle_test",
+    "single_hull",
     "write_preview",
 ]

@@ -336,6 +336,21 @@ def _merge_cheapest(hulls: list[np.ndarray], max_hulls: int) -> list[np.ndarray]
     return [hulls[i] for i in sorted(alive)]
 
 
+def single_hull(vertices_m: np.ndarray, options: CollisionOptions | None = None) -> CollisionGeometry:
+    """The convex hull of the points alone, as collision geometry: the fallback for a mesh whose decomposition failed
+    (coarser: a cavity is filled), so one object's failure does not lose the scene.
+
+    Raises:
+        DecompositionError: the points are flat (no hull with volume).
+    """
+    start = time.perf_counter()
+    options = options or CollisionOptions()
+    vertices = np.asarray(vertices_m, np.float64).reshape(-1, 3)
+    hulls = _finish_hulls([vertices], options, max_vertices=options.single_hull_vertices)
+    sha = hashlib.sha256(np.ascontiguousarray(vertices).tobytes()).hexdigest()
+    return CollisionGeometry(hulls=hulls, method="convex_hull", seconds=time.perf_counter() - start, mesh_sha256=sha)
+
+
 def _finish_hulls(
     parts: list[np.ndarray], options: CollisionOptions, *, max_vertices: int | None = None
 ) -> tuple[np.ndarray, ...]:

@@ -341,8 +341,9 @@ def test_one_object_that_cannot_be_meshed_does_not_lose_the_scene(
 ) -> None:
     """A thin-walled container on an unseen tabletop: skimage's marching cubes raised "Surface level must be within
     volume data range" while meshing one of four objects, a traceback, exit 1, and the whole scene lost. Now that
-    object is the closed hull of its points, `scene.json` says so, a warning names it, and the scene is written and
-    rests."""
+    object is the closed hull of its points; one whose texture cannot be baked stays untextured, one whose CoACD
+    decomposition fails gets one convex hull; `scene.json` says so for each, a warning names it, and the scene is
+    written and rests."""
     import json
 
     import reconstruction._objects as objects_module
@@ -360,17 +361,42 @@ def test_one_object_that_cannot_be_meshed_does_not_lose_the_scene(
         return real_mesh_object(*args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(objects_module, "mesh_object", fails_on_the_second)
+    import grounder._ground as ground_module
+
+    real_decomposition, real_bake = ground_module.convex_decomposition, ground_module.bake_texture_report
+    decompositions, bakes = [], []
+
+    def decomposition_fails_on_the_first(*args: object, **kwargs: object) -> object:
+        decompositions.append(1)
+        if len(decompositions) == 1:
+            raise RuntimeError("CoACD returned no parts")
+        return real_decomposition(*args, **kwargs)  # type: ignore[arg-type]
+
+    def bake_fails_on_the_third(*args: object, **kwargs: object) -> object:
+        bakes.append(1)
+        if len(bakes) == 3:
+            raise MemoryError("texture atlas")
+        return real_bake(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(ground_module, "convex_decomposition", decomposition_fails_on_the_first)
+    monkeypatch.setattr(ground_module, "bake_texture_report", bake_fails_on_the_third)
     options = GroundOptions(
         reconstruct=ReconstructOptions(aruco_size_m=0.12, frames=FrameSelectionOptions(max_frames=30)),
         property_model=False,
     )
     result = ground(REPO / "samples" / "tabletop" / "video.mp4", tmp_path / "scene", options)
     manifest = json.loads((tmp_path / "scene" / "scene.json").read_text())
-    qualities = {name: entry["mesh"]["quality"] for name, entry in manifest["objects"].items()}
-    assert sorted(qualities.values()) == ["fallback", "full", "full"], qualities
-    fallback = next(name for name, q in qualities.items() if q == "fallback")
-    assert "ValueError: Surface level" in manifest["objects"][fallback]["mesh"]["reason"]
-    assert any("convex hull of its points" in w for w in result.warnings)
+    # object_0's decomposition, object_1's meshing and object_2's texture failed: each made another way
+    reasons = {name: entry["mesh"]["reason"] for name, entry in manifest["objects"].items()}
+    assert {entry["mesh"]["quality"] for entry in manifest["objects"].values()} == {"fallback"}, manifest["objects"]
+    assert sorted(reasons.values()) == sorted(
+        [
+            "convex decomposition failed (RuntimeError: CoACD returned no parts); one hull",
+            "ValueError: Surface level must be within volume data range.",
+            "texturing failed (MemoryError: texture atlas); left untextured",
+        ]
+    ), reasons
+    assert sum("convex hull of its points" in w or "failed" in w for w in result.warnings) == 3, result.warnings
     assert len(result.object_names) == 3
     assert max(moved for moved, _turned in result.settle.values()) < 0.002  # the scene rests, the hull too
     mujoco.MjModel.from_xml_path(str(tmp_path / "scene" / "scene.xml"))
