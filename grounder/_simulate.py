@@ -159,12 +159,20 @@ def copy_scene_files(scene: Path, stage: Path, *, skip: Sequence[str] = ()) -> N
     (`scene_files`) and nothing else of its folder. The MJCF itself is left to the caller, which writes its own
     ``scene.xml``.
     """
+    from reconstruction._outdir import is_bookkeeping_name  # here: importing `reconstruction` loads pycolmap
+
     stage_resolved, top = stage.resolve(), scene.resolve()
     if scene.is_dir():
 
         def ignore(folder: str, names: list[str]) -> list[str]:
             at_top = Path(folder).resolve() == top
-            return [n for n in names if (at_top and n in skip) or (Path(folder) / n).resolve() == stage_resolved]
+            return [
+                n
+                for n in names
+                if (at_top and n in skip)
+                or (Path(folder) / n).resolve() == stage_resolved
+                or is_bookkeeping_name(n)  # the claim and staging of an output being written inside the folder
+            ]
 
         check_links_stay_inside(scene, skip)
         shutil.copytree(scene, stage, symlinks=True, ignore=ignore, dirs_exist_ok=True)

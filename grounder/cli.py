@@ -46,11 +46,19 @@ VerboseOption = Annotated[bool, typer.Option("--verbose", "-v", help="Log each s
 
 @app.callback()
 def _group(
+    ctx: typer.Context,
     debug: Annotated[
         bool, typer.Option("--debug", help="On an internal failure, print the traceback too (any position).")
     ] = False,
 ) -> None:
     """Turn a video of a real tabletop into a calibrated MuJoCo simulation."""
+    ctx.call_on_close(_release_output_claims)  # however the command ends: its output folders are free again
+
+
+def _release_output_claims() -> None:
+    outdir = sys.modules.get("reconstruction._outdir")  # loaded by every command that claims an output
+    if outdir is not None:
+        outdir.release_output_claims()  # a command that checked its output and stopped before writing it
 
 
 # The stage the running command last reported (`stage_progress`): an internal failure's line names it.
@@ -366,9 +374,7 @@ def main(argv: list[str] | None = None) -> None:
             argv = _reachable_arguments(argv, link_dir)
         code = _run(argv, debug=debug)
     finally:
-        outdir = sys.modules.get("reconstruction._outdir")  # loaded by every command that claims an output
-        if outdir is not None:
-            outdir.release_output_claims()  # a command that checked its output and stopped before writing it
+        _release_output_claims()
         if link_dir is not None:
             shutil.rmtree(link_dir, ignore_errors=True)
             _ARGUMENT_LINKS.clear()

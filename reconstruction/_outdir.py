@@ -125,6 +125,12 @@ _STAGE_PREFIX = ".i2s-"
 _STAGE_TAGS = ("partial", "probe", "old")
 
 
+def is_bookkeeping_name(name: str) -> bool:
+    """A name image2sim gives its own entries beside an output (claim, staging, swap, probe): never user data, never
+    to be copied along with a folder that holds an output being written."""
+    return name.startswith(_STAGE_PREFIX) and name.rsplit(".", 1)[-1] in (*_STAGE_TAGS, "lock")
+
+
 def _key(out_dir: Path) -> str:
     return hashlib.sha256(os.fsencode(out_dir.name)).hexdigest()[:12]
 
@@ -386,6 +392,8 @@ def staged_output_dir(
             raise
         _move_into_place(staging, out_dir, overwrite=overwrite, error=error)
     finally:
+        # Released whole, also where `check_output_dir` claimed it before: the output is in place (or given up).
+        claim.depth = 1
         claim.release()
 
 

@@ -292,10 +292,12 @@ def test_output_folder_filled_while_calibrating_keeps_the_result(
         (out / "other.txt").write_text("written meanwhile")
 
     monkeypatch.setattr(report, "write_report", write_report_meanwhile)
-    with pytest.raises(GrounderError, match=r"cannot move the calibrated scene into .* kept, complete, in"):
+    with pytest.raises(
+        GrounderError, match=r"appeared while this run worked; it was left as it is.* kept, complete, in"
+    ):
         calibrate(CUBE_XML, trajs[:2], options=CalibrateOptions(generations=0, local_iterations=0), out=out)
     assert (out / "other.txt").read_text() == "written meanwhile"
-    kept = [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+    kept = [p for p in tmp_path.iterdir() if p.name.startswith("out.image2sim-")]
     assert len(kept) == 1 and (kept[0] / "scene.xml").is_file() and (kept[0] / "calibration.json").is_file()
 
 

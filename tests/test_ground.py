@@ -196,10 +196,11 @@ def test_no_object_on_the_table_is_reported(
         region_of_interest(reconstruction_of_points(table), 0.08)
 
 
-def test_a_failed_background_decomposition_surfaces_as_itself() -> None:
-    """Collision hulls are computed in a background thread while textures bake: a CoACD failure there must reach
-    the caller as the same `DecompositionError` (the CLI turns it into one line and exit code 2), and the objects
-    whose hulls did come back are not needed to report it."""
+def test_a_failed_background_decomposition_falls_back_to_one_hull() -> None:
+    """Collision hulls are computed in a background thread while textures bake. A CoACD failure there used to fail
+    the whole scene; now (issue 60: one object's failure never loses the scene) that object gets its convex hull,
+    is marked "fallback" with the reason, and a warning names it. A mesh too flat even for a hull still surfaces as
+    the `DecompositionError` it is (the CLI's one line, exit 2)."""
     from concurrent.futures import ThreadPoolExecutor
 
     from grounder._ground import GroundOptions, _object_specs
@@ -210,12 +211,25 @@ def test_a_failed_background_decomposition_surfaces_as_itself() -> None:
     def fail() -> CollisionGeometry:
         raise DecompositionError("CoACD returned no usable hulls for object_0")
 
-    cube = TexturedMesh(vertices_m=np.eye(3), faces=np.array([[0, 1, 2]]))
-    obj = ObjectInstance(name="object_0", mesh=cube, world_from_object=np.eye(4))
+    corners = np.array([[x, y, z] for x in (0.0, 0.02) for y in (0.0, 0.03) for z in (0.0, 0.04)])
+    box = TexturedMesh(vertices_m=corners, faces=np.array([[0, 1, 2]]))  # only the vertices reach the hull
+    obj = ObjectInstance(name="object_0", mesh=box, world_from_object=np.eye(4))
+    flat = TexturedMesh(vertices_m=np.eye(3), faces=np.array([[0, 1, 2]]))
     with ThreadPoolExecutor(max_workers=1) as pool:
-        job = pool.submit(fail)
-        with pytest.raises(DecompositionError, match="no usable hulls for object_0"):
-            _object_specs([obj], {"object_0": job}, {}, GroundOptions(), lambda stage, done, total: None)
+        objects, warnings = [obj], []
+        specs = _object_specs(
+            objects, {"object_0": pool.submit(fail)}, {}, GroundOptions(), lambda stage, done, total: None, warnings
+        )
+        assert len(specs) == 1 and len(specs[0].collision.hulls) == 1
+        np.testing.assert_allclose(np.ptp(specs[0].collision.hulls[0], axis=0), [0.02, 0.03, 0.04])
+        assert objects[0].mesh_quality == "fallback" and "no usable hulls" in (objects[0].mesh_reason or "")
+        assert warnings == [
+            "object_0: convex decomposition failed (DecompositionError: CoACD returned no usable hulls for object_0); "
+            "one hull"
+        ]
+        flat_obj = ObjectInstance(name="object_0", mesh=flat, world_from_object=np.eye(4))
+        with pytest.raises(DecompositionError, match="flat"):
+            _object_specs([flat_obj], {"object_0": pool.submit(fail)}, {}, GroundOptions(), lambda s, d, t: None, [])
 
 
 def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_failures_to_itself(
@@ -241,7 +255,7 @@ def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_fai
 
     monkeypatch.setattr(_restitution, "_bounce_table", stand_in)
     _properties.load_property_model.cache_clear()
-    _start_warm_up(GroundOptions()).join()
+    _start_warm_up(GroundOptions(), threading.Event()).join()
     assert _properties.load_property_model.cache_info().currsize == 1
     assert len(asked) == 1
     _properties.load_property_model()
@@ -253,7 +267,7 @@ def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_fai
     monkeypatch.setattr(threading, "excepthook", lambda args: escaped.append(args.exc_value))
     _properties.load_property_model.cache_clear()
     monkeypatch.setattr(_properties, "WEIGHTS_DIR", Path("/nonexistent/weights"))
-    _start_warm_up(GroundOptions()).join()
+    _start_warm_up(GroundOptions(), threading.Event()).join()
     assert escaped == []
     assert _properties.load_property_model.cache_info().currsize == 0
     with pytest.raises(_properties.PropertyModelError, match="no property model"):
