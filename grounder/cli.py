@@ -381,6 +381,11 @@ def main(argv: list[str] | None = None) -> None:
     sys.exit(code if isinstance(code, int) else 0)
 
 
+def _output_argument(argv: list[str]) -> str | None:
+    """The command's output folder as given (`-o X` or `--out X`), if any."""
+    return next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a in _OUTPUT_OPTIONS), None)
+
+
 def _run(argv: list[str], *, debug: bool = False) -> object:
     """`main`'s work: the command's exit code, or one line and `sys.exit` for what stopped it."""
     # typer 0.29 carries its own click (`constraints.txt` pins it); its exceptions are not re-exported by `typer`.
@@ -388,6 +393,8 @@ def _run(argv: list[str], *, debug: bool = False) -> object:
 
     try:
         code = app(args=argv, prog_name="image2sim", standalone_mode=False)
+        if code == 128 + signal.SIGINT:  # typer catches a Ctrl-C itself and returns this (no command returns it)
+            typer.echo("image2sim: stopped (Ctrl-C); nothing half-written was left", err=True)
     except _Terminated:  # the output stages have removed what they had begun, as for Ctrl-C
         typer.echo("image2sim: stopped (SIGTERM); nothing half-written was left", err=True)
         sys.exit(128 + signal.SIGTERM)
@@ -410,8 +417,8 @@ def _run(argv: list[str], *, debug: bool = False) -> object:
             from reconstruction._outdir import no_space_advice
 
             # A write inside a library (numpy's zip, say) may not name its file: the output folder is where it was.
-            given_out = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a in _OUTPUT_OPTIONS), None)
-            typer.echo(f"image2sim: error: {no_space_advice(exc.filename or given_out or '.')}", err=True)
+            where_to = exc.filename or _output_argument(argv) or "."
+            typer.echo(f"image2sim: error: {no_space_advice(where_to)}", err=True)
             sys.exit(2)
         typer.echo(
             f"image2sim: error: the system refused to read or write{where} ({exc.strerror or exc}); "
@@ -420,6 +427,11 @@ def _run(argv: list[str], *, debug: bool = False) -> object:
         )
         sys.exit(2)
     except Exception as exc:  # a failure no check foresaw: a bug, not bad input
+        if "No space left on device" in str(exc):  # a native library's write (faiss, COLMAP) as a RuntimeError
+            from reconstruction._outdir import no_space_advice
+
+            typer.echo(f"image2sim: error: {no_space_advice(_output_argument(argv) or '.')}", err=True)
+            sys.exit(2)
         if debug:
             import traceback
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -236,7 +237,9 @@ def register(app: typer.Typer) -> None:
             typer.echo(
                 f"image2sim: batch stopped ({signum.name}) {where}; run the same command again to resume", err=True
             )
-            raise typer.Exit(128 + signum) from None
+            # sys.exit, not typer.Exit: typer returns 130 for an Exit as it does for a Ctrl-C it caught itself, and
+            # main() prints the stopped line for that one; this stop has said its own.
+            sys.exit(128 + signum)
         finally:
             if on_main:
                 signal.signal(signal.SIGTERM, before)
