@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, NoReturn
 
 import typer
 
@@ -381,9 +381,17 @@ def main(argv: list[str] | None = None) -> None:
     sys.exit(code if isinstance(code, int) else 0)
 
 
-def _output_argument(argv: list[str]) -> str | None:
-    """The command's output folder as given (`-o X` or `--out X`), if any."""
-    return next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a in _OUTPUT_OPTIONS), None)
+_STOPPED_BY_CTRL_C = "image2sim: stopped (Ctrl-C); nothing half-written was left"
+
+
+def _full_disk(argv: list[str], filename: str | None) -> NoReturn:
+    """One line saying which disk filled and what to free, exit 2. A write inside a library (numpy's zip, faiss) may
+    not name its file: the output folder (`-o X`, `--out X`) is where it was."""
+    from reconstruction._outdir import no_space_advice
+
+    given_out = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a in _OUTPUT_OPTIONS), None)
+    typer.echo(f"image2sim: error: {no_space_advice(filename or given_out or '.')}", err=True)
+    sys.exit(2)
 
 
 def _run(argv: list[str], *, debug: bool = False) -> object:
@@ -391,10 +399,11 @@ def _run(argv: list[str], *, debug: bool = False) -> object:
     # typer 0.29 carries its own click (`constraints.txt` pins it); its exceptions are not re-exported by `typer`.
     from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
 
+    _current_stage.clear()  # an earlier command's stage in this process (the tests run many) is not this one's
     try:
         code = app(args=argv, prog_name="image2sim", standalone_mode=False)
         if code == 128 + signal.SIGINT:  # typer catches a Ctrl-C itself and returns this (no command returns it)
-            typer.echo("image2sim: stopped (Ctrl-C); nothing half-written was left", err=True)
+            typer.echo(_STOPPED_BY_CTRL_C, err=True)
     except _Terminated:  # the output stages have removed what they had begun, as for Ctrl-C
         typer.echo("image2sim: stopped (SIGTERM); nothing half-written was left", err=True)
         sys.exit(128 + signal.SIGTERM)
@@ -409,17 +418,12 @@ def _run(argv: list[str], *, debug: bool = False) -> object:
         typer.echo(f"image2sim: error: {' '.join(exc.format_message().split())}", err=True)
         sys.exit(exc.exit_code)
     except (typer.Abort, KeyboardInterrupt):  # Ctrl-C: the output stages have cleaned up as for SIGTERM
-        typer.echo("image2sim: stopped (Ctrl-C); nothing half-written was left", err=True)
+        typer.echo(_STOPPED_BY_CTRL_C, err=True)
         sys.exit(128 + signal.SIGINT)
     except OSError as exc:  # the system refused a read or write no command check foresaw (permissions, disk full)
         where = f" {exc.filename}" if exc.filename else ""
         if exc.errno == errno.ENOSPC:
-            from reconstruction._outdir import no_space_advice
-
-            # A write inside a library (numpy's zip, say) may not name its file: the output folder is where it was.
-            where_to = exc.filename or _output_argument(argv) or "."
-            typer.echo(f"image2sim: error: {no_space_advice(where_to)}", err=True)
-            sys.exit(2)
+            _full_disk(argv, exc.filename)
         typer.echo(
             f"image2sim: error: the system refused to read or write{where} ({exc.strerror or exc}); "
             "check the permissions and free space there, then run again",
@@ -428,10 +432,7 @@ def _run(argv: list[str], *, debug: bool = False) -> object:
         sys.exit(2)
     except Exception as exc:  # a failure no check foresaw: a bug, not bad input
         if "No space left on device" in str(exc):  # a native library's write (faiss, COLMAP) as a RuntimeError
-            from reconstruction._outdir import no_space_advice
-
-            typer.echo(f"image2sim: error: {no_space_advice(_output_argument(argv) or '.')}", err=True)
-            sys.exit(2)
+            _full_disk(argv, None)
         if debug:
             import traceback
 

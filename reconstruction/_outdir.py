@@ -125,10 +125,15 @@ _STAGE_PREFIX = ".i2s-"
 _STAGE_TAGS = ("partial", "probe", "old")
 
 
+def _is_stage_name(name: str) -> bool:
+    """`name` is one of a run's folders beside an output (staging, swap, probe)."""
+    return name.startswith(_STAGE_PREFIX) and name.rsplit(".", 1)[-1] in _STAGE_TAGS
+
+
 def is_bookkeeping_name(name: str) -> bool:
     """A name image2sim gives its own entries beside an output (claim, staging, swap, probe): never user data, never
     to be copied along with a folder that holds an output being written."""
-    return name.startswith(_STAGE_PREFIX) and name.rsplit(".", 1)[-1] in (*_STAGE_TAGS, "lock")
+    return _is_stage_name(name) or (name.startswith(_STAGE_PREFIX) and name.endswith(".lock"))
 
 
 def _key(out_dir: Path) -> str:
@@ -151,8 +156,9 @@ class _Claim:
         self.depth = 1
         self.created: list[Path] = []  # parent folders made for the output, deepest first
 
-    def release(self) -> None:
-        self.depth -= 1
+    def release(self, *, whole: bool = False) -> None:
+        """One hold fewer (`whole`: every hold); the lock and its file go with the last."""
+        self.depth = 0 if whole else self.depth - 1
         if self.depth > 0:
             return
         _claims.pop(self.out_dir, None)
@@ -227,8 +233,7 @@ def _release(out_dir: Path) -> None:
 def release_output_claims() -> None:
     """Releases every output claim this process holds (a command that checked its output and then stopped)."""
     for claim in list(_claims.values()):
-        claim.depth = 1
-        claim.release()
+        claim.release(whole=True)
 
 
 atexit.register(release_output_claims)
@@ -245,7 +250,7 @@ def _stale_siblings(out_dir: Path) -> list[Path]:
         return []
     for entry in entries:
         name = entry.name
-        ours = name.startswith(prefix) and name.rsplit(".", 1)[-1] in _STAGE_TAGS
+        ours = name.startswith(prefix) and _is_stage_name(name)
         if (ours or legacy.fullmatch(name)) and entry.is_dir() and not entry.is_symlink():
             found.append(entry)
     return found
@@ -290,7 +295,7 @@ def _mkdir_beside(out_dir: Path, tag: str, error: type[Exception]) -> tuple[Path
 
 
 def _in_staging(path: str | Path) -> bool:
-    return any(part.startswith(_STAGE_PREFIX) and part.rsplit(".", 1)[-1] in _STAGE_TAGS for part in Path(path).parts)
+    return any(map(_is_stage_name, Path(path).parts))
 
 
 def _existing(path: str | Path) -> Path:
@@ -298,7 +303,7 @@ def _existing(path: str | Path) -> Path:
     deepest part of it that exists."""
     where = Path(path)
     for i, part in enumerate(where.parts):
-        if part.startswith(_STAGE_PREFIX) and part.rsplit(".", 1)[-1] in _STAGE_TAGS:
+        if _is_stage_name(part):
             where = Path(*where.parts[:i])
             break
     while not where.exists() and where != where.parent:
@@ -382,19 +387,16 @@ def staged_output_dir(
     out_dir = Path(os.path.abspath(out_dir))  # `-o .` has no name to stage beside; links are refused, not followed
     claim = _claims[out_dir]
     try:
-        staging, created = _mkdir_beside(out_dir, "partial", error)  # `created` is removed again on failure
+        staging, _ = _mkdir_beside(out_dir, "partial", error)  # the parent exists: the claim made it, and removes it
         try:
             with _reachable_by_native_code(staging) as native_staging:
                 yield native_staging
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
-            _remove_empty(created)
             raise
         _move_into_place(staging, out_dir, overwrite=overwrite, error=error)
     finally:
-        # Released whole, also where `check_output_dir` claimed it before: the output is in place (or given up).
-        claim.depth = 1
-        claim.release()
+        claim.release(whole=True)  # also where `check_output_dir` claimed it before: the output is in place or given up
 
 
 def _move_into_place(staging: Path, out_dir: Path, *, overwrite: bool, error: type[Exception]) -> None:
@@ -477,13 +479,6 @@ def is_utf8_path(path: str | Path) -> bool:
     except UnicodeEncodeError:
         return False
     return True
-
-
-@contextmanager
-def native_path(path: str | Path) -> Iterator[Path]:
-    """An existing file or folder under a path that native libraries can open (see `_reachable_by_native_code`)."""
-    with _reachable_by_native_code(Path(path)) as reachable:
-        yield reachable
 
 
 @contextmanager

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import logging
 import os
 import shutil
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -95,6 +96,25 @@ class CliRun:
     returncode: int
     stdout: str
     stderr: str
+
+
+@contextlib.contextmanager
+def claim_held_by_another_process(out_dir: Path) -> Iterator[subprocess.Popen[str]]:
+    """A second process holding `out_dir`'s output claim, as a run writing there does; killed with SIGKILL after
+    (so its claim is left stale, as a killed run's is)."""
+    code = (
+        "import sys; from reconstruction._outdir import claim_output; "
+        "claim_output(sys.argv[1]); print('claimed', flush=True); sys.stdin.read()"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(out_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "claimed"
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
 
 
 @pytest.fixture(autouse=True)

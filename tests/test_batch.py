@@ -17,6 +17,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
+from conftest import claim_held_by_another_process
 
 from grounder import _simulate as sim
 from grounder._batch import load_jobs, ray_init_kwargs, read_result, run_batch
@@ -759,23 +760,11 @@ def test_a_folder_or_a_missing_path_as_the_jobs_file_is_one_clear_line(tmp_path:
 def test_a_second_batch_on_the_same_output_is_refused_while_the_first_runs(tmp_path: Path, traj_dir: Path) -> None:
     """Two batch runs on one results folder would both write its records and table; the second is now refused with
     one line while another process holds the folder's claim, and nothing of the first's is touched."""
-    code = (
-        "import sys; from reconstruction._outdir import claim_output; "
-        "claim_output(sys.argv[1]); print('claimed', flush=True); sys.stdin.read()"
-    )
     out = tmp_path / "jobs_results"
-    jobs_file = _write_jobs(
-        tmp_path / "jobs.yaml", [{"id": "good", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}]
-    )
-    holder = subprocess.Popen(
-        [sys.executable, "-c", code, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO
-    )
-    try:
-        assert holder.stdout is not None and holder.stdout.readline().strip() == "claimed"
+    job = {"id": "good", "scene": str(CUBE_XML), "trajectories": str(traj_dir)}
+    jobs_file = _write_jobs(tmp_path / "jobs.yaml", [job])
+    with claim_held_by_another_process(out):
         _one_error_line(_cli(["batch", str(jobs_file), "--inline"]), "another image2sim run", str(out))
         assert not out.exists()
-    finally:
-        holder.kill()
-        holder.wait()
     result = _cli(["batch", str(jobs_file), "--inline"])  # the holder is gone: its claim is stale
     assert result.exit_code == 0, result.output

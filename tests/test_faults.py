@@ -6,7 +6,6 @@ as they were."""
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import os
 import subprocess
@@ -18,7 +17,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import REPO, CliRun, assert_one_line_error
+from conftest import REPO, CliRun, assert_one_line_error, claim_held_by_another_process
 
 from reconstruction._outdir import (
     check_output_dir,
@@ -41,31 +40,13 @@ def _hidden(root: Path) -> list[str]:
     return sorted(p.name for p in root.iterdir() if p.name.startswith("."))
 
 
-@contextlib.contextmanager
-def _claim_held_by_another_process(out_dir: Path) -> Iterator[subprocess.Popen[str]]:
-    """A second process holding `out_dir`'s claim, as a run that is writing there does; killed with SIGKILL after."""
-    code = (
-        "import sys; from reconstruction._outdir import claim_output; "
-        "claim_output(sys.argv[1]); print('claimed', flush=True); sys.stdin.read()"
-    )
-    proc = subprocess.Popen(
-        [sys.executable, "-c", code, str(out_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO
-    )
-    try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "claimed"
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait()
-
-
 def test_a_second_run_on_the_same_output_is_refused_and_a_killed_runs_leftovers_are_cleaned(tmp_path: Path) -> None:
     """Two `ground` runs on one `-o`, started 2 s apart, both exited 0 and the second silently replaced the first.
     Now the second is refused at once, with one line naming the other run; and once the first is killed with SIGKILL
     (nothing can clean up after that in the process itself), the next run takes over its claim and removes the
     staging folder it left."""
     out = tmp_path / "scene"
-    with _claim_held_by_another_process(out) as other:
+    with claim_held_by_another_process(out) as other:
         with pytest.raises(InputError, match=rf"another image2sim run \(process {other.pid}\) is writing to .*scene"):
             check_output_dir(out)
         with pytest.raises(InputError, match="another image2sim run"), staged_output_dir(out):
