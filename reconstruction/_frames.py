@@ -304,9 +304,17 @@ def _median_motion_px(prev: np.ndarray, cur: np.ndarray) -> float:
 
 
 def select_frames(
-    frames: list[Frame], options: FrameSelectionOptions, num_source_frames: int | None = None
+    frames: list[Frame],
+    options: FrameSelectionOptions,
+    num_source_frames: int | None = None,
+    *,
+    ordered: bool = True,
 ) -> FrameSelection:
     """Drops blurred frames (relative to their neighbours) and near-duplicates, then caps the count.
+
+    ``ordered`` False (a folder of photos): the frames are stills in no particular order, so neither test applies.
+    A still's neighbours by file name are not the views beside it, and two photos that look alike are views worth
+    matching, not a camera standing still; every photo goes to structure from motion, as COLMAP would take it.
 
     Raises:
         InputError: the frames carry no texture to match, or too few frames survive.
@@ -320,7 +328,7 @@ def select_frames(
         )
     half = 5
     blurred = []
-    for i in range(len(frames)):
+    for i in range(len(frames) if ordered else 0):
         window = sharp[max(0, i - half) : i + half + 1]
         if sharp[i] < options.blur_ratio * np.median(window):
             blurred.append(frames[i].index)
@@ -329,7 +337,7 @@ def select_frames(
     for i in range(len(frames)):
         if frames[i].index in blurred:
             continue
-        if kept_positions and _median_motion_px(grays[kept_positions[-1]], grays[i]) < options.min_motion_px:
+        if ordered and kept_positions and _median_motion_px(grays[kept_positions[-1]], grays[i]) < options.min_motion_px:
             duplicate.append(frames[i].index)
             continue
         kept_positions.append(i)

@@ -127,7 +127,9 @@ def reconstruct(
         frames, num_source_frames = _frames.read_frames_counted(
             source, lambda done, total: report("reading frames", done, max(total, done))
         )
-        selection = _frames.select_frames(frames, options.frames, num_source_frames)
+        selection = _frames.select_frames(
+            frames, options.frames, num_source_frames, ordered=_frames.is_video(source)
+        )
         del frames
         image_dir = stage_dir / "images"
         image_dir.mkdir()

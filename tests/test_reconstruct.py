@@ -660,3 +660,30 @@ def test_atomic_file_is_whole_or_absent(tmp_path: Path) -> None:
     assert np.load(tmp_path / "arrays.npz")["a"].tolist() == [0, 1, 2]
     with pytest.raises(ValueError, match="expected 'wb' or 'w'"), atomic_file(path, "a"):
         pass
+
+
+def test_photos_are_not_dropped_as_blurred_or_duplicate_neighbours(tabletop_dir: Path) -> None:
+    """Unordered stills (issue 60): a photo much softer than the ones next to it by name, and two photos of nearly
+    the same view, all go to structure from motion; the same frames as a video drop both. Written against the old
+    selection, which treated a folder's name order as time and dropped them."""
+    import cv2
+
+    from reconstruction import Frame, select_frames
+    from reconstruction._types import FrameSelectionOptions
+
+    capture = cv2.VideoCapture(str(tabletop_dir / "video.mp4"))
+    images = []
+    while len(images) < 12:
+        ok, image = capture.read()
+        assert ok
+        images.append(image)
+    capture.release()
+    images[6] = cv2.GaussianBlur(images[6], (0, 0), 4.0)  # much softer than its neighbours
+    images[9] = images[8].copy()  # the same view twice
+    frames = [Frame(index=i, name=f"IMG_{i:04d}.jpg", image_bgr=im) for i, im in enumerate(images)]
+    options = FrameSelectionOptions()
+    as_video = select_frames(frames, options)
+    assert 6 in as_video.blurred and 9 in as_video.duplicate
+    as_photos = select_frames(frames, options, ordered=False)
+    assert [f.index for f in as_photos.kept] == list(range(12))
+    assert as_photos.blurred == () and as_photos.duplicate == ()
