@@ -115,3 +115,208 @@ def _sample(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -> np.n
 
     points, _ = trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
     return np.asarray(points)
+
+
+# ---------------------------------------------------------------- scoring a scene of the family (issue 60)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ObjectScore:
+    """One true object of a family scene against the grounded body matched to it (truth world frame, metres).
+
+    Unfound objects carry only their names and class; every figure is None for them."""
+
+    true_name: str
+    object_class: str
+    variant: str
+    name: str | None  # the grounded body, None when not found
+    centre_error_m: float | None = None  # bounding-box centres
+    chamfer_m: float | None = None  # mean of both directed mean surface distances
+    extent_error: float | None = None  # worst relative error over the three world-axis extents
+    normal_consistency: float | None = None  # mean |cos| between normals at nearest points, both directions
+    volume_ratio: float | None = None  # grounded / true
+    euler_number: int | None = None  # of the grounded visual mesh, vertices merged by position
+    true_euler_number: int | None = None
+    open_container: bool = False
+    keeps_ball: bool | None = None  # open containers: a 1.5 cm ball dropped in is still inside after 2 s
+    mesh_quality: str | None = None  # scene.json's "mesh.quality" ("fallback" when meshing failed)
+
+    @property
+    def found(self) -> bool:
+        return self.name is not None
+
+
+@dataclass(frozen=True, kw_only=True)
+class SceneScore:
+    """A grounded family scene against its truth: per true object, the grounded bodies matched to none, and how
+    the grounded world frame was put onto the truth's."""
+
+    objects: tuple[ObjectScore, ...]
+    extra_bodies: tuple[str, ...]
+    alignment: str  # "marker frame" or "rigid fit of camera centres"
+    scale_ratio: float  # grounded / true camera spread: the scale error (1.0 for a perfect scale)
+
+
+def _rigid_from_cameras(scene_dir: Path, truth_dir: Path) -> tuple[np.ndarray, float]:
+    """4x4 truth_from_grounded, the rigid (Kabsch) fit of the grounded camera centres onto the true ones, and the
+    ratio of their spreads (the grounded scale error). Frames are paired by `frame_index`."""
+    transforms = json.loads((scene_dir / "reconstruction" / "transforms.json").read_text())
+    truth = json.loads((truth_dir / "cameras.json").read_text())
+    true_centres = {f["frame_index"]: np.asarray(f["world_from_cam"])[:3, 3] for f in truth["frames"]}
+    pairs = [
+        (np.asarray(f["transform_matrix"])[:3, 3], true_centres[f["frame_index"]])
+        for f in transforms["frames"]
+        if f["frame_index"] in true_centres
+    ]
+    if len(pairs) < 3:
+        raise GrounderError(f"only {len(pairs)} grounded cameras pair with the truth's; cannot align the frames")
+    grounded = np.array([p[0] for p in pairs])
+    true = np.array([p[1] for p in pairs])
+    g0, t0 = grounded.mean(axis=0), true.mean(axis=0)
+    u, _, vt = np.linalg.svd((true - t0).T @ (grounded - g0))
+    d = np.sign(np.linalg.det(u @ vt))
+    rotation = u @ np.diag([1.0, 1.0, d]) @ vt
+    pose = np.eye(4)
+    pose[:3, :3] = rotation
+    pose[:3, 3] = t0 - rotation @ g0
+    spread = float(np.sqrt(((grounded - g0) ** 2).sum(axis=1).mean() / ((true - t0) ** 2).sum(axis=1).mean()))
+    return pose, spread
+
+
+def _samples_with_normals(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    points, faces = trimesh.sample.sample_surface(mesh, count, seed=int(rng.integers(1 << 31)))
+    return np.asarray(points), np.asarray(mesh.face_normals)[faces]
+
+
+def _normal_consistency(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
+    """Mean |cos| of the angle between each sample's normal and its nearest sample's on the other surface, both
+    ways (1 = the surfaces face the same way everywhere; 0.64 = random directions)."""
+    cos_ab = np.abs((a[1] * b[1][cKDTree(b[0]).query(a[0])[1]]).sum(axis=1))
+    cos_ba = np.abs((b[1] * a[1][cKDTree(a[0]).query(b[0])[1]]).sum(axis=1))
+    return float((cos_ab.mean() + cos_ba.mean()) / 2)
+
+
+def _cavity_drop_point(mesh: trimesh.Trimesh) -> np.ndarray:
+    """The point 1 cm above an open container's rim over the lowest floor inside it (world frame): where a ball
+    dropped straight down lands in the cavity. Found by casting rays down over the footprint."""
+    lo, hi = mesh.bounds
+    xs, ys = np.meshgrid(np.linspace(lo[0], hi[0], 25), np.linspace(lo[1], hi[1], 25))
+    origins = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, hi[2] + 0.05)], axis=1)
+    directions = np.tile([0.0, 0.0, -1.0], (len(origins), 1))
+    locations, rays, _ = mesh.ray.intersects_location(origins, directions, multiple_hits=False)
+    if len(rays) == 0:
+        return np.array([*mesh.bounds.mean(axis=0)[:2], hi[2] + 0.01])
+    # Lowest first hit, preferring the middle of the cavity (among hits within 1 mm of the lowest).
+    lowest = locations[:, 2].min()
+    floor = locations[locations[:, 2] < lowest + 0.001]
+    centre = floor.mean(axis=0)
+    return np.array([centre[0], centre[1], hi[2] + 0.01])
+
+
+def ball_stays_in(scene_xml: Path, body: str, drop_m: np.ndarray, radius_m: float = 0.0075) -> bool:
+    """Drops a ball of `radius_m` (1.5 cm across, 10 g) from `drop_m` (grounded world frame) into `body` and
+    simulates 2 s: True when it ends inside the body's bounding box below its rim, i.e. the cavity held it."""
+    import mujoco
+
+    spec = mujoco.MjSpec.from_file(str(scene_xml))
+    ball = spec.worldbody.add_body(name="_probe_ball", pos=drop_m.tolist())
+    ball.add_freejoint()
+    ball.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius_m, 0, 0], mass=0.01, condim=3)
+    model = spec.compile()
+    data = mujoco.MjData(model)
+    body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
+    ball_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, "_probe_ball")
+    mujoco.mj_forward(model, data)
+    # The container's world bounding box from its geoms' AABBs at the end (it may be nudged by the ball).
+    for _ in range(round(2.0 / model.opt.timestep)):
+        mujoco.mj_step(model, data)
+    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] == body_id]
+    corners = []
+    for g in geoms:
+        centre = data.geom_xpos[g] + data.geom_xmat[g].reshape(3, 3) @ model.geom_aabb[g][:3]
+        half = np.abs(data.geom_xmat[g].reshape(3, 3)) @ model.geom_aabb[g][3:]
+        corners += [centre - half, centre + half]
+    lo, hi = np.min(corners, axis=0), np.max(corners, axis=0)
+    ball_pos = data.xpos[ball_id]
+    return bool(np.all(ball_pos[:2] > lo[:2]) and np.all(ball_pos[:2] < hi[:2]) and ball_pos[2] < hi[2])
+
+
+def score_scene(scene_dir: Path, truth_dir: Path, *, samples: int = 20000, seed: int = 0) -> SceneScore:
+    """Scores a grounded family scene (`samples/make_scene_family.py`) against its truth.
+
+    Marker scenes share the truth's world frame; known-extent scenes are put onto it by a rigid fit of the camera
+    centres (never of the objects, which would hide their errors). Each true object is matched to at most one
+    grounded body whose centre lies within half the object's largest extent (at least 3 cm), nearest pairs first;
+    grounded bodies left over are extra bodies.
+    """
+    import trimesh
+    from scipy.optimize import linear_sum_assignment
+
+    family = json.loads((truth_dir / "family.json").read_text())
+    true_records = {o["name"]: o for o in json.loads((truth_dir / "objects.json").read_text())["objects"]}
+    truth = _true_meshes(truth_dir)
+    grounded = _grounded_meshes(scene_dir)
+    manifest = json.loads((scene_dir / "scene.json").read_text())
+    if family["scale_by"] == "marker":
+        truth_from_grounded, scale_ratio, alignment = np.eye(4), 1.0, "marker frame"
+    else:
+        truth_from_grounded, scale_ratio = _rigid_from_cameras(scene_dir, truth_dir)
+        alignment = "rigid fit of camera centres"
+    for mesh in grounded.values():
+        mesh.apply_transform(truth_from_grounded)
+    true_names, names = list(truth), list(grounded)
+    cost = np.full((len(true_names), len(names)), 1e3)
+    for i, t in enumerate(true_names):
+        gate = max(0.03, 0.5 * float(truth[t].extents.max()))
+        for j, g in enumerate(names):
+            d = float(np.linalg.norm(truth[t].bounds.mean(axis=0) - grounded[g].bounds.mean(axis=0)))
+            if d <= gate:
+                cost[i, j] = d
+    match: dict[str, str] = {}
+    if names:
+        for i, j in zip(*linear_sum_assignment(cost), strict=True):
+            if cost[i, j] < 1e3:
+                match[true_names[i]] = names[j]
+    rng = np.random.default_rng(seed)
+    scores = []
+    for t in true_names:
+        record = true_records[t]
+        common = {
+            "true_name": t,
+            "object_class": record.get("class", "?"),
+            "variant": record.get("variant", "?"),
+            "open_container": bool(record.get("open_container", False)),
+            "true_euler_number": record.get("euler_number"),
+        }
+        g = match.get(t)
+        if g is None:
+            scores.append(ObjectScore(name=None, **common))
+            continue
+        mesh, true_mesh = grounded[g], truth[t]
+        a, b = _samples_with_normals(mesh, samples, rng), _samples_with_normals(true_mesh, samples, rng)
+        chamfer = (cKDTree(b[0]).query(a[0])[0].mean() + cKDTree(a[0]).query(b[0])[0].mean()) / 2
+        merged = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        merged.merge_vertices(merge_tex=True, merge_norm=True)
+        keeps = None
+        if common["open_container"]:
+            drop_truth = _cavity_drop_point(true_mesh)
+            drop_grounded = (np.linalg.inv(truth_from_grounded) @ np.append(drop_truth, 1.0))[:3]
+            keeps = ball_stays_in(scene_dir / "scene.xml", g, drop_grounded)
+        scores.append(
+            ObjectScore(
+                name=g,
+                centre_error_m=float(np.linalg.norm(mesh.bounds.mean(axis=0) - true_mesh.bounds.mean(axis=0))),
+                chamfer_m=float(chamfer),
+                extent_error=float(np.max(np.abs(mesh.extents / true_mesh.extents - 1))),
+                normal_consistency=_normal_consistency(a, b),
+                volume_ratio=float(abs(mesh.volume) / true_mesh.volume),
+                euler_number=int(merged.euler_number),
+                keeps_ball=keeps,
+                mesh_quality=(manifest["objects"][g].get("mesh") or {}).get("quality"),
+                **common,
+            )
+        )
+    extra = tuple(sorted(set(names) - set(match.values())))
+    return SceneScore(objects=tuple(scores), extra_bodies=extra, alignment=alignment, scale_ratio=scale_ratio)
