@@ -104,8 +104,9 @@ def report(records: list[dict[str, object]], command: str) -> str:
         if "objects" not in r:
             objects += [{"object_class": o["class"], "variant": o["variant"], "name": None} for o in r["true_objects"]]
     lines += [
-        "| class | found / true | centre mm (median, max) | Chamfer mm (median, p95) | worst extent error (median, max) "
-        "| normal consistency (median, min) | volume ratio (median, range) | Euler as truth | cavity keeps ball |",
+        "| class | found / true | centre mm (median, max) | Chamfer mm (median, p95) "
+        "| worst extent error (median, max) | normal consistency (median, min) | volume ratio (median, range) "
+        "| Euler as truth | cavity keeps ball |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     classes = sorted({o["object_class"] for o in objects})
@@ -218,7 +219,10 @@ def targets(records: list[dict[str, object]], objects: list[dict[str, object]]) 
     out = ["| target | measured | wanted | met |", "|---|---|---|---|"]
     out += [f"| {name} | {value} | {want} | {'yes' if ok else '**no**'} |" for name, value, want, ok in rows]
     wall = [r["wall_s"] for r in records]
-    out += ["", f"Wall time per scene: median {_pct(wall, 50):.0f} s, max {_pct(wall, 100):.0f} s ({os.cpu_count()} cores)."]
+    out += [
+        "",
+        f"Wall time per scene: median {_pct(wall, 50):.0f} s, max {_pct(wall, 100):.0f} s ({os.cpu_count()} cores).",
+    ]
     return out
 
 

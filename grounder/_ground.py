@@ -101,6 +101,17 @@ def _read_image(path: Path) -> np.ndarray:
     return np.asarray(image)
 
 
+RESEGMENT_SCALE_CHANGE = 0.1  # a known-extent refinement beyond +-10% segments and meshes again
+
+
+def _extent_factor(scene: SceneObjects, known_extent_m: float) -> tuple[float, str]:
+    """The scale factor that gives the largest object its known longest extent. "Largest" is the object with the
+    longest extent, as `--known-extent` says and as the sparse estimate chose it (`world_from_extent`): by volume,
+    a bowl outranks a wider plate, and the plate's length given to the bowl scaled a whole scene by 1.18."""
+    largest = max(scene.objects, key=lambda o: float(np.ptp(o.mesh.vertices_m, axis=0).max()))
+    return known_extent_m / float(np.ptp(largest.mesh.vertices_m, axis=0).max()), largest.name
+
+
 def _rescale(
     scene: SceneObjects, result: ReconstructionResult, factor: float, note: str
 ) -> tuple[SceneObjects, ReconstructionResult]:
@@ -185,10 +196,19 @@ def _ground_staged(
         seconds["dense_segment_mesh"] = time.perf_counter() - tick
         scale_note = None
         if rec.world.scale_source == ScaleSource.KNOWN_EXTENT and options.reconstruct.known_extent_m:
-            largest = max(scene.objects, key=lambda o: float(np.prod(np.ptp(o.mesh.vertices_m, axis=0))))
-            factor = options.reconstruct.known_extent_m / float(np.ptp(largest.mesh.vertices_m, axis=0).max())
-            scale_note = f"known extent refined on the segmented mesh of {largest.name}: scale x {factor:.4f}"
-            scene, rec = _rescale(scene, rec, factor, scale_note)
+            factor, largest = _extent_factor(scene, options.reconstruct.known_extent_m)
+            if abs(np.log(factor)) > np.log(1 + RESEGMENT_SCALE_CHANGE):
+                # Segmentation and meshing work in metres (voxels, gaps, margins): at a scale this far off they
+                # merged or fattened the objects. Segment and mesh again in the corrected metres, then refine.
+                _, rec = _rescale(scene, rec, factor, f"known extent on a first segmentation: scale x {factor:.4f}")
+                scene = find_objects(rec, options.objects, progress=report)
+                second, largest = _extent_factor(scene, options.reconstruct.known_extent_m)
+                factor *= second
+                scale_note = f"known extent refined on the segmented mesh of {largest}: scale x {factor:.4f}"
+                scene, rec = _rescale(scene, rec, second, f"{scale_note} (x {second:.4f} on the second segmentation)")
+            else:
+                scale_note = f"known extent refined on the segmented mesh of {largest}: scale x {factor:.4f}"
+                scene, rec = _rescale(scene, rec, factor, scale_note)
         for obj in scene.objects:
             warnings.extend(f"{obj.name}: {w}" for w in obj.warnings)
 

@@ -37,7 +37,9 @@ ArucoSizeOption = Annotated[
 ]
 KnownExtentOption = Annotated[
     float | None,
-    typer.Option(help="Longest extent in metres of the largest object on the table (no marker)."),
+    typer.Option(
+        help="Longest extent (length, width or height) in metres of the longest object on the table (no marker)."
+    ),
 ]
 MaxFramesOption = Annotated[int, typer.Option(help="Use at most this many frames.")]
 SfmSeedOption = Annotated[int, typer.Option(help="Random seed (RANSAC, mapper).")]

@@ -59,7 +59,9 @@ def _from_sdf(sdf: Callable[[np.ndarray], np.ndarray], lo_m: np.ndarray, hi_m: n
     # About 1/4 of the faces keep the shape within a fraction of a millimetre and make the truth light to render.
     import open3d as o3d
 
-    o3d_mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices), o3d.utility.Vector3iVector(mesh.faces))
+    o3d_mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(mesh.vertices), o3d.utility.Vector3iVector(mesh.faces)
+    )
     o3d_mesh = o3d_mesh.simplify_quadric_decimation(target_number_of_triangles=max(4000, len(mesh.faces) // 4))
     simplified = trimesh.Trimesh(np.asarray(o3d_mesh.vertices), np.asarray(o3d_mesh.triangles), process=False)
     simplified.merge_vertices()

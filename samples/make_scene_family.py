@@ -193,7 +193,13 @@ def draw_objects(rng: np.random.Generator, count: int, marker: bool) -> list[Pla
 
 
 def build_spec(
-    assets: Path, objects: list[Placed], *, marker: bool, light_dir: np.ndarray, ambient: float, size_px: tuple[int, int]
+    assets: Path,
+    objects: list[Placed],
+    *,
+    marker: bool,
+    light_dir: np.ndarray,
+    ambient: float,
+    size_px: tuple[int, int],
 ) -> mujoco.MjSpec:
     """The true scene: floor, table (top at z = 0), optional marker sheet, welded objects, a shadow-casting key
     light from `light_dir`, a fill light and one movable camera."""
@@ -221,7 +227,9 @@ def build_spec(
     key_pos = -1.7 * light_dir
     world.add_light(name="key", pos=key_pos.tolist(), dir=light_dir.tolist(), diffuse=[0.65] * 3, castshadow=True)
     world.add_light(name="fill", pos=[-0.8, 0.6, 1.4], dir=[0.5, -0.3, -1.0], diffuse=[0.25] * 3, castshadow=False)
-    world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], pos=[0, 0, -0.75], material="floor")
+    world.add_geom(
+        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], pos=[0, 0, -0.75], material="floor"
+    )
     hx, hy = sa.TABLE_HALF_EXTENTS_M
     world.add_geom(
         name="table",
@@ -242,7 +250,12 @@ def build_spec(
     if marker:
         spec.add_mesh(name="marker", file="marker.obj")
         world.add_geom(
-            name="marker", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="marker", material="marker", contype=0, conaffinity=0
+            name="marker",
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname="marker",
+            material="marker",
+            contype=0,
+            conaffinity=0,
         )
     for obj in objects:
         half = np.deg2rad(obj.yaw_deg) / 2
@@ -294,8 +307,11 @@ def photo_poses(rng: np.random.Generator, count: int) -> tuple[np.ndarray, np.nd
     elevation = np.deg2rad(rng.uniform(20, 60, count))
     distance = rng.uniform(0.42, 0.75, count)
     eyes = np.stack(
-        [distance * np.cos(elevation) * np.cos(azimuth), distance * np.cos(elevation) * np.sin(azimuth),
-         distance * np.sin(elevation)],
+        [
+            distance * np.cos(elevation) * np.cos(azimuth),
+            distance * np.cos(elevation) * np.sin(azimuth),
+            distance * np.sin(elevation),
+        ],
         axis=1,
     )
     targets = np.concatenate([rng.uniform(-0.06, 0.06, (count, 2)), rng.uniform(0.0, 0.04, (count, 1))], axis=1)
@@ -330,8 +346,11 @@ def make_scene(seed: int, out: Path, *, small: bool) -> dict[str, object]:
         fovy_deg = float(rng.uniform(45, 55) if size_px[0] / size_px[1] < 1.5 else rng.uniform(38, 45))
     light_azimuth, light_elevation = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(35, 70))
     light_dir = -np.array(
-        [np.cos(light_elevation) * np.cos(light_azimuth), np.cos(light_elevation) * np.sin(light_azimuth),
-         np.sin(light_elevation)]
+        [
+            np.cos(light_elevation) * np.cos(light_azimuth),
+            np.cos(light_elevation) * np.sin(light_azimuth),
+            np.sin(light_elevation),
+        ]
     )
     ambient = float(rng.uniform(0.15, 0.3))
 
@@ -374,7 +393,9 @@ def make_scene(seed: int, out: Path, *, small: bool) -> dict[str, object]:
         numbers = rng.choice(np.arange(1000, 9999), size=num_views, replace=False)
         names = [f"IMG_{n}.jpg" for n in numbers]
         for name, frame, record in zip(names, frames, frame_records, strict=True):
-            cv2.imwrite(str(out / "photos" / name), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 92])
+            cv2.imwrite(
+                str(out / "photos" / name), cv2.cvtColor(frame, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 92]
+            )
             record["image_name"] = name
         order = np.argsort(names)
         for index, k in enumerate(order):
@@ -409,8 +430,12 @@ def make_scene(seed: int, out: Path, *, small: bool) -> dict[str, object]:
                     "variant": obj.shape.variant,
                     "mesh": f"assets/{obj.name}.obj",
                     "pos_m": list(obj.pos_m),
-                    "quat_wxyz": [float(np.cos(np.deg2rad(obj.yaw_deg) / 2)), 0.0, 0.0,
-                                  float(np.sin(np.deg2rad(obj.yaw_deg) / 2))],
+                    "quat_wxyz": [
+                        float(np.cos(np.deg2rad(obj.yaw_deg) / 2)),
+                        0.0,
+                        0.0,
+                        float(np.sin(np.deg2rad(obj.yaw_deg) / 2)),
+                    ],
                     "extents_m": obj.mesh.extents.round(9).tolist(),
                     "volume_m3": float(obj.mesh.volume),
                     "euler_number": euler_merged(obj.mesh),
@@ -434,7 +459,9 @@ def make_scene(seed: int, out: Path, *, small: bool) -> dict[str, object]:
         "size_px": list(size_px),
         "scale_by": "marker" if marker else "known_extent",
         "table_texture": table_kind,
-        "objects": [f"{o.shape.object_class}/{o.shape.variant}{' (low texture)' if o.low_texture else ''}" for o in objects],
+        "objects": [
+            f"{o.shape.object_class}/{o.shape.variant}{' (low texture)' if o.low_texture else ''}" for o in objects
+        ],
     }
     sa.write_json(truth / "family.json", record)
     return record
@@ -458,8 +485,10 @@ def main() -> None:
             built = Path(tmp) / dest.name
             record = make_scene(seed, built, small=args.small)
             sa.move_into_place(built, dest)
-        print(f"  {record['capture']}, {record['size_px'][0]}x{record['size_px'][1]}, {record['scale_by']}, "
-              f"{record['table_texture']} table: {', '.join(record['objects'])}")
+        print(
+            f"  {record['capture']}, {record['size_px'][0]}x{record['size_px'][1]}, {record['scale_by']}, "
+            f"{record['table_texture']} table: {', '.join(record['objects'])}"
+        )
 
 
 if __name__ == "__main__":
