@@ -47,6 +47,9 @@ def colmap_defaults_registered(photos: Path) -> int:
     """Photos COLMAP registers with its defaults (what a user would otherwise run), in the largest model."""
     import pycolmap
 
+    from reconstruction._sfm import _quiet_colmap
+
+    _quiet_colmap()
     with tempfile.TemporaryDirectory() as tmp:
         database = Path(tmp) / "database.db"
         pycolmap.extract_features(database, photos)
@@ -84,9 +87,13 @@ def ground_one(scene: Path, out: Path) -> dict[str, object]:
         record["scale_ratio"] = score.scale_ratio
         motion = settle_test(out / "scene.xml", seconds=2.0)
         record["settle"] = {n: [m.displacement_m, m.rotation_deg] for n, m in motion.items()}
-        transforms = json.loads((out / "reconstruction" / "transforms.json").read_text())
-        record["registered"] = len(transforms["frames"])
     if family["source"] == "photos":
+        # Registration side by side, whether or not ground went on to find objects: `image2sim reconstruct`.
+        with tempfile.TemporaryDirectory() as tmp:
+            cmd = [str(REPO / ".venv" / "bin" / "image2sim"), "reconstruct", str(scene / "photos"), "-o", tmp + "/r"]
+            subprocess.run([*cmd, *family["ground_args"]], capture_output=True, text=True)
+            transforms = Path(tmp) / "r" / "transforms.json"
+            record["registered"] = len(json.loads(transforms.read_text())["frames"]) if transforms.exists() else 0
         record["colmap_defaults_registered"] = colmap_defaults_registered(scene / "photos")
         record["photos"] = len(list((scene / "photos").iterdir()))
     return record

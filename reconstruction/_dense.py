@@ -33,6 +33,8 @@ class DenseOptions:
         num_reference_views: frames used as the left image of a stereo pair (spread over the orbit).
         max_image_size_px: longest side at which stereo runs (downscale for speed).
         baseline_ratio: accepted range of baseline / distance to the region of interest.
+        min_pairs: below this many pairs in ``baseline_ratio`` (sparse photo sets), unpaired references look for a
+            partner in ``wide_baseline_ratio`` (views within 40 deg instead of 30).
         voxel_fraction: TSDF voxel size as a fraction of the median camera distance (0.0035 * 0.74 m = 2.6 mm).
         trunc_voxels: TSDF truncation distance in voxels.
         sgbm_block_px: SGBM block size.
@@ -45,6 +47,8 @@ class DenseOptions:
     num_reference_views: int = 44
     max_image_size_px: int = 640
     baseline_ratio: tuple[float, float] = (0.08, 0.25)
+    min_pairs: int = 12
+    wide_baseline_ratio: tuple[float, float] = (0.25, 0.45)
     voxel_fraction: float = 0.0035
     trunc_voxels: float = 4.0
     sgbm_block_px: int = 5
@@ -141,18 +145,40 @@ def _opencv_k(intrinsics: CameraIntrinsics, scale: float) -> tuple[np.ndarray, n
 
 
 def choose_pairs(views: list[StereoView], target: np.ndarray, options: DenseOptions) -> list[tuple[int, int]]:
-    """(left, right) index pairs: each reference frame with the neighbour nearest the ideal baseline ratio."""
+    """(left, right) index pairs: each reference frame with the neighbour nearest the ideal baseline ratio.
+
+    A video gives every reference a partner in ``baseline_ratio``. A few stills from anywhere around the table
+    (an unordered photo set) lie farther apart: 26 photos gave 9 of 26 references a partner there, and the fused
+    surface held no object. When fewer than ``min_pairs`` pairs are found, the references left without one take
+    a partner in the wider ``wide_baseline_ratio`` (less precise depth, but depth)."""
+    pairs = _pairs_in(views, target, options, options.baseline_ratio, 30.0, set())
+    if len(pairs) < options.min_pairs:
+        paired = {i for pair in pairs for i in pair}
+        pairs += _pairs_in(views, target, options, options.wide_baseline_ratio, 40.0, paired)
+    return pairs
+
+
+def _pairs_in(
+    views: list[StereoView],
+    target: np.ndarray,
+    options: DenseOptions,
+    baseline_ratio: tuple[float, float],
+    max_look_deg: float,
+    skip: set[int],
+) -> list[tuple[int, int]]:
     centres = np.array([v.world_from_cam[:3, 3] for v in views])
     looks = np.array([v.world_from_cam[:3, 2] for v in views])
     distance = np.linalg.norm(centres - target, axis=1)
     refs = np.unique(np.linspace(0, len(views) - 1, min(options.num_reference_views, len(views))).round().astype(int))
-    lo, hi = options.baseline_ratio
+    lo, hi = baseline_ratio
     ideal = np.sqrt(lo * hi)
     pairs = []
     for i in refs:
+        if int(i) in skip:
+            continue
         ratio = np.linalg.norm(centres - centres[i], axis=1) / distance[i]
         cos_look = looks @ looks[i]
-        ok = (ratio >= lo) & (ratio <= hi) & (cos_look > np.cos(np.radians(30)))
+        ok = (ratio >= lo) & (ratio <= hi) & (cos_look > np.cos(np.radians(max_look_deg)))
         ok[i] = False
         if not ok.any():
             continue
@@ -372,6 +398,8 @@ def fuse_views(
             points = (rays * z[:, None]) @ world_from_rect[:3, :3].T + world_from_rect[:3, 3]
             outside = ~roi.contains(points)
             depth[vs[outside], us[outside]] = 0.0
+            if not depth.any():
+                continue  # nothing of this pair lies in the box (Open3D refuses a depth map that touches no voxel)
             depth_max = float(depth_range[1]) * 2
             depth_image = o3d.t.geometry.Image(np.ascontiguousarray(depth))
             color_image = o3d.t.geometry.Image(np.ascontiguousarray(image[:, :, ::-1], dtype=np.float32) / 255.0)

@@ -337,7 +337,11 @@ def select_frames(
     for i in range(len(frames)):
         if frames[i].index in blurred:
             continue
-        if ordered and kept_positions and _median_motion_px(grays[kept_positions[-1]], grays[i]) < options.min_motion_px:
+        if (
+            ordered
+            and kept_positions
+            and _median_motion_px(grays[kept_positions[-1]], grays[i]) < options.min_motion_px
+        ):
             duplicate.append(frames[i].index)
             continue
         kept_positions.append(i)

@@ -127,9 +127,7 @@ def reconstruct(
         frames, num_source_frames = _frames.read_frames_counted(
             source, lambda done, total: report("reading frames", done, max(total, done))
         )
-        selection = _frames.select_frames(
-            frames, options.frames, num_source_frames, ordered=_frames.is_video(source)
-        )
+        selection = _frames.select_frames(frames, options.frames, num_source_frames, ordered=_frames.is_video(source))
         del frames
         image_dir = stage_dir / "images"
         image_dir.mkdir()
@@ -148,8 +146,11 @@ def reconstruct(
         work.mkdir()
         database = work / "database.db"
         report("extracting SIFT features", 0, len(names))
+        # A few stills carry each object in few views: COLMAP's own feature budget (8192 at up to 2048 px, not
+        # a video's 3000 at 1024) is what puts sparse points on the objects, not only on the table.
+        sfm = options.sfm if _frames.is_video(source) else options.sfm.for_photos()
         _sfm.extract_features(
-            database, image_dir, names, options.sfm, lambda done: report("extracting SIFT features", done, len(names))
+            database, image_dir, names, sfm, lambda done: report("extracting SIFT features", done, len(names))
         )
         seconds["features"] = time.perf_counter() - tick
         tick = time.perf_counter()

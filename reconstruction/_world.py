@@ -317,8 +317,11 @@ def world_from_marker(
     )
 
 
-def objects_above_plane(points: np.ndarray, plane: Plane, scene_size: float) -> list[np.ndarray]:
-    """Clusters of points clearly above the plane (DBSCAN in Open3D), largest first, as index arrays."""
+def objects_above_plane(
+    points: np.ndarray, plane: Plane, scene_size: float, min_cluster_points: int = 15
+) -> list[np.ndarray]:
+    """Clusters of at least `min_cluster_points` points clearly above the plane (DBSCAN in Open3D), largest
+    first, as index arrays."""
     import open3d as o3d
 
     height = points @ plane.normal + plane.offset
@@ -328,7 +331,7 @@ def objects_above_plane(points: np.ndarray, plane: Plane, scene_size: float) -> 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[above].astype(np.float64)))
     labels = np.asarray(cloud.cluster_dbscan(eps=0.04 * scene_size, min_points=8))
     clusters = [above[labels == k] for k in range(labels.max() + 1)]
-    clusters = [c for c in clusters if len(c) >= 15]
+    clusters = [c for c in clusters if len(c) >= min_cluster_points]
     return sorted(clusters, key=len, reverse=True)
 
 

@@ -687,3 +687,44 @@ def test_photos_are_not_dropped_as_blurred_or_duplicate_neighbours(tabletop_dir:
     as_photos = select_frames(frames, options, ordered=False)
     assert [f.index for f in as_photos.kept] == list(range(12))
     assert as_photos.blurred == () and as_photos.duplicate == ()
+
+
+def _orbit_views(azimuths_deg: Sequence[float], radius_m: float = 0.6, height_m: float = 0.4) -> list:
+    from reconstruction._dense import StereoView
+
+    views = []
+    for az in np.deg2rad(azimuths_deg):
+        eye = np.array([radius_m * np.cos(az), radius_m * np.sin(az), height_m])
+        forward = -eye / np.linalg.norm(eye)
+        x = np.cross(forward, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        y = np.cross(forward, x)
+        pose = np.eye(4)
+        pose[:3, :3] = np.stack([x, y, forward], axis=1)  # OpenCV axes: x right, y down, z forward
+        pose[:3, 3] = eye
+        views.append(StereoView(image_bgr=np.zeros((4, 4, 3), np.uint8), world_from_cam=pose))
+    return views
+
+
+def test_sparse_stills_get_wide_baseline_stereo_pairs_and_a_video_does_not() -> None:
+    """Issue 60: stills 24 deg apart (baseline / distance 0.42) have no partner in the video range (0.08-0.25),
+    so the old pairing gave a photo set no depth at all; now they pair in the wide range. A video orbit, 5 deg
+    apart, is paired exactly as before."""
+    from reconstruction._dense import DenseOptions, choose_pairs
+
+    options = DenseOptions()
+    stills = _orbit_views(np.arange(0, 360, 24))
+    pairs = choose_pairs(stills, np.zeros(3), options)
+    assert len(pairs) >= 10
+    narrow = DenseOptions(min_pairs=0)  # the wide range switched off: the old pairing
+    assert choose_pairs(stills, np.zeros(3), narrow) == []
+    video = _orbit_views(np.arange(0, 360, 5))
+    assert choose_pairs(video, np.zeros(3), options) == choose_pairs(video, np.zeros(3), narrow)
+
+
+def test_photo_folders_get_colmaps_feature_budget() -> None:
+    from reconstruction._types import SfmOptions
+
+    photos = SfmOptions().for_photos()
+    assert (photos.max_num_features, photos.max_image_size_px) == (8192, 2048)
+    assert SfmOptions(max_num_features=10000).for_photos().max_num_features == 10000  # never fewer
