@@ -21,7 +21,7 @@ from grounder.errors import GrounderError
 from reconstruction import ReconstructOptions, ScaleSource, reconstruct, rescale_written, staged_output_dir
 from reconstruction._primitives import CylinderFit, CylinderSnapOptions, snap_to_upright_cylinder
 from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
-from reconstruction._texture import TextureOptions, TextureView, bake_texture_report
+from reconstruction._texture import TextureOptions, TextureView, bake_table_texture, bake_texture_report
 from reconstruction._types import ObjectInstance, ReconstructionResult, TexturedMesh
 from scene_export import (
     CameraSpec,
@@ -102,6 +102,20 @@ def _read_image(path: Path) -> np.ndarray:
 
 
 RESEGMENT_SCALE_CHANGE = 0.1  # a known-extent refinement beyond +-10% segments and meshes again
+
+
+def _bake_table(scene: SceneObjects, views: list[TextureView], warnings: list[str]) -> np.ndarray | None:
+    """The table top's texture as filmed, objects masked out as occluders; None (plain colour) if it fails, with
+    a warning: a table without its picture must not cost the scene."""
+    occluders = []
+    for obj in scene.objects:
+        pose = obj.world_from_object
+        occluders.append((obj.mesh.vertices_m @ pose[:3, :3].T + pose[:3, 3], obj.mesh.faces))
+    try:
+        return bake_table_texture(views, scene.table_half_extents, occluders)
+    except Exception as exc:  # noqa: BLE001 - any failure here leaves the table plain, never the scene lost
+        warnings.append(f"table: texture not baked ({type(exc).__name__}: {exc}); the top is a plain colour")
+        return None
 
 
 def _extent_factor(scene: SceneObjects, known_extent_m: float) -> tuple[float, str]:
@@ -230,6 +244,7 @@ def _ground_staged(
                     for f in rec.frames
                 ]
                 textured, coverage = _bake_textures(scene, views, options, report, warnings)
+                table_texture = _bake_table(scene, views, warnings)
                 seconds["texture"] = time.perf_counter() - tick
 
                 tick = time.perf_counter()
@@ -250,7 +265,7 @@ def _ground_staged(
         report("writing MJCF", 0, 1)
         preview_frame = rec.frames[0]
         camera = CameraSpec.from_intrinsics("video", preview_frame.world_from_cam, rec.intrinsics)
-        table = TableSpec(half_extents_m=scene.table_half_extents)
+        table = TableSpec(half_extents_m=scene.table_half_extents, texture_rgb=table_texture)
         provenance = _provenance(rec, scene, textured, coverage, scale_note, options, bool(properties), cylinders)
         exported = export_scene(specs, table, [camera], stage / "export", manifest_extra=provenance)
         for child in exported.out_dir.iterdir():

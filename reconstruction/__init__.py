@@ -5,7 +5,14 @@ from reconstruction._frames import Frame, FrameSelection, read_frames, select_fr
 from reconstruction._outdir import check_output_dir, check_outside_inputs, staged_output_dir
 from reconstruction._reconstruct import reconstruct, rescale_written
 from reconstruction._scene_objects import ObjectsOptions, SceneObjects, find_objects
-from reconstruction._texture import TextureOptions, TextureView, bake_texture, bake_texture_report, texture_coverage
+from reconstruction._texture import (
+    TextureOptions,
+    TextureView,
+    bake_table_texture,
+    bake_texture,
+    bake_texture_report,
+    texture_coverage,
+)
 from reconstruction._types import (
     CameraIntrinsics,
     FrameSelectionOptions,
@@ -41,6 +48,7 @@ __all__ = [
     "TexturedMesh",
     "WorldFrame",
     "WorldFrameError",
+    "bake_table_texture",
     "bake_texture",
     "bake_texture_report",
     "check_output_dir",

@@ -669,3 +669,61 @@ def _extend_charts(texture: np.ndarray, chart_flat: np.ndarray) -> np.ndarray:
     source_of_label[labels[chart_flat]] = chart_flat
     flat = texture.reshape(-1, 3)
     return flat[source_of_label[labels]].reshape(texture.shape)
+
+
+# ---------------------------------------------------------------- the table top
+
+
+def bake_table_texture(
+    views: Sequence[TextureView],
+    half_extents_m: tuple[float, float],
+    occluders_world: Sequence[tuple[np.ndarray, np.ndarray]],
+    *,
+    top_z_m: float = 0.0,
+    metres_per_px: float = 0.002,
+    max_side_px: int = 1024,
+    max_views: int = 16,
+) -> np.ndarray:
+    """(H, W, 3) uint8 RGB image of the table top as the frames saw it: row 0 is the top's +y edge, column 0 its -x
+    edge, one texel per `metres_per_px` (coarser when a side would exceed `max_side_px`).
+
+    Each texel is the median colour over up to `max_views` frames spread over the capture that see it with no
+    object in between (`occluders_world`: (vertices, faces) per object, world frame): the median drops the
+    glints and the frames where an object's shadow or a hand passes. Texels no frame saw (under the objects,
+    beyond the views) get the median colour of those seen.
+    """
+    import open3d as o3d
+
+    _validate_views(views)
+    hx, hy = half_extents_m
+    step = max(metres_per_px, 2 * max(hx, hy) / max_side_px)
+    cols, rows = max(2, round(2 * hx / step)), max(2, round(2 * hy / step))
+    xs = -hx + (np.arange(cols) + 0.5) * (2 * hx / cols)
+    ys = hy - (np.arange(rows) + 0.5) * (2 * hy / rows)
+    grid_x, grid_y = np.meshgrid(xs, ys)
+    texels = np.stack([grid_x.ravel(), grid_y.ravel(), np.full(grid_x.size, top_z_m)], axis=1)
+    scene = _raycasting_scene(list(occluders_world)) if occluders_world else None
+    picks = np.unique(np.linspace(0, len(views) - 1, min(max_views, len(views))).round().astype(int))
+    samples = np.full((len(picks), len(texels), 3), np.nan, np.float32)
+    for slot, v in enumerate(picks):
+        view = views[v]
+        col, row, ok = _project(texels, view)
+        centre = view.world_from_cam[:3, 3]
+        if scene is not None and ok.any():
+            origins = texels[ok] + np.array([0.0, 0.0, 1e-4])
+            to_cam = centre - origins
+            distance = np.linalg.norm(to_cam, axis=1)
+            rays = np.concatenate([origins, to_cam / distance[:, None]], axis=1).astype(np.float32)
+            hits = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))["t_hit"].numpy()
+            visible = np.flatnonzero(ok)
+            ok[visible[hits < distance]] = False
+        if ok.any():
+            samples[slot, ok] = _sample_bilinear(view.image_bgr, col[ok], row[ok])[:, ::-1]  # BGR -> RGB
+    seen = ~np.isnan(samples[..., 0])
+    counts = seen.sum(axis=0)
+    colour = np.zeros((len(texels), 3), np.float32)
+    observed = counts > 0
+    if observed.any():
+        colour[observed] = np.nanmedian(samples[:, observed], axis=0)
+        colour[~observed] = np.median(colour[observed], axis=0)
+    return np.clip(colour, 0, 255).round().astype(np.uint8).reshape(rows, cols, 3)

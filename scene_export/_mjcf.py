@@ -18,7 +18,7 @@ import re
 import time
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -135,8 +135,10 @@ class TableSpec:
         top_z_m: height of the table top in the world (0 in the reconstruction's world frame).
         half_extents_m: (x, y) half sizes, centred on the world origin.
         thickness_m: box thickness below the top.
-        rgba: colour.
+        rgba: colour (of the sides, and of the top without `texture_rgb`).
         friction: friction of the table; objects' contact parameters win (their hulls have a higher priority).
+        texture_rgb: (H, W, 3) uint8 image of the top face as filmed (row 0 = the +y edge, column 0 = the -x
+            edge; `reconstruction.bake_table_texture`), shown on a visual sheet over the top; None: plain colour.
     """
 
     top_z_m: float = 0.0
@@ -144,11 +146,17 @@ class TableSpec:
     thickness_m: float = 0.04
     rgba: tuple[float, float, float, float] = (0.55, 0.38, 0.22, 1.0)
     friction: tuple[float, float, float] = (1.0, 0.005, 0.0001)
+    texture_rgb: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "half_extents_m", _floats(self.half_extents_m, 2, "table half_extents_m"))
         object.__setattr__(self, "rgba", _floats(self.rgba, 4, "table rgba"))
         object.__setattr__(self, "friction", _floats(self.friction, 3, "table friction"))
+        texture = self.texture_rgb
+        if texture is not None and (texture.ndim != 3 or texture.shape[2] != 3 or texture.dtype != np.uint8):
+            raise InvalidSceneSpecError(
+                f"table: texture_rgb has shape {texture.shape}, dtype {texture.dtype} but expected (H, W, 3) uint8"
+            )
         if min(self.half_extents_m) <= 0 or not self.thickness_m > 0 or not math.isfinite(self.top_z_m):
             raise InvalidSceneSpecError(
                 f"table: half_extents_m={self.half_extents_m}, thickness_m={self.thickness_m}, "
@@ -405,7 +413,7 @@ def export_scene(
         assets = staging / "assets"
         assets.mkdir()
         spec = _new_spec(staging, options, cameras)
-        _add_table(spec, table, options)
+        _add_table(spec, table, options, assets)
         for cam in cameras:
             rotation = cam.world_from_cam[:3, :3] @ _OPENCV_TO_MUJOCO_CAM
             spec.worldbody.add_camera(
@@ -461,7 +469,10 @@ def export_scene(
             "quat_wxyz) of the object frame; inertia_kg_m2 about com_m (object frame); free joints: qpos = pos, "
             "quat wxyz; qvel = world linear velocity, body angular velocity",
             "objects": entries,
-            "table": asdict(table),
+            "table": {
+                **{k: v for k, v in asdict(table).items() if k != "texture_rgb"},
+                "texture": None if table.texture_rgb is None else f"assets/{TABLE_TEXTURE_FILE}",
+            },
             "cameras": {
                 camera_names[c.name]: {
                     "input_name": c.name,
@@ -504,8 +515,35 @@ def _new_spec(staging: Path, options: ExportOptions, cameras: Sequence[CameraSpe
     return spec
 
 
-def _add_table(spec: mujoco.MjSpec, table: TableSpec, options: ExportOptions) -> None:
+TABLE_TEXTURE_FILE = "table_texture.png"
+TABLE_SHEET_M = 0.0002  # the textured sheet's thickness over the top face (visual only; objects rest on the box)
+
+
+def _add_table(spec: mujoco.MjSpec, table: TableSpec, options: ExportOptions, assets: Path) -> None:
     hx, hy = table.half_extents_m
+    if table.texture_rgb is not None:
+        _write_png_rgb(assets / TABLE_TEXTURE_FILE, table.texture_rgb)
+        spec.add_texture(name="table_top", type=mujoco.mjtTexture.mjTEXTURE_2D, file=TABLE_TEXTURE_FILE)
+        material = spec.add_material(name="table_top", specular=0.1)
+        material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "table_top"
+        # A thin box whose top carries the image once: OBJ v = 1 is the image's top row (the +y edge).
+        z0, z1 = table.top_z_m, table.top_z_m + TABLE_SHEET_M
+        top = np.array([[-hx, -hy, z1], [hx, -hy, z1], [hx, hy, z1], [-hx, hy, z1]])
+        vertices = np.concatenate([top, top - [0.0, 0.0, z1 - z0]])
+        uv = np.array([[0, 0], [1, 0], [1, 1], [0, 1]] * 2, float)
+        faces = [[0, 1, 2], [0, 2, 3], [4, 6, 5], [4, 7, 6]]
+        faces += [[0, 4, 5], [0, 5, 1], [1, 5, 6], [1, 6, 2], [2, 6, 7], [2, 7, 3], [3, 7, 4], [3, 4, 0]]
+        _write_obj(assets / "table_top.obj", vertices, np.array(faces), uv)
+        spec.add_mesh(name="table_top", file="table_top.obj")
+        spec.worldbody.add_geom(
+            name="table_top",
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname="table_top",
+            material="table_top",
+            contype=0,
+            conaffinity=0,
+            group=0,
+        )
     spec.worldbody.add_geom(
         name="table",
         type=mujoco.mjtGeom.mjGEOM_BOX,
