@@ -46,18 +46,16 @@ def is_video(source: Path) -> bool:
     return source.is_file()
 
 
+# FFmpeg's own console messages off (an unreadable file then gives the caller's one error line, not FFmpeg's
+# "moov atom not found" before it), unless the user set the level. OpenCV reads it once, at its first FFmpeg
+# capture in the process: setting it around each open, as before, silenced only a process's first video (the
+# CLI test of an unreadable clip printed FFmpeg's line when its worker had opened a good video earlier).
+os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # AV_LOG_QUIET
+
+
 def open_video(path: Path) -> cv2.VideoCapture:
-    """`cv2.VideoCapture` of a video file with FFmpeg's own console messages off while it opens (an unreadable file
-    then gives the caller's one error line, not FFmpeg's "moov atom not found" before it), unless the user set
-    `OPENCV_FFMPEG_LOGLEVEL`."""
-    key = "OPENCV_FFMPEG_LOGLEVEL"
-    if key in os.environ:
-        return cv2.VideoCapture(str(path))
-    os.environ[key] = "-8"  # AV_LOG_QUIET
-    try:
-        return cv2.VideoCapture(str(path))
-    finally:
-        del os.environ[key]
+    """`cv2.VideoCapture` of a video file (FFmpeg's console messages off: see `OPENCV_FFMPEG_LOGLEVEL` above)."""
+    return cv2.VideoCapture(str(path))
 
 
 def check_source(source: Path) -> None:

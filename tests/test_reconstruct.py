@@ -728,3 +728,20 @@ def test_photo_folders_get_colmaps_feature_budget() -> None:
     photos = SfmOptions().for_photos()
     assert (photos.max_num_features, photos.max_image_size_px) == (8192, 2048)
     assert SfmOptions(max_num_features=10000).for_photos().max_num_features == 10000  # never fewer
+
+
+def test_an_unreadable_video_is_quiet_after_a_good_one(tmp_path: Path, tabletop_dir: Path) -> None:
+    """OpenCV reads FFmpeg's log level once per process, at its first capture: the level set around each of our
+    opens did nothing once anything else in the process (a test, a library) had opened a video first, and an
+    unreadable clip then printed "moov atom not found" beside the one error line (a CLI test failed or passed by
+    the order its worker ran tests in). In a fresh process: a plain OpenCV capture first, then ours."""
+    junk = tmp_path / "junk.mp4"
+    junk.write_text("this is not a video")
+    code = (
+        "import cv2; from pathlib import Path; from reconstruction._frames import open_video\n"
+        f"cv2.VideoCapture({str(tabletop_dir / 'video.mp4')!r}).release()\n"
+        f"assert not open_video(Path({str(junk)!r})).isOpened()\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "moov atom" not in run.stderr, run.stderr
