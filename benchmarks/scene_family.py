@@ -81,7 +81,12 @@ def ground_one(scene: Path, out: Path) -> dict[str, object]:
     truth_objects = json.loads((scene / "truth" / "objects.json").read_text())["objects"]
     record["true_objects"] = [{"name": o["name"], "class": o["class"], "variant": o["variant"]} for o in truth_objects]
     if run.returncode == 0:
-        score = score_scene(out, scene / "truth")
+        try:
+            score = score_scene(out, scene / "truth")
+        except Exception as exc:  # a scene the scorer cannot align counts as nothing found, and is named
+            record["last_line"] = f"scoring failed: {type(exc).__name__}: {exc}"
+            record["rc"] = "scoring"
+            return record
         record["objects"] = [asdict(o) for o in score.objects]
         record["extra_bodies"] = list(score.extra_bodies)
         record["scale_ratio"] = score.scale_ratio
@@ -162,7 +167,7 @@ def report(records: list[dict[str, object]], command: str) -> str:
 
 def targets(records: list[dict[str, object]], objects: list[dict[str, object]]) -> list[str]:
     found = [o for o in objects if o["name"] is not None]
-    crashes = [r for r in records if r["rc"] not in (0, 2)]
+    crashes = [r for r in records if r["rc"] not in (0, 2, "scoring")]
     tracebacks = [r for r in records if r["traceback"]]
     found_ratio = len(found) / max(len(objects), 1)
     clean_scenes = sum(1 for r in records if r["rc"] == 0 and not r["extra_bodies"]) / max(len(records), 1)
