@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -283,17 +283,17 @@ def score_scene(scene_dir: Path, truth_dir: Path, *, samples: int = 20000, seed:
     scores = []
     for t in true_names:
         record = true_records[t]
-        common = {
+        common: dict[str, Any] = {
             "true_name": t,
             "object_class": record.get("class", "?"),
             "variant": record.get("variant", "?"),
             "open_container": bool(record.get("open_container", False)),
             "true_euler_number": record.get("euler_number"),
         }
-        g = match.get(t)
-        if g is None:
+        if t not in match:
             scores.append(ObjectScore(name=None, **common))
             continue
+        g = match[t]
         mesh, true_mesh = grounded[g], truth[t]
         a, b = _samples_with_normals(mesh, samples, rng), _samples_with_normals(true_mesh, samples, rng)
         chamfer = (cKDTree(b[0]).query(a[0])[0].mean() + cKDTree(a[0]).query(b[0])[0].mean()) / 2
