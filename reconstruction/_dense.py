@@ -21,6 +21,7 @@ import numpy as np
 
 from reconstruction._parallel import ordered_ahead, usable_cores
 from reconstruction._types import CameraIntrinsics
+from reconstruction.errors import DenseError
 
 log = logging.getLogger(__name__)
 
@@ -413,6 +414,12 @@ def fuse_views(
             )
             used += 1
             depth_maps.append(DepthMap(depth=depth, k=k_rect, world_from_cam=world_from_rect))
+    if used == 0:  # Open3D cannot extract from an empty grid (its hash map refuses zero keys)
+        raise DenseError(
+            f"no stereo pair of frames measured depth where the objects stand ({len(pairs)} pair(s) tried of "
+            f"{len(views)} views): the views are too few or too far apart; film more of them, closer together (a "
+            "video orbit, or photos every 10-15 deg around the table)"
+        )
     mesh = grid.extract_triangle_mesh(weight_threshold=options.min_weight).to_legacy()
     coords, flat = grid.voxel_coordinates_and_flattened_indices()
     flat = flat.numpy()

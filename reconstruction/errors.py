@@ -18,3 +18,7 @@ class RegistrationError(ReconstructionError):
 
 class WorldFrameError(ReconstructionError):
     """The metric, gravity-aligned world frame could not be established (marker, plane, scale)."""
+
+
+class DenseError(ReconstructionError):
+    """Dense stereo measured no depth where the objects stand."""

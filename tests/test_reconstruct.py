@@ -745,3 +745,18 @@ def test_an_unreadable_video_is_quiet_after_a_good_one(tmp_path: Path, tabletop_
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert "moov atom" not in run.stderr, run.stderr
+
+
+def test_views_that_give_no_depth_are_one_error_not_an_open3d_crash() -> None:
+    """Family photo set 1016 (issue 60): 23 stills, one stereo pair found and nothing of it in the box; Open3D then
+    refused to extract a surface from the empty grid (RuntimeError: "Input number of keys should > 0", exit 1,
+    an internal error). Now it is the stage's error a user can act on."""
+    from reconstruction._dense import DenseOptions, RegionOfInterest, fuse_views
+    from reconstruction._types import CameraIntrinsics
+    from reconstruction.errors import DenseError
+
+    views = _orbit_views([0.0, 90.0, 180.0, 270.0])  # no two close enough to pair
+    intrinsics = CameraIntrinsics(width_px=4, height_px=4, fx_px=4.0, fy_px=4.0, cx_px=2.0, cy_px=2.0)
+    roi = RegionOfInterest(min_world=np.array([-0.1, -0.1, 0.0]), max_world=np.array([0.1, 0.1, 0.1]))
+    with pytest.raises(DenseError, match="no stereo pair"):
+        fuse_views(views, intrinsics, roi, DenseOptions())
