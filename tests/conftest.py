@@ -6,6 +6,7 @@ import contextlib
 import faulthandler
 import logging
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -161,6 +162,10 @@ def cli(
         return CliRun(code, out, err + logged)
 
     return run
+
+
+# A progress line as `stage_progress` draws it: "stage  [bar]  done/total  h:mm:ss" (the bar is blank at 0).
+PROGRESS_LINE = re.compile(r"\s\d+/\d+\s+\d+:\d\d:\d\d\s*$")
 
 
 def assert_one_line_error(proc: CliRun | subprocess.CompletedProcess[str], *needles: str, alone: bool = False) -> None:

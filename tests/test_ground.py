@@ -17,7 +17,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import assert_one_line_error
+from conftest import PROGRESS_LINE, assert_one_line_error
 
 from grounder._evaluate import ObjectError, compare_to_truth
 from reconstruction import ReconstructionResult
@@ -388,6 +388,6 @@ def test_real_cake_photos_give_a_resting_scene_or_one_line(shared_data: Path, tm
     else:
         assert_one_line_error(proc)
         # Besides progress bars, nothing but that line (COLMAP's own "E... Failed to create any sparse model" was).
-        others = [line for line in proc.stderr.splitlines() if line.strip() and "━" not in line]
+        others = [line for line in proc.stderr.splitlines() if line.strip() and not PROGRESS_LINE.search(line)]
         assert [line for line in others if not line.startswith("image2sim: error:")] == [], proc.stderr
         assert not out.exists()

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import assert_one_line_error
+from conftest import PROGRESS_LINE, assert_one_line_error
 
 from grounder._evaluate import ObjectScore, SceneScore, score_scene
 from scene_export import settle_test
@@ -100,7 +100,7 @@ def test_grounds_without_a_traceback(grounded: tuple[subprocess.CompletedProcess
     assert run.returncode in (0, 2), run.stderr.strip().splitlines()[-1:]
     if run.returncode == 2:  # refused: one line saying why (after the progress bars)
         assert_one_line_error(run)
-        others = [line for line in run.stderr.splitlines() if line.strip() and "━" not in line]
+        others = [line for line in run.stderr.splitlines() if line.strip() and not PROGRESS_LINE.search(line)]
         assert len(others) == 1, run.stderr
 
 
