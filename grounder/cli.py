@@ -117,8 +117,6 @@ def stage_progress() -> Iterator[Callable[[str, int, int], None]]:
     tasks: dict[str, Any] = {}
 
     def report(stage: str, done: int, total: int) -> None:
-        if _PENDING_STOP:
-            raise _PENDING_STOP[0]
         _current_stage[:] = [stage]
         if not tasks:  # shown from the first stage on: input rejected before any work is one error line alone
             progress.start()
@@ -314,20 +312,8 @@ class _Terminated(BaseException):
     the way it does for Ctrl-C; a BaseException, so no `except Exception` on the way swallows it."""
 
 
-# A stop signal received and not yet acted on. Native code may swallow the exception a signal handler raises (a
-# library that checks for signals in a long call, clears the error and returns early): a Ctrl-C under load let a
-# whole `reconstruct` finish with exit 0. The next progress report raises it again (`stage_progress`).
-_PENDING_STOP: list[type[BaseException]] = []
-
-
 def _terminated(signum: int, frame: object) -> None:
-    _PENDING_STOP[:] = [_Terminated]
     raise _Terminated
-
-
-def _interrupted(signum: int, frame: object) -> None:
-    _PENDING_STOP[:] = [KeyboardInterrupt]
-    raise KeyboardInterrupt
 
 
 # Stand-in paths for arguments whose bytes are not UTF-8, and the arguments as given (`_reachable_arguments`).
@@ -378,8 +364,6 @@ def main(argv: list[str] | None = None) -> None:
     import tempfile
 
     signal.signal(signal.SIGTERM, _terminated)
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where the caller ignores Ctrl-C
-        signal.signal(signal.SIGINT, _interrupted)
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv  # taken anywhere on the line, before or after the command
     argv = [a for a in argv if a != "--debug"]
@@ -418,7 +402,6 @@ def _run(argv: list[str], *, debug: bool = False) -> object:
     from typer._click.exceptions import ClickException, NoArgsIsHelpError, UsageError
 
     _current_stage.clear()  # an earlier command's stage in this process (the tests run many) is not this one's
-    _PENDING_STOP.clear()
     try:
         code = app(args=argv, prog_name="image2sim", standalone_mode=False)
         if code == 128 + signal.SIGINT:  # typer catches a Ctrl-C itself and returns this (no command returns it)

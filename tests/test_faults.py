@@ -397,6 +397,9 @@ def test_ctrl_c_says_it_stopped(tmp_path: Path) -> None:
         stderr=subprocess.PIPE,
         text=True,
         cwd=REPO,
+        # Ctrl-C enabled, as in a terminal: a test run started in the background (`make test &`) passes on SIGINT
+        # ignored, and Python then keeps ignoring it (the run finished with exit 0: not the CLI's doing).
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     # the work has begun once frames are in the staging folder; the bound only stops a hung run
     deadline = time.monotonic() + 600
@@ -425,24 +428,3 @@ def test_a_native_librarys_full_disk_error_is_the_full_disk_line(
     proc = cli("ground", "video.mp4", "-o", "/data/scene")
     assert_one_line_error(proc, "no space left on the disk that holds /", "df -h")
     assert "internal error" not in proc.stderr
-
-
-def test_a_stop_signal_a_library_swallows_is_raised_again_at_the_next_progress(tmp_path: Path) -> None:
-    """Twice in clean-clone `make test` runs under load, a Ctrl-C sent during `reconstruct` was lost: the run
-    finished with exit 0. Native code that checks for signals may clear the exception the handler raised and go
-    on. The handler now records the stop, and the next progress report raises it again."""
-    import signal
-
-    from grounder import cli
-
-    cli._PENDING_STOP.clear()
-    with pytest.raises(KeyboardInterrupt):
-        cli._interrupted(signal.SIGINT, None)  # what a library would swallow
-    with cli.stage_progress() as report, pytest.raises(KeyboardInterrupt):
-        report("extracting SIFT features", 1, 10)
-    cli._PENDING_STOP.clear()
-    with pytest.raises(cli._Terminated):
-        cli._terminated(signal.SIGTERM, None)
-    with cli.stage_progress() as report, pytest.raises(cli._Terminated):
-        report("matching", 1, 10)
-    cli._PENDING_STOP.clear()
