@@ -48,8 +48,13 @@ class SampleObject:
 
     @property
     def quat_wxyz(self) -> np.ndarray:
-        half = np.deg2rad(self.yaw_deg) / 2.0
-        return np.array([np.cos(half), 0.0, 0.0, np.sin(half)])
+        return yaw_quat_wxyz(self.yaw_deg)
+
+
+def yaw_quat_wxyz(yaw_deg: float) -> np.ndarray:
+    """Quaternion (w, x, y, z) of a rotation by `yaw_deg` about the world z axis."""
+    half = np.deg2rad(yaw_deg) / 2.0
+    return np.array([np.cos(half), 0.0, 0.0, np.sin(half)])
 
 
 # ---------------------------------------------------------------- textures
@@ -348,36 +353,7 @@ def build_scene_spec(
     world = spec.worldbody
     world.add_light(name="key", pos=[0.6, -0.4, 1.6], dir=[-0.35, 0.25, -1.0], diffuse=[0.6, 0.6, 0.6], castshadow=True)
     world.add_light(name="fill", pos=[-0.8, 0.6, 1.4], dir=[0.5, -0.3, -1.0], diffuse=[0.3, 0.3, 0.3], castshadow=False)
-    world.add_geom(
-        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], pos=[0, 0, -0.75], material="floor"
-    )
-    hx, hy = TABLE_HALF_EXTENTS_M
-    # The table body: a box for collisions and the sides, and a textured plane exactly on its top face.
-    world.add_geom(
-        name="table",
-        type=mujoco.mjtGeom.mjGEOM_BOX,
-        size=[hx, hy, TABLE_THICKNESS_M / 2],
-        pos=[0, 0, -TABLE_THICKNESS_M / 2],
-        rgba=[0.35, 0.22, 0.12, 1],
-    )
-    world.add_geom(
-        name="table_top",
-        type=mujoco.mjtGeom.mjGEOM_PLANE,
-        size=[hx, hy, 0.01],
-        pos=[0, 0, 1e-5],
-        material="wood",
-        contype=0,
-        conaffinity=0,
-    )
-    world.add_geom(
-        name="marker",
-        type=mujoco.mjtGeom.mjGEOM_MESH,
-        meshname="marker",
-        material="marker",
-        contype=0,
-        conaffinity=0,
-        pos=[0, 0, 0],
-    )
+    add_floor_and_table(world, top_material="wood", marker=True)
     for obj in objects:
         body = world.add_body(name=obj.name, pos=list(obj.pos_m), quat=list(obj.quat_wxyz))
         if free_objects:
@@ -394,6 +370,42 @@ def build_scene_spec(
         )
     world.add_camera(name="video", pos=[0, -0.6, 0.45], fovy=50.0)
     return spec
+
+
+def add_floor_and_table(world: mujoco.MjsBody, *, top_material: str, marker: bool) -> None:
+    """The static scene under the objects: a floor 0.75 m down, the table (a box for collisions and the sides, and
+    a plane exactly on its top face carrying `top_material`) and, with `marker`, the marker sheet at the origin
+    (its mesh `marker` and material must be in the spec)."""
+    world.add_geom(
+        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], pos=[0, 0, -0.75], material="floor"
+    )
+    hx, hy = TABLE_HALF_EXTENTS_M
+    world.add_geom(
+        name="table",
+        type=mujoco.mjtGeom.mjGEOM_BOX,
+        size=[hx, hy, TABLE_THICKNESS_M / 2],
+        pos=[0, 0, -TABLE_THICKNESS_M / 2],
+        rgba=[0.35, 0.22, 0.12, 1],
+    )
+    world.add_geom(
+        name="table_top",
+        type=mujoco.mjtGeom.mjGEOM_PLANE,
+        size=[hx, hy, 0.01],
+        pos=[0, 0, 1e-5],
+        material=top_material,
+        contype=0,
+        conaffinity=0,
+    )
+    if marker:
+        world.add_geom(
+            name="marker",
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname="marker",
+            material="marker",
+            contype=0,
+            conaffinity=0,
+            pos=[0, 0, 0],
+        )
 
 
 def look_at_quat_wxyz(eye_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:

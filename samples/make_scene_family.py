@@ -227,39 +227,11 @@ def build_spec(
     key_pos = -1.7 * light_dir
     world.add_light(name="key", pos=key_pos.tolist(), dir=light_dir.tolist(), diffuse=[0.65] * 3, castshadow=True)
     world.add_light(name="fill", pos=[-0.8, 0.6, 1.4], dir=[0.5, -0.3, -1.0], diffuse=[0.25] * 3, castshadow=False)
-    world.add_geom(
-        name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[3, 3, 0.05], pos=[0, 0, -0.75], material="floor"
-    )
-    hx, hy = sa.TABLE_HALF_EXTENTS_M
-    world.add_geom(
-        name="table",
-        type=mujoco.mjtGeom.mjGEOM_BOX,
-        size=[hx, hy, sa.TABLE_THICKNESS_M / 2],
-        pos=[0, 0, -sa.TABLE_THICKNESS_M / 2],
-        rgba=[0.35, 0.22, 0.12, 1],
-    )
-    world.add_geom(
-        name="table_top",
-        type=mujoco.mjtGeom.mjGEOM_PLANE,
-        size=[hx, hy, 0.01],
-        pos=[0, 0, 1e-5],
-        material="table",
-        contype=0,
-        conaffinity=0,
-    )
     if marker:
         spec.add_mesh(name="marker", file="marker.obj")
-        world.add_geom(
-            name="marker",
-            type=mujoco.mjtGeom.mjGEOM_MESH,
-            meshname="marker",
-            material="marker",
-            contype=0,
-            conaffinity=0,
-        )
+    sa.add_floor_and_table(world, top_material="table", marker=marker)
     for obj in objects:
-        half = np.deg2rad(obj.yaw_deg) / 2
-        body = world.add_body(name=obj.name, pos=list(obj.pos_m), quat=[np.cos(half), 0, 0, np.sin(half)])
+        body = world.add_body(name=obj.name, pos=list(obj.pos_m), quat=sa.yaw_quat_wxyz(obj.yaw_deg).tolist())
         body.add_geom(
             name=f"{obj.name}_geom",
             type=mujoco.mjtGeom.mjGEOM_MESH,
@@ -430,12 +402,7 @@ def make_scene(seed: int, out: Path, *, small: bool) -> dict[str, object]:
                     "variant": obj.shape.variant,
                     "mesh": f"assets/{obj.name}.obj",
                     "pos_m": list(obj.pos_m),
-                    "quat_wxyz": [
-                        float(np.cos(np.deg2rad(obj.yaw_deg) / 2)),
-                        0.0,
-                        0.0,
-                        float(np.sin(np.deg2rad(obj.yaw_deg) / 2)),
-                    ],
+                    "quat_wxyz": sa.yaw_quat_wxyz(obj.yaw_deg).tolist(),
                     "extents_m": obj.mesh.extents.round(9).tolist(),
                     "volume_m3": float(obj.mesh.volume),
                     "euler_number": euler_merged(obj.mesh),
