@@ -90,8 +90,7 @@ def compare_to_truth(scene_dir: Path, truth_dir: Path, *, samples: int = 30000, 
         true_mesh = truth[true_name]
         a = _sample(mesh, samples, rng)
         b = _sample(true_mesh, samples, rng)
-        d_ab, _ = cKDTree(b).query(a)
-        d_ba, _ = cKDTree(a).query(b)
+        (d_ab, _), (d_ba, _) = _nearest_both_ways(a, b)
         errors.append(
             ObjectError(
                 name=name,
@@ -190,12 +189,19 @@ def _samples_with_normals(mesh: trimesh.Trimesh, count: int, rng: np.random.Gene
     return np.asarray(points), np.asarray(mesh.face_normals)[faces]
 
 
-def _normal_consistency(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
-    """Mean |cos| of the angle between each sample's normal and its nearest sample's on the other surface, both
-    ways (1 = the surfaces face the same way everywhere; 0.64 = random directions)."""
-    cos_ab = np.abs((a[1] * b[1][cKDTree(b[0]).query(a[0])[1]]).sum(axis=1))
-    cos_ba = np.abs((b[1] * a[1][cKDTree(a[0]).query(b[0])[1]]).sum(axis=1))
-    return float((cos_ab.mean() + cos_ba.mean()) / 2)
+def _nearest_both_ways(a: np.ndarray, b: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """(distances, indices) from each point of `a` to its nearest in `b`, then from `b` to `a`."""
+    return cKDTree(b).query(a), cKDTree(a).query(b)
+
+
+def _surface_agreement(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> tuple[float, float]:
+    """Chamfer distance (mean of both directed mean distances) between two (points, normals) samplings, and the
+    normal consistency: the mean |cos| of the angle between each sample's normal and its nearest sample's on the
+    other surface, both ways (1 = the surfaces face the same way everywhere; 0.64 = random directions)."""
+    (d_ab, i_ab), (d_ba, i_ba) = _nearest_both_ways(a[0], b[0])
+    cos_ab = np.abs((a[1] * b[1][i_ab]).sum(axis=1))
+    cos_ba = np.abs((b[1] * a[1][i_ba]).sum(axis=1))
+    return float((d_ab.mean() + d_ba.mean()) / 2), float((cos_ab.mean() + cos_ba.mean()) / 2)
 
 
 def _cavity_drop_point(mesh: trimesh.Trimesh, cell_m: float = 0.003) -> np.ndarray:
@@ -296,7 +302,7 @@ def score_scene(scene_dir: Path, truth_dir: Path, *, samples: int = 20000, seed:
         g = match[t]
         mesh, true_mesh = grounded[g], truth[t]
         a, b = _samples_with_normals(mesh, samples, rng), _samples_with_normals(true_mesh, samples, rng)
-        chamfer = (cKDTree(b[0]).query(a[0])[0].mean() + cKDTree(a[0]).query(b[0])[0].mean()) / 2
+        chamfer, normal_consistency = _surface_agreement(a, b)
         merged = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
         merged.merge_vertices(merge_tex=True, merge_norm=True)
         keeps = None
@@ -308,9 +314,9 @@ def score_scene(scene_dir: Path, truth_dir: Path, *, samples: int = 20000, seed:
             ObjectScore(
                 name=g,
                 centre_error_m=float(np.linalg.norm(mesh.bounds.mean(axis=0) - true_mesh.bounds.mean(axis=0))),
-                chamfer_m=float(chamfer),
+                chamfer_m=chamfer,
                 extent_error=float(np.max(np.abs(mesh.extents / true_mesh.extents - 1))),
-                normal_consistency=_normal_consistency(a, b),
+                normal_consistency=normal_consistency,
                 volume_ratio=float(abs(mesh.volume) / true_mesh.volume),
                 euler_number=int(merged.euler_number),
                 keeps_ball=keeps,

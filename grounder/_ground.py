@@ -104,15 +104,16 @@ def _read_image(path: Path) -> np.ndarray:
 RESEGMENT_SCALE_CHANGE = 0.1  # a known-extent refinement beyond +-10% segments and meshes again
 
 
+def _world_meshes(scene: SceneObjects) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each object's (vertices, faces) in the world frame (object frames are axes-parallel: a translation)."""
+    return [(o.mesh.vertices_m + o.world_from_object[:3, 3], o.mesh.faces) for o in scene.objects]
+
+
 def _bake_table(scene: SceneObjects, views: list[TextureView], warnings: list[str]) -> np.ndarray | None:
     """The table top's texture as filmed, objects masked out as occluders; None (plain colour) if it fails, with
     a warning: a table without its picture must not cost the scene."""
-    occluders = []
-    for obj in scene.objects:
-        pose = obj.world_from_object
-        occluders.append((obj.mesh.vertices_m @ pose[:3, :3].T + pose[:3, 3], obj.mesh.faces))
     try:
-        return bake_table_texture(views, scene.table_half_extents, occluders)
+        return bake_table_texture(views, scene.table_half_extents, _world_meshes(scene))
     except Exception as exc:
         warnings.append(f"table: texture not baked ({type(exc).__name__}: {exc}); the top is a plain colour")
         return None
@@ -211,18 +212,17 @@ def _ground_staged(
         scale_note = None
         if rec.world.scale_source == ScaleSource.KNOWN_EXTENT and options.reconstruct.known_extent_m:
             factor, largest = _extent_factor(scene, options.reconstruct.known_extent_m)
+            step, second_pass = factor, ""
             if abs(np.log(factor)) > np.log(1 + RESEGMENT_SCALE_CHANGE):
                 # Segmentation and meshing work in metres (voxels, gaps, margins): at a scale this far off they
                 # merged or fattened the objects. Segment and mesh again in the corrected metres, then refine.
                 _, rec = _rescale(scene, rec, factor, f"known extent on a first segmentation: scale x {factor:.4f}")
                 scene = find_objects(rec, options.objects, progress=report)
-                second, largest = _extent_factor(scene, options.reconstruct.known_extent_m)
-                factor *= second
-                scale_note = f"known extent refined on the segmented mesh of {largest}: scale x {factor:.4f}"
-                scene, rec = _rescale(scene, rec, second, f"{scale_note} (x {second:.4f} on the second segmentation)")
-            else:
-                scale_note = f"known extent refined on the segmented mesh of {largest}: scale x {factor:.4f}"
-                scene, rec = _rescale(scene, rec, factor, scale_note)
+                step, largest = _extent_factor(scene, options.reconstruct.known_extent_m)
+                factor *= step
+                second_pass = f" (x {step:.4f} on the second segmentation)"
+            scale_note = f"known extent refined on the segmented mesh of {largest}: scale x {factor:.4f}"
+            scene, rec = _rescale(scene, rec, step, scale_note + second_pass)
         for obj in scene.objects:
             warnings.extend(f"{obj.name}: {w}" for w in obj.warnings)
 
@@ -367,7 +367,7 @@ def _bake_textures(
     its surface the views covered."""
     textured: list[ObjectInstance] = []
     coverage: dict[str, float] = {}
-    world_meshes = [(o.mesh.vertices_m + o.world_from_object[:3, 3], o.mesh.faces) for o in scene.objects]
+    world_meshes = _world_meshes(scene)
     for i, obj in enumerate(scene.objects):
         report("baking textures", i, len(scene.objects))
         others = [m for j, m in enumerate(world_meshes) if j != i]
