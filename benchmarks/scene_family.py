@@ -238,6 +238,17 @@ def targets(records: list[dict[str, object]], objects: list[dict[str, object]]) 
     return out
 
 
+def _runs_of(seeds: list[int]) -> list[tuple[int, int]]:
+    """Sorted seeds as (first, count) runs of consecutive ones."""
+    runs: list[tuple[int, int]] = []
+    for seed in seeds:
+        if runs and runs[-1][0] + runs[-1][1] == seed:
+            runs[-1] = (runs[-1][0], runs[-1][1] + 1)
+        else:
+            runs.append((seed, 1))
+    return runs
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=HELD_OUT_FIRST_SEED, help="first seed (1000+: held out)")
@@ -245,12 +256,20 @@ def main() -> None:
     parser.add_argument("--small", action="store_true", help="the cheap scenes the tests draw (640x480, 1-3 objects)")
     parser.add_argument("--work", type=Path, default=REPO / "out" / "scene_family", help="scenes and results")
     parser.add_argument("--report", type=Path, help="also write the tables to this markdown file")
+    parser.add_argument(
+        "--seeds", help="comma-separated seeds instead of --seed/--count (for example the photo sets of a range)"
+    )
     args = parser.parse_args()
-    seeds = range(args.seed, args.seed + args.count)
+    seeds: range | list[int] = range(args.seed, args.seed + args.count)
+    if args.seeds:
+        seeds = [int(s) for s in args.seeds.split(",")]
+        if min(seeds) < HELD_OUT_FIRST_SEED:
+            print(f"note: seeds below {HELD_OUT_FIRST_SEED} are tuning or test seeds, not held out", flush=True)
     scenes_dir, grounded_dir = args.work / "scenes", args.work / "grounded"
     grounded_dir.mkdir(parents=True, exist_ok=True)
-    print(f"rendering scenes {seeds.start}..{seeds.stop - 1} into {scenes_dir} (kept ones are reused)", flush=True)
-    make_scenes(scenes_dir, seeds, args.small)
+    print(f"rendering scenes {min(seeds)}..{max(seeds)} into {scenes_dir} (kept ones are reused)", flush=True)
+    for first, count in _runs_of(sorted(seeds)):
+        make_scenes(scenes_dir, range(first, first + count), args.small)
     records = []
     for k, seed in enumerate(seeds, 1):
         name = f"scene_{seed:05d}"

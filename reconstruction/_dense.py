@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from reconstruction._parallel import ordered_ahead, usable_cores
+from reconstruction._sweep import SweepOptions, choose_neighbours, consistent, sweep_depth
 from reconstruction._types import CameraIntrinsics
 from reconstruction.errors import DenseError
 
@@ -43,6 +44,8 @@ class DenseOptions:
         min_weight: a surface needs this many depth maps agreeing on it.
         refine_window_px: window of the sub-pixel disparity refinement.
         edge_disparity_px: disparity jump (px, over 3x3) that marks an occlusion edge.
+        sweep: when fewer than ``min_pairs`` pairs are found (a photo set), every view also gets a multi-view
+            plane-sweep depth map (`_sweep`) in place of the wide-baseline pairs; None keeps the wide pairs.
     """
 
     num_reference_views: int = 44
@@ -57,6 +60,7 @@ class DenseOptions:
     min_weight: float = 1.0
     refine_window_px: int = 9
     edge_disparity_px: float = 2.0
+    sweep: SweepOptions | None = field(default_factory=SweepOptions)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -369,54 +373,106 @@ def fuse_views(
         device=o3d.core.Device("CPU:0"),
     )
     trunc_multiplier = options.trunc_voxels
-    pairs = choose_pairs(views, roi_centre, options)
+    pairs = _pairs_in(views, roi_centre, options, options.baseline_ratio, 30.0, set())
+    sweeping = len(pairs) < options.min_pairs and options.sweep is not None
+    if not sweeping:
+        pairs = choose_pairs(views, roi_centre, options)
     used = 0
     depth_maps = []
 
-    def pair_depth(pair: tuple[int, int]) -> tuple[tuple[float, float], _PairDepth | None]:
-        left, right = views[pair[0]], views[pair[1]]
-        cam_from_world = np.linalg.inv(left.world_from_cam)
+    def depth_range_of(world_from_cam: np.ndarray) -> tuple[float, float]:
+        cam_from_world = np.linalg.inv(world_from_cam)
         depths = (corners @ cam_from_world[:3, :3].T + cam_from_world[:3, 3])[:, 2]
-        depth_range = (max(1e-3, 0.8 * float(depths.min())), 1.2 * float(depths.max()))
-        return depth_range, _pair_depth(left, right, k, dist, size, depth_range, options)
+        return (max(1e-3, 0.8 * float(depths.min())), 1.2 * float(depths.max()))
 
-    # The pairs' stereo is independent and OpenCV releases the GIL: computed a few ahead on the other cores, and
-    # fused one by one in pair order, as before (the same TSDF to the bit).
-    with ThreadPoolExecutor(max(1, min(len(pairs), usable_cores()))) as pool:
-        results = ordered_ahead(pool, pair_depth, pairs, ahead=2 * usable_cores())
-        for n, (depth_range, out) in enumerate(results):
-            if progress:
-                progress(n + 1, len(pairs))
-            if out is None:
-                continue
-            depth, image, k_rect, world_from_rect = out
-            # Keep only depths whose 3D point falls inside the region of interest.
-            vs, us = np.nonzero(depth > 0)
-            z = depth[vs, us]
-            rays = np.stack(
-                [(us - k_rect[0, 2]) / k_rect[0, 0], (vs - k_rect[1, 2]) / k_rect[1, 1], np.ones_like(z)], 1
-            )
-            points = (rays * z[:, None]) @ world_from_rect[:3, :3].T + world_from_rect[:3, 3]
-            outside = ~roi.contains(points)
-            depth[vs[outside], us[outside]] = 0.0
-            if not depth.any():
-                continue  # nothing of this pair lies in the box (Open3D refuses a depth map that touches no voxel)
-            depth_max = float(depth_range[1]) * 2
-            depth_image = o3d.t.geometry.Image(np.ascontiguousarray(depth))
-            color_image = o3d.t.geometry.Image(np.ascontiguousarray(image[:, :, ::-1], dtype=np.float32) / 255.0)
-            k_tensor = o3d.core.Tensor.from_numpy(np.ascontiguousarray(k_rect, np.float64))
-            extrinsic = o3d.core.Tensor.from_numpy(np.ascontiguousarray(np.linalg.inv(world_from_rect)))
+    def roi_crop(world_from_cam: np.ndarray) -> tuple[int, int, int, int] | None:
+        """Pixel box (x0, y0, x1, y1) of the region of interest in a view; None when it reaches behind it."""
+        cam_from_world = np.linalg.inv(world_from_cam)
+        in_cam = corners @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        if (in_cam[:, 2] <= 1e-6).any():
+            return None
+        pixels = in_cam[:, :2] / in_cam[:, 2:] * np.diag(k)[:2] + k[:2, 2]
+        margin = 8
+        x0, y0 = np.clip(np.floor(pixels.min(axis=0)) - margin, 0, size).astype(int)
+        x1, y1 = np.clip(np.ceil(pixels.max(axis=0)) + margin, 0, size).astype(int)
+        return int(x0), int(y0), int(x1), int(y1)
+
+    def pair_depth(pair: tuple[int, int]) -> _PairDepth | None:
+        left, right = views[pair[0]], views[pair[1]]
+        return _pair_depth(left, right, k, dist, size, depth_range_of(left.world_from_cam), options)
+
+    def integrate(
+        depth: np.ndarray, image: np.ndarray, k_depth: np.ndarray, world_from_depth: np.ndarray, sparse: bool = False
+    ) -> None:
+        """Fuses one depth map; a `sparse` one (scattered pixels, the sweep's) allocates the blocks its points
+        touch: Open3D's depth-image overload looks at every 4th pixel only and can miss all of them."""
+        nonlocal used
+        depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+        # Keep only depths whose 3D point falls inside the region of interest.
+        vs, us = np.nonzero(depth > 0)
+        z = depth[vs, us]
+        rays = np.stack(
+            [(us - k_depth[0, 2]) / k_depth[0, 0], (vs - k_depth[1, 2]) / k_depth[1, 1], np.ones_like(z)], 1
+        )
+        points = (rays * z[:, None]) @ world_from_depth[:3, :3].T + world_from_depth[:3, 3]
+        outside = ~roi.contains(points)
+        depth[vs[outside], us[outside]] = 0.0
+        if not depth.any():
+            return  # nothing of this map lies in the box (Open3D refuses a depth map that touches no voxel)
+        depth_max = 2 * depth_range_of(world_from_depth)[1]
+        depth_image = o3d.t.geometry.Image(np.ascontiguousarray(depth))
+        color_image = o3d.t.geometry.Image(np.ascontiguousarray(image[:, :, ::-1], dtype=np.float32) / 255.0)
+        k_tensor = o3d.core.Tensor.from_numpy(np.ascontiguousarray(k_depth, np.float64))
+        extrinsic = o3d.core.Tensor.from_numpy(np.ascontiguousarray(np.linalg.inv(world_from_depth)))
+        if sparse:
+            cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor.from_numpy(points[~outside].astype(np.float32)))
+            blocks = grid.compute_unique_block_coordinates(cloud, trunc_multiplier)
+        else:
             blocks = grid.compute_unique_block_coordinates(
                 depth_image, k_tensor, extrinsic, 1.0, depth_max, trunc_multiplier
             )
-            grid.integrate(
-                blocks, depth_image, color_image, k_tensor, k_tensor, extrinsic, 1.0, depth_max, trunc_multiplier
-            )
-            used += 1
-            depth_maps.append(DepthMap(depth=depth, k=k_rect, world_from_cam=world_from_rect))
+        grid.integrate(
+            blocks, depth_image, color_image, k_tensor, k_tensor, extrinsic, 1.0, depth_max, trunc_multiplier
+        )
+        used += 1
+        depth_maps.append(DepthMap(depth=depth, k=k_depth, world_from_cam=world_from_depth))
+
+    total = len(pairs) + (len(views) if sweeping else 0)
+    # The pairs' stereo is independent and OpenCV releases the GIL: computed a few ahead on the other cores, and
+    # fused one by one in pair order, as before (the same TSDF to the bit).
+    with ThreadPoolExecutor(max(1, min(max(len(pairs), len(views) if sweeping else 0), usable_cores()))) as pool:
+        results = ordered_ahead(pool, pair_depth, pairs, ahead=2 * usable_cores())
+        for n, out in enumerate(results):
+            if progress:
+                progress(n + 1, total)
+            if out is not None:
+                integrate(*out)
+        if sweeping:
+            assert options.sweep is not None
+            sweep_options = options.sweep
+            undistorted = [cv2.undistort(v.image_bgr, k, dist) for v in views]
+            grays = [cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32) for img in undistorted]
+            poses = [v.world_from_cam for v in views]
+            neighbours = choose_neighbours(poses, roi_centre, sweep_options)
+
+            def view_depth(i: int) -> np.ndarray:
+                others = [(grays[j], poses[j]) for j in neighbours[i]]
+                heights = (float(roi.min_world[2]), float(roi.max_world[2]))
+                depth_range = depth_range_of(poses[i])
+                return sweep_depth(
+                    grays[i], poses[i], others, k, depth_range, sweep_options, heights, crop=roi_crop(poses[i])
+                )[0]
+
+            sweeps = []
+            for n, depth in enumerate(ordered_ahead(pool, view_depth, range(len(views)), ahead=2 * usable_cores())):
+                if progress:
+                    progress(len(pairs) + n + 1, total)
+                sweeps.append(depth)
+            for i, depth in enumerate(consistent(sweeps, poses, k, sweep_options)):
+                integrate(depth, undistorted[i], k, poses[i], sparse=True)
     if used == 0:  # Open3D cannot extract from an empty grid (its hash map refuses zero keys)
         raise DenseError(
-            f"no stereo pair of frames measured depth where the objects stand ({len(pairs)} pair(s) tried of "
+            f"no stereo pair of frames measured depth where the objects stand ({total} depth map(s) tried of "
             f"{len(views)} views): the views are too few or too far apart; film more of them, closer together (a "
             "video orbit, or photos every 10-15 deg around the table)"
         )

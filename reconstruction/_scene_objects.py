@@ -68,6 +68,12 @@ def region_of_interest(result: ReconstructionResult, margin_fraction: float) -> 
         # clusters of about 11. The box only bounds the dense work, so smaller clusters may widen it.
         clusters = _world.objects_above_plane(points, plane, scene_size, min_cluster_points=8)
     if not clusters:
+        # Plain objects in a few stills may carry almost no sparse points (family photo set 11: 9 points on four
+        # objects): the dense stereo then searches the part of the table most cameras see.
+        seen = _seen_region(result, scene_size)
+        if seen is not None:
+            log.warning("no sparse points stand on the table: searching the table the cameras see for objects")
+            return seen
         raise _objects.SegmentationError(
             "no object found: no cluster of 3D points stands on the table; film the objects from more sides"
         )
@@ -83,6 +89,34 @@ def region_of_interest(result: ReconstructionResult, margin_fraction: float) -> 
     lo = np.array([lo[0] - margin, lo[1] - margin, -0.03 * scene_size])
     hi = np.array([hi[0] + margin, hi[1] + margin, max(hi[2], top) + margin])
     return _dense.RegionOfInterest(min_world=lo, max_world=hi)
+
+
+def _seen_region(
+    result: ReconstructionResult, scene_size: float, min_fraction: float = 0.7
+) -> _dense.RegionOfInterest | None:
+    """Box around the part of the table plane (z = 0) inside at least `min_fraction` of the frames, reaching
+    0.4 x the median camera distance above it; None when no part of the plane is seen that often."""
+    intr = result.intrinsics
+    cams = np.array([f.centre_world_m for f in result.frames])
+    reach = float(np.abs(cams[:, :2]).max())
+    axis = np.linspace(-reach, reach, 161)
+    grid_x, grid_y = np.meshgrid(axis, axis)
+    on_plane = np.stack([grid_x.ravel(), grid_y.ravel(), np.zeros(grid_x.size)], axis=1)
+    seen = np.zeros(len(on_plane))
+    for frame in result.frames:
+        cam_from_world = np.linalg.inv(frame.world_from_cam)
+        in_cam = on_plane @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        z = np.where(in_cam[:, 2] > 1e-9, in_cam[:, 2], np.nan)
+        u = intr.fx_px * in_cam[:, 0] / z + intr.cx_px
+        v = intr.fy_px * in_cam[:, 1] / z + intr.cy_px
+        seen += (u >= 0) & (u < intr.width_px) & (v >= 0) & (v < intr.height_px)
+    inside = on_plane[seen >= min_fraction * len(result.frames)]
+    if len(inside) == 0:
+        return None
+    lo, hi = inside.min(axis=0), inside.max(axis=0)
+    return _dense.RegionOfInterest(
+        min_world=np.array([lo[0], lo[1], -0.03 * scene_size]), max_world=np.array([hi[0], hi[1], 0.4 * scene_size])
+    )
 
 
 def _cluster_top_m(points: np.ndarray) -> float:
