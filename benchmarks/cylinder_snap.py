@@ -1,5 +1,5 @@
 """A grounded scene with one object's visual mesh snapped onto its least-squares upright cylinder: measures whether
-a scan's surface ripple is what biases model-based tracking's depth (README, "A calibrated scene from video alone").
+a scan's surface ripple is what biases model-based tracking's depth (docs/results/interaction.md).
 `ground` does this itself since 2026-11-26 (`GroundOptions.cylinder_snap`, `reconstruction._primitives`, the same
 function); this applies it to a scene grounded before.
 

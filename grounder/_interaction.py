@@ -156,7 +156,7 @@ class InteractionOptions:
             contact comes from a fit of the whole flight before it, not from a few frames. A value is calibrated
             where the impacts resolve it; the others go to the windows (`ImpactOptions.windows_for_unresolved`)
             or keep the prior. On five clips of scan D: 21 of 23 resolved friction and restitution values within
-            20% (2 wrong, 7 unresolved) against the windows' 16 of 23 (7 wrong, 7 unresolved; README, "Contacts
+            20% (2 wrong, 7 unresolved) against the windows' 16 of 23 (7 wrong, 7 unresolved; docs/cli.md, "Contacts
             after free flights").
     """
 
@@ -277,7 +277,7 @@ def saved_tracks(tracks_dir: Path, track_options: TrackOptions | None = None) ->
     `ground --interaction` calibrates from these rather than from the tracks it holds in memory, so that calibrating
     its saved tracks again (`benchmarks/track.py --calibrate --tracks`, which reads them here too) gives the same
     scene: a tumbling object's landings on its convex hulls are chaotic at the scale of that rounding, and on
-    `samples/toss` the can's fit differed between the two (README, "A calibrated scene from video alone").
+    `samples/toss` the can's fit differed between the two (docs/results/interaction.md).
     """
     options = track_options or TrackOptions()
     track_json = Path(tracks_dir) / "track.json"

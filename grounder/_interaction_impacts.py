@@ -28,16 +28,16 @@ Per object (in a scene of its own with the table, `grounder._interaction.single_
    and the compared frames together), plus the start's errors carried through the contact (the spread of 64
    rollouts from starts drawn from the start's covariance and the drift, at the best point, refined twice). A
    tumbling landing on convex hulls can be chaotic: `benchmarks/impacts_stability.py` measures how far a fit moves
-   under sub-micrometre changes of the tracked poses (README). The restitution is the bounce at 1 m/s
-   (`grounder._restitution.contact_solref` gives the damping ratio for it at each time constant), so the grid's
-   axes are the quantities the clip shows, not the knobs MuJoCo trades against each other.
+   under sub-micrometre changes of the tracked poses (docs/results/interaction.md). The restitution is the bounce
+   at 1 m/s (`grounder._restitution.contact_solref` gives the damping ratio for it at each time constant), so the
+   grid's axes are the quantities the clip shows, not the knobs MuJoCo trades against each other.
 4. **Resolution** (`profile_range`): a value's range is the span of grid points within a chi-square increase of
    `delta_chi2` (scaled by the misfit per degree of freedom where that exceeds 1) of the best, widened halfway to
    the next grid values; it is resolved where that range lies within `resolution_fraction` of the best value and
    inside the grid. A landing that only sticks bounds friction from below: its range reaches the grid's top.
 
 An object that never flies (pushed, only sliding) has no impacts: `grounder._interaction` calibrates it on windows.
-Figures in README ("Contacts after free flights").
+Described in docs/cli.md ("Contacts after free flights"); figures in docs/results/interaction.md.
 """
 
 from __future__ import annotations
@@ -97,8 +97,8 @@ class ImpactOptions:
             1 mm nearer than true in flight (along-ray RMS of the moving objects 2.4 mm; the scan's rippled can was
             4.4-9.4 mm nearer, RMS 6.7 mm, and the drift was sized from it, 6 mm, and before from the bowl, 1 mm
             over 0.1 s). With 2 or 3 mm the can's values held in every sub-micrometre copy of `samples/toss` too,
-            but 2 mm gave two wrong values on the held-out clips and 3 mm one; figures of each in README ("A
-            calibrated scene from video alone") and docs/interaction_history.md. Carried by the sampled propagation
+            but 2 mm gave two wrong values on the held-out clips and 3 mm one; figures of each in
+            docs/results/interaction.md and docs/interaction_history.md. Carried by the sampled propagation
             (`start_samples`) and the first, ballistic guess; needs a view point. 0 turns it off.
         drift_rotation_deg: the same for the tracked orientation (per axis, world frame; same correlation time).
         outlier_sigmas: a single frame this many sigmas off its flight's fit is dropped.

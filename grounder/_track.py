@@ -153,7 +153,7 @@ class TrackOptions:
             `reconstruction/`; only when the clip is filmed with the scan's camera, i.e. no `intrinsics_colmap`).
             Off by default: it finds objects sooner and tracks the toss a little better (1.32 -> 1.26 mm), but the
             calibration of four scans' tosses came out worse with it (11 of 18 values within 20%, against 14 of
-            17): the windows it adds start in flight, where tracking is least certain (README).
+            17): the windows it adds start in flight, where tracking is least certain (docs/results/tracking.md).
         scan_feature_frames: at most this many scan frames, evenly spread over the scan.
         min_segment_frames: shorter tracked runs are not written as trajectories (still in track.json).
         smoothing: the velocity fit.

@@ -172,7 +172,7 @@ def _marker_from_row(row: object, where: str, origin: str) -> ObjectMarker:
 def load_object_markers(path: Path) -> tuple[ObjectMarker, ...]:
     """The markers of a layout file (module docstring). Raises GrounderError, one line, on anything malformed."""
     path = Path(path)
-    payload = read_json_file(path, "pass a marker layout (JSON) as README documents it")
+    payload = read_json_file(path, "pass a marker layout (JSON) as docs/cli.md documents it")
     rows = payload.get("markers") if isinstance(payload, dict) else None
     if not isinstance(rows, list) or not rows:
         raise GrounderError(f'{path}: expected {{"markers": [...]}} with at least one marker')

@@ -41,7 +41,7 @@ def register(app: typer.Typer) -> None:
             Path | None,
             typer.Option(
                 help="JSON layout of ArUco markers stuck on objects: ids, sizes, optionally objects and places "
-                "(see README). Where seen, a marker gives its object's pose."
+                "(see docs/cli.md). Where seen, a marker gives its object's pose."
             ),
         ] = None,
         marker_use: Annotated[
@@ -51,7 +51,7 @@ def register(app: typer.Typer) -> None:
             bool,
             typer.Option(
                 help="Also learn each object's appearance from the scan's frames (finds weakly textured objects "
-                "sooner; off by default, see README)."
+                "sooner; off by default, see docs/cli.md)."
             ),
         ] = False,
         overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder once done.")] = False,

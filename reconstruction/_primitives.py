@@ -2,7 +2,7 @@
 
 Model-based tracking reads an object's depth from its mesh's apparent size and texture. A fused scan's surface
 ripples by about a millimetre (on `samples/tabletop`'s can 1.2 mm RMS on a 35 mm radius), and that ripple biased the
-can's tracked depth by 4-9 mm in flight on `samples/toss` (README, "A calibrated scene from video alone"); with its
+can's tracked depth by 4-9 mm in flight on `samples/toss` (docs/results/interaction.md); with its
 side moved onto the fitted cylinder the bias fell to about 1 mm, as with the true mesh. Only vertex positions move:
 faces and texture coordinates stay, so the baked texture stays where it was on the surface.
 """

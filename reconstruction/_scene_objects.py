@@ -84,7 +84,7 @@ def region_of_interest(result: ReconstructionResult, margin_fraction: float) -> 
     # Glossy or plain tops give few sparse points (the real apple's came to half its height), so the box reaches
     # above each cluster's highest points by half the cluster's width: clipping the fused surface there left the
     # apple an open, half-height shell. (A full width also fixed the apple, but made the tracked can of the toss
-    # sample 10 mm worse, for a reason not found yet: not the deeper stereo search; see README.)
+    # sample 10 mm worse, for a reason not found yet: not the deeper stereo search; see docs/results/grounding.md.)
     top = max(_cluster_top_m(points[c]) for c in clusters)
     lo = np.array([lo[0] - margin, lo[1] - margin, -0.03 * scene_size])
     hi = np.array([hi[0] + margin, hi[1] + margin, max(hi[2], top) + margin])

@@ -47,12 +47,15 @@ def test_log_messages_go_to_stderr_and_leave_stdout_to_the_results() -> None:
     assert "SCALE UNKNOWN" in proc.stderr
 
 
-def test_every_readme_command_has_a_help_test() -> None:
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    used = {tuple(line.split()[1:3]) for line in readme.splitlines() if line.startswith("image2sim ")}
+@pytest.mark.parametrize("page", ["README.md", "docs/cli.md"])
+def test_every_readme_command_has_a_help_test(page: str) -> None:
+    """README's examples and the full command reference it links to (docs/cli.md)."""
+    text = (Path(__file__).resolve().parents[1] / page).read_text()
+    used = {tuple(line.split()[1:3]) for line in text.splitlines() if line.startswith("image2sim ")}
+    assert used, f"no `image2sim ...` examples found in {page}"
     tested = {tuple(cmd) for cmd in README_COMMANDS} | {("--help",)}
     for words in used:
-        assert words[:1] in tested or words[:2] in tested, f"README example `image2sim {' '.join(words)}` untested"
+        assert words[:1] in tested or words[:2] in tested, f"{page} example `image2sim {' '.join(words)}` untested"
 
 
 def test_console_script_installed() -> None:

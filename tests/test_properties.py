@@ -147,7 +147,8 @@ def test_decode_embedding_is_smooth_and_physical() -> None:
 @pytest.fixture(scope="module")
 def heldout() -> dict[str, float]:
     """Figures on a reduced held-out set (200 renders of seed 5: shapes, textures, lights and cameras never trained
-    on), through `image2sim properties evaluate --json`. The full figures (1000 objects, seed 3) are in README."""
+    on), through `image2sim properties evaluate --json`. The full figures (1000 objects, seed 3) are in
+    docs/results/properties.md."""
     proc = run_cli("properties", "evaluate", "--json", "--num-samples", "200", "--seed", "5")
     assert proc.returncode == 0, proc.stderr[-2000:]
     figures = json.loads(proc.stdout)
@@ -244,7 +245,7 @@ def test_scene_json_carries_embedding_mean_and_spread(grounded: Path, tabletop_d
         right_material.append(top == true["material"])
         friction_err.append(abs(mean["friction"][0] - true["friction"][0]))
         density_pairs.append((true["density_kg_m3"], mean["density_kg_m3"]))
-    # Against the truth (README, "Property model": the can, metal at 900 kg/m^3, is read as cardboard at 193, outside
+    # Against the truth (docs/results/properties.md: the can, metal at 900 kg/m^3, is read as cardboard at 193, outside
     # its interval; the box and bowl are right). Two of three inside their 90% intervals and classed right, sliding
     # friction within 0.1 on average (measured 0.07), and the densities in the true order (box < can < bowl).
     assert sum(inside) >= 2 and sum(right_material) >= 2, (inside, right_material)

@@ -27,8 +27,8 @@ OPENCV_FROM_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 def reconstruction_dir(grounded_tabletop: Path) -> Path:
     """The reconstruct stage's output folder inside the session's grounded tabletop (`image2sim ground` runs the
     same stage with the same settings as `image2sim reconstruct`; two runs agree within 0.02 mm in the cameras,
-    not bit for bit: see README), so the sample is reconstructed once per test run, not twice; `reconstruct`'s own
-    command line is run below."""
+    not bit for bit: see docs/results/grounding.md), so the sample is reconstructed once per test run, not twice;
+    `reconstruct`'s own command line is run below."""
     return grounded_tabletop / "reconstruction"
 
 
