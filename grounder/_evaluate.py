@@ -156,9 +156,11 @@ class SceneScore:
     scale_ratio: float  # grounded / true camera spread: the scale error (1.0 for a perfect scale)
 
 
-def _rigid_from_cameras(scene_dir: Path, truth_dir: Path) -> tuple[np.ndarray, float]:
-    """4x4 truth_from_grounded, the rigid (Kabsch) fit of the grounded camera centres onto the true ones, and the
-    ratio of their spreads (the grounded scale error). Frames are paired by `frame_index`."""
+def _rigid_from_cameras(scene_dir: Path, truth_dir: Path) -> tuple[np.ndarray, float, int]:
+    """4x4 truth_from_grounded, the rigid (Kabsch) fit of the grounded camera centres onto the true ones, the
+    ratio of their spreads (the grounded scale error), and how many cameras the fit left out. Frames are paired by
+    `frame_index`; cameras registered far from where they were (a photo put on the wrong side of the table) are
+    left out (`robust_rigid_fit`) so that they do not tilt the frame every object is scored in."""
     transforms = json.loads((scene_dir / "reconstruction" / "transforms.json").read_text())
     truth = json.loads((truth_dir / "cameras.json").read_text())
     true_centres = {f["frame_index"]: np.asarray(f["world_from_cam"])[:3, 3] for f in truth["frames"]}
@@ -171,15 +173,38 @@ def _rigid_from_cameras(scene_dir: Path, truth_dir: Path) -> tuple[np.ndarray, f
         raise GrounderError(f"only {len(pairs)} grounded cameras pair with the truth's; cannot align the frames")
     grounded = np.array([p[0] for p in pairs])
     true = np.array([p[1] for p in pairs])
-    g0, t0 = grounded.mean(axis=0), true.mean(axis=0)
-    u, _, vt = np.linalg.svd((true - t0).T @ (grounded - g0))
+    pose, kept = robust_rigid_fit(grounded, true)
+    g, t = grounded[kept], true[kept]
+    g0, t0 = g.mean(axis=0), t.mean(axis=0)
+    spread = float(np.sqrt(((g - g0) ** 2).sum(axis=1).mean() / ((t - t0) ** 2).sum(axis=1).mean()))
+    return pose, spread, int((~kept).sum())
+
+
+def _kabsch(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """4x4 rigid transform taking (N, 3) `source` onto `target` in the least-squares sense."""
+    s0, t0 = source.mean(axis=0), target.mean(axis=0)
+    u, _, vt = np.linalg.svd((target - t0).T @ (source - s0))
     d = np.sign(np.linalg.det(u @ vt))
     rotation = u @ np.diag([1.0, 1.0, d]) @ vt
     pose = np.eye(4)
     pose[:3, :3] = rotation
-    pose[:3, 3] = t0 - rotation @ g0
-    spread = float(np.sqrt(((grounded - g0) ** 2).sum(axis=1).mean() / ((true - t0) ** 2).sum(axis=1).mean()))
-    return pose, spread
+    pose[:3, 3] = t0 - rotation @ s0
+    return pose
+
+
+def robust_rigid_fit(source: np.ndarray, target: np.ndarray, rounds: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Kabsch fit of `source` onto `target` that leaves out points more than 3x the median residual (and over
+    1 mm) off, refitted until the set stops changing; returns the 4x4 transform and the (N,) mask of points kept."""
+    kept = np.ones(len(source), bool)
+    pose = _kabsch(source, target)
+    for _ in range(rounds):
+        residual = np.linalg.norm(source @ pose[:3, :3].T + pose[:3, 3] - target, axis=1)
+        new = residual <= max(3.0 * float(np.median(residual[kept])), 1e-3)
+        if new.sum() < 3 or (new == kept).all():
+            break
+        kept = new
+        pose = _kabsch(source[kept], target[kept])
+    return pose, kept
 
 
 def _samples_with_normals(mesh: trimesh.Trimesh, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -268,8 +293,8 @@ def score_scene(scene_dir: Path, truth_dir: Path, *, samples: int = 20000, seed:
     if family["scale_by"] == "marker":
         truth_from_grounded, scale_ratio, alignment = np.eye(4), 1.0, "marker frame"
     else:
-        truth_from_grounded, scale_ratio = _rigid_from_cameras(scene_dir, truth_dir)
-        alignment = "rigid fit of camera centres"
+        truth_from_grounded, scale_ratio, left_out = _rigid_from_cameras(scene_dir, truth_dir)
+        alignment = "rigid fit of camera centres" + (f" ({left_out} far-off camera(s) left out)" if left_out else "")
     for mesh in grounded.values():
         mesh.apply_transform(truth_from_grounded)
     true_names, names = list(truth), list(grounded)
