@@ -58,10 +58,27 @@ def colmap_defaults_registered(photos: Path) -> int:
         return max((m.num_reg_images() for m in models.values()), default=0)
 
 
-def ground_one(scene: Path, out: Path) -> dict[str, object]:
-    """Runs `image2sim ground` on one family scene and scores it; returns a JSON-able record."""
+def score_into(record: dict[str, object], scene: Path, out: Path) -> bool:
+    """Scores the grounded scene `out` against `scene`'s truth into `record`; False when it cannot be aligned."""
     from grounder._evaluate import score_scene
     from scene_export import settle_test
+
+    try:
+        score = score_scene(out, scene / "truth")
+    except Exception as exc:  # a scene the scorer cannot align counts as nothing found, and is named
+        record["last_line"] = f"scoring failed: {type(exc).__name__}: {exc}"
+        record["rc"] = "scoring"
+        return False
+    record["objects"] = [asdict(o) for o in score.objects]
+    record["extra_bodies"] = list(score.extra_bodies)
+    record["scale_ratio"] = score.scale_ratio
+    motion = settle_test(out / "scene.xml", seconds=2.0)
+    record["settle"] = {n: [m.displacement_m, m.rotation_deg] for n, m in motion.items()}
+    return True
+
+
+def ground_one(scene: Path, out: Path) -> dict[str, object]:
+    """Runs `image2sim ground` on one family scene and scores it; returns a JSON-able record."""
 
     family = json.loads((scene / "truth" / "family.json").read_text())
     if out.exists():
@@ -80,18 +97,8 @@ def ground_one(scene: Path, out: Path) -> dict[str, object]:
     }
     truth_objects = json.loads((scene / "truth" / "objects.json").read_text())["objects"]
     record["true_objects"] = [{"name": o["name"], "class": o["class"], "variant": o["variant"]} for o in truth_objects]
-    if run.returncode == 0:
-        try:
-            score = score_scene(out, scene / "truth")
-        except Exception as exc:  # a scene the scorer cannot align counts as nothing found, and is named
-            record["last_line"] = f"scoring failed: {type(exc).__name__}: {exc}"
-            record["rc"] = "scoring"
-            return record
-        record["objects"] = [asdict(o) for o in score.objects]
-        record["extra_bodies"] = list(score.extra_bodies)
-        record["scale_ratio"] = score.scale_ratio
-        motion = settle_test(out / "scene.xml", seconds=2.0)
-        record["settle"] = {n: [m.displacement_m, m.rotation_deg] for n, m in motion.items()}
+    if run.returncode == 0 and not score_into(record, scene, out):
+        return record
     if family["source"] == "photos":
         # Registration side by side, whether or not ground went on to find objects: `image2sim reconstruct`.
         with tempfile.TemporaryDirectory() as tmp:
@@ -238,6 +245,14 @@ def targets(records: list[dict[str, object]], objects: list[dict[str, object]]) 
     return out
 
 
+def _command() -> str:
+    """The command line this run was started with, as a user would type it in the repository."""
+    return (
+        "MUJOCO_GL=osmesa .venv/bin/python benchmarks/scene_family.py "
+        + " ".join(re.sub(r"^/.*/(out/)", r"\1", a) for a in sys.argv[1:])
+    ).strip()
+
+
 def _runs_of(seeds: list[int]) -> list[tuple[int, int]]:
     """Sorted seeds as (first, count) runs of consecutive ones."""
     runs: list[tuple[int, int]] = []
@@ -259,7 +274,25 @@ def main() -> None:
     parser.add_argument(
         "--seeds", help="comma-separated seeds instead of --seed/--count (for example the photo sets of a range)"
     )
+    parser.add_argument(
+        "--rescore",
+        action="store_true",
+        help="score the scenes of --work's results.json again (a changed scorer) without grounding them again",
+    )
     args = parser.parse_args()
+    if args.rescore:
+        records = json.loads((args.work / "results.json").read_text())
+        for record in records:
+            if record["rc"] in (0, "scoring"):
+                record["rc"] = 0
+                name = f"scene_{record['family']['seed']:05d}"
+                score_into(record, args.work / "scenes" / name, args.work / "grounded" / name)
+        (args.work / "results.json").write_text(json.dumps(records, indent=1, default=float) + "\n")
+        text = report(records, _command())
+        print(text)
+        if args.report:
+            args.report.write_text(text)
+        return
     seeds: range | list[int] = range(args.seed, args.seed + args.count)
     if args.seeds:
         seeds = [int(s) for s in args.seeds.split(",")]
@@ -283,10 +316,7 @@ def main() -> None:
             flush=True,
         )
         (args.work / "results.json").write_text(json.dumps(records, indent=1, default=float) + "\n")
-    command = "MUJOCO_GL=osmesa .venv/bin/python benchmarks/scene_family.py " + " ".join(
-        re.sub(r"^/.*/(out/)", r"\1", a) for a in sys.argv[1:]
-    )
-    text = report(records, command.strip())
+    text = report(records, _command())
     print(text)
     if args.report:
         args.report.write_text(text)
