@@ -68,6 +68,8 @@ def score_into(record: dict[str, object], scene: Path, out: Path) -> bool:
     except Exception as exc:  # a scene the scorer cannot align counts as nothing found, and is named
         record["last_line"] = f"scoring failed: {type(exc).__name__}: {exc}"
         record["rc"] = "scoring"
+        for stale in ("objects", "extra_bodies", "scale_ratio", "settle"):  # of an earlier scoring (--rescore)
+            record.pop(stale, None)
         return False
     record["objects"] = [asdict(o) for o in score.objects]
     record["extra_bodies"] = list(score.extra_bodies)

@@ -458,7 +458,10 @@ def fuse_views(
             def view_depth(i: int) -> np.ndarray:
                 others = [(grays[j], poses[j]) for j in neighbours[i]]
                 heights = (float(roi.min_world[2]), float(roi.max_world[2]))
-                depth_range = depth_range_of(poses[i])
+                near, far = depth_range_of(poses[i])
+                # A region reaching behind the camera (a wide one, low cameras) starts at a twentieth of its far
+                # side: from 1 mm, all but one or two of the planes, even in inverse depth, lay in front of it.
+                depth_range = (max(near, 0.05 * far), far)
                 return sweep_depth(
                     grays[i], poses[i], others, k, depth_range, sweep_options, heights, crop=roi_crop(poses[i])
                 )[0]

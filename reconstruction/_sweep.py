@@ -167,8 +167,11 @@ def sweep_depth(
                 mean_w = _box(warped, window)
                 var_w = _box(warped * warped, window) - mean_w * mean_w
                 cov = _box(warped * ref_gray, window) - mean_r * mean_w
+                # A flat neighbour window (a blown-out highlight) has no correlation to speak of: its variance is
+                # 0 while the covariance keeps float32 rounding, which divided by the floor scored up to 3.9.
+                textured = inside & (var_w >= options.min_texture**2)
                 ncc = cov / np.sqrt(np.maximum(var_r * var_w, 1e-6))
-                per_neighbour[n] = np.where(inside, ncc, -1.0)
+                per_neighbour[n] = np.where(textured, np.clip(ncc, -1.0, 1.0), -1.0)
             if keep == len(neighbours):
                 score = per_neighbour.mean(axis=0)
             else:
@@ -188,7 +191,7 @@ def sweep_depth(
             just_best = improved
             last_score, last_depth = score, depth
     # Sub-plane refinement: a parabola through the best plane's score and those of its two neighbours in its sweep.
-    inner = has_prev & has_next
+    inner = has_prev & has_next & (prev_score > -1.0) & (next_score > -1.0)  # both sides scored, not rejected
     curvature = prev_score - 2 * best + next_score
     concave = inner & (curvature < -1e-6)
     shift = np.where(concave, 0.5 * (prev_score - next_score) / np.where(concave, curvature, -1.0), 0.0)
