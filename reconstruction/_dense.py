@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from reconstruction._parallel import ordered_ahead, usable_cores
-from reconstruction._sweep import SweepOptions, choose_neighbours, consistent, sweep_depth
+from reconstruction._sweep import SweepOptions, choose_neighbours, consistent, pixel_points_world, sweep_depth
 from reconstruction._types import CameraIntrinsics
 from reconstruction.errors import DenseError
 
@@ -156,11 +156,16 @@ def choose_pairs(views: list[StereoView], target: np.ndarray, options: DenseOpti
     (an unordered photo set) lie farther apart: 26 photos gave 9 of 26 references a partner there, and the fused
     surface held no object. When fewer than ``min_pairs`` pairs are found, the references left without one take
     a partner in the wider ``wide_baseline_ratio`` (less precise depth, but depth)."""
-    pairs = _pairs_in(views, target, options, options.baseline_ratio, 30.0, set())
+    pairs = _narrow_pairs(views, target, options)
     if len(pairs) < options.min_pairs:
         paired = {i for pair in pairs for i in pair}
         pairs += _pairs_in(views, target, options, options.wide_baseline_ratio, 40.0, paired)
     return pairs
+
+
+def _narrow_pairs(views: list[StereoView], target: np.ndarray, options: DenseOptions) -> list[tuple[int, int]]:
+    """The pairs in ``baseline_ratio`` (a video's), each reference frame at most once."""
+    return _pairs_in(views, target, options, options.baseline_ratio, 30.0, set())
 
 
 def _pairs_in(
@@ -373,9 +378,11 @@ def fuse_views(
         device=o3d.core.Device("CPU:0"),
     )
     trunc_multiplier = options.trunc_voxels
-    pairs = _pairs_in(views, roi_centre, options, options.baseline_ratio, 30.0, set())
+    # Enough pairs in the video range: those (what `choose_pairs` returns then). Too few: the sweep's depth maps
+    # beside them, or without a sweep, `choose_pairs`' wide-baseline partners.
+    pairs = _narrow_pairs(views, roi_centre, options)
     sweeping = len(pairs) < options.min_pairs and options.sweep is not None
-    if not sweeping:
+    if len(pairs) < options.min_pairs and not sweeping:
         pairs = choose_pairs(views, roi_centre, options)
     used = 0
     depth_maps = []
@@ -410,11 +417,7 @@ def fuse_views(
         depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
         # Keep only depths whose 3D point falls inside the region of interest.
         vs, us = np.nonzero(depth > 0)
-        z = depth[vs, us]
-        rays = np.stack(
-            [(us - k_depth[0, 2]) / k_depth[0, 0], (vs - k_depth[1, 2]) / k_depth[1, 1], np.ones_like(z)], 1
-        )
-        points = (rays * z[:, None]) @ world_from_depth[:3, :3].T + world_from_depth[:3, 3]
+        points = pixel_points_world(us, vs, depth[vs, us], k_depth, world_from_depth)
         outside = ~roi.contains(points)
         depth[vs[outside], us[outside]] = 0.0
         if not depth.any():
@@ -455,9 +458,10 @@ def fuse_views(
             poses = [v.world_from_cam for v in views]
             neighbours = choose_neighbours(poses, roi_centre, sweep_options)
 
+            heights = (float(roi.min_world[2]), float(roi.max_world[2]))
+
             def view_depth(i: int) -> np.ndarray:
                 others = [(grays[j], poses[j]) for j in neighbours[i]]
-                heights = (float(roi.min_world[2]), float(roi.max_world[2]))
                 near, far = depth_range_of(poses[i])
                 # A region reaching behind the camera (a wide one, low cameras) starts at a twentieth of its far
                 # side: from 1 mm, all but one or two of the planes, even in inverse depth, lay in front of it.

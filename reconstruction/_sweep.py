@@ -3,8 +3,9 @@
 Rectified two-view stereo (`_dense`) needs a partner displaced mostly sideways by 8-25% of the distance. A video
 orbit gives every frame one; 20-40 stills taken from anywhere around a table rarely do (family photo sets paired
 5 of 26 frames, and the fused surface held almost nothing). Here each reference view is matched against a few
-neighbours 6-40 deg away in any direction: fronto-parallel planes are swept through the region of interest, each
-neighbour is warped onto the reference by the plane's homography (OpenCV), and the windowed normalised
+neighbours 6-40 deg away in any direction: fronto-parallel planes and planes parallel to the table are swept
+through the region of interest, each neighbour is warped onto the reference by the plane's homography (OpenCV), and
+the windowed normalised
 cross-correlation of the best half of the neighbours scores each depth (the other half may be occluded). The
 best-scoring depth, refined by a parabola through its neighbours in the sweep, is kept where the score is high
 and the window textured; then only depths that another reference's depth map confirms survive (COLMAP's
@@ -67,6 +68,14 @@ def choose_neighbours(
         order = candidates[np.argsort(np.abs(angle[i, candidates] - 20.0))]
         out.append([int(j) for j in order[: options.max_neighbours]])
     return out
+
+
+def pixel_points_world(
+    us: np.ndarray, vs: np.ndarray, z: np.ndarray, k: np.ndarray, world_from_cam: np.ndarray
+) -> np.ndarray:
+    """(N, 3) world points of pixels (`us`, `vs`) at camera depths `z`, for a pinhole `k` without skew."""
+    rays = np.stack([(us - k[0, 2]) / k[0, 0], (vs - k[1, 2]) / k[1, 1], np.ones_like(z)], 1)
+    return np.asarray((rays * z[:, None]) @ world_from_cam[:3, :3].T + world_from_cam[:3, 3])
 
 
 def _box(image: np.ndarray, window: int) -> np.ndarray:
@@ -214,15 +223,13 @@ def consistent(
     """Each depth map with the depths no other map confirms set to 0: a depth is kept when at least
     ``min_agreeing`` other maps, seeing its point, measure it within ``consistency_rel`` of its depth there."""
     out = []
-    k_inv = np.linalg.inv(k)
     for i, depth in enumerate(depths):
         vs, us = np.nonzero(depth > 0)
         if len(vs) == 0:
             out.append(depth)
             continue
         z = depth[vs, us]
-        rays = np.stack([us, vs, np.ones_like(us)], 1).astype(np.float64) @ k_inv.T
-        points = (rays * z[:, None]) @ world_from_cams[i][:3, :3].T + world_from_cams[i][:3, 3]
+        points = pixel_points_world(us, vs, z.astype(np.float64), k, world_from_cams[i])
         agree = np.zeros(len(z), np.int32)
         for j, other in enumerate(depths):
             if j == i:
