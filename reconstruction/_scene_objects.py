@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from reconstruction import _dense, _objects, _world
+from reconstruction import _dense, _objects, _silhouette, _world
 from reconstruction._types import ObjectInstance, ReconstructionResult, TexturedMesh
 from reconstruction.errors import ReconstructionError
 
@@ -28,6 +28,10 @@ class ObjectsOptions:
     mesh: _objects.MeshOptions = field(default_factory=_objects.MeshOptions)
     roi_margin_fraction: float = 0.08  # margin around the objects' sparse points, x the median camera distance
     min_object_voxels: float = 3.0  # a meshed object smaller than a cube this many fused voxels wide is dropped
+    # objects the fused surface missed, from their silhouettes against the table (`_silhouette`); None: off
+    silhouettes: _silhouette.SilhouetteOptions | None = field(default_factory=_silhouette.SilhouetteOptions)
+    max_float_voxels: float = 6.0  # an object whose lowest point is higher, over the table only, floats: dropped
+    max_carved_fraction: float = 0.5  # a fused object mostly in space the frames see table through is dropped
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -183,6 +187,13 @@ def find_objects(
             )
         )
     report("meshing objects", len(segments), len(segments))
+    instances = _resting(instances, options.max_float_voxels * dense.voxel_size)
+    if options.silhouettes is not None:
+        report("silhouettes", 0, 1)
+        instances = _with_silhouettes(
+            instances, views, k, roi, dense.voxel_size, options.silhouettes, options.max_carved_fraction
+        )
+        report("silhouettes", 1, 1)
     if not instances:
         raise _objects.SegmentationError(
             "no object found: every cluster above the table meshed to almost nothing; film the objects from more sides"
@@ -195,6 +206,89 @@ def find_objects(
         num_stereo_pairs=dense.num_pairs,
         table_half_extents=table,
     )
+
+
+def _bounds(obj: ObjectInstance) -> tuple[np.ndarray, np.ndarray]:
+    centre = obj.world_from_object[:3, 3]
+    return centre + obj.mesh.vertices_m.min(axis=0), centre + obj.mesh.vertices_m.max(axis=0)
+
+
+def _resting(instances: list[ObjectInstance], max_float_m: float) -> list[ObjectInstance]:
+    """The objects that stand on the table or over another object. A fused piece whose lowest point is more than
+    `max_float_m` above the table with nothing under it cannot be an object at rest (seen on the family's low
+    passes: a table-coloured piece 11 cm up, behind a bottle); it is dropped with a warning."""
+    boxes = [_bounds(o) for o in instances]
+    kept = []
+    for index, obj in enumerate(instances):
+        lo, hi = boxes[index]
+        over_another = any(
+            j != index and b_hi[2] < lo[2] + max_float_m and np.all(lo[:2] <= b_hi[:2]) and np.all(hi[:2] >= b_lo[:2])
+            for j, (b_lo, b_hi) in enumerate(boxes)
+        )
+        if lo[2] > max_float_m and not over_another:
+            log.warning("dropped a candidate object floating %.3g above the table", lo[2])
+            continue
+        kept.append(obj)
+    return [replace(o, name=f"object_{i}") for i, o in enumerate(kept)]
+
+
+def _with_silhouettes(
+    instances: list[ObjectInstance],
+    views: list[_dense.StereoView],
+    k: np.ndarray,
+    roi: _dense.RegionOfInterest,
+    voxel: float,
+    options: _silhouette.SilhouetteOptions,
+    max_carved_fraction: float,
+) -> list[ObjectInstance]:
+    """`instances` checked against the visual hull, plus the hull's pieces the fused surface missed.
+
+    A fused object whose inner part (its vertices pulled a third of the way to its centre) lies mostly where the
+    frames see the table through it is a phantom of the stereo (seen on the family's low passes: table-coloured
+    pieces floating behind a bottle) and is dropped. A hull piece whose footprint meets no fused object's is an
+    object the stereo could not see (a plain ball, a white mug): it is meshed from the hull, a coarser surface
+    (cavities closed), recorded as mesh quality "silhouette"."""
+    hull = _silhouette.visual_hull(views, k, roi, voxel, options)
+    if hull is None:
+        return instances
+    kept: list[ObjectInstance] = []
+    for obj in instances:
+        vertices = obj.mesh.vertices_m
+        inner = obj.world_from_object[:3, 3] + vertices - (vertices - vertices.mean(axis=0)) / 3
+        carved = hull.carved_fraction(inner)
+        if carved > max_carved_fraction:
+            log.warning("dropped a candidate object: the frames see the table through %.0f%% of it", 100 * carved)
+            continue
+        kept.append(obj)
+    boxes = [_bounds(o) for o in kept]
+    for piece in hull.pieces:
+        points = piece.points_world
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        if any(np.all(lo[:2] <= b_hi[:2] + voxel) and np.all(hi[:2] >= b_lo[:2] - voxel) for b_lo, b_hi in boxes):
+            continue  # the fused surface has it
+        try:
+            vertices, faces = _silhouette.hull_mesh(piece)
+        except Exception as exc:  # a hull that cannot be meshed is no object; the scene goes on
+            log.warning("a silhouette object could not be meshed (%s): dropped", exc)
+            continue
+        centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+        world_from_object = np.eye(4)
+        world_from_object[:3, 3] = centre
+        reason = "no fused surface (too little texture for stereo): meshed from its silhouettes (visual hull)"
+        kept.append(
+            ObjectInstance(
+                name=f"object_{len(kept)}",
+                mesh=TexturedMesh(vertices_m=vertices - centre, faces=faces),
+                world_from_object=world_from_object,
+                num_views=len(views),
+                closed_bottom=True,
+                warnings=(f"{reason}; a cavity would be closed",),
+                mesh_quality="silhouette",
+                mesh_reason=reason,
+            )
+        )
+        boxes.append((lo, hi))
+    return [replace(o, name=f"object_{i}") for i, o in enumerate(kept)]
 
 
 def _mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -253,8 +253,9 @@ class ObjectInstance:
         num_views: frames in which the object is visible.
         closed_bottom: the unseen underside was closed with a flat cap on the table plane (an assumption).
         warnings: problems noticed (partly out of view, possibly several touching objects, ...).
-        mesh_quality: "full" (meshed from its fused surface) or "fallback" (that failed: the convex hull of its
-            points, `reconstruction._objects.fallback_mesh`).
+        mesh_quality: "full" (meshed from its fused surface), "fallback" (that failed: the convex hull of its
+            points, `reconstruction._objects.fallback_mesh`) or "silhouette" (no fused surface: the visual hull of
+            its outlines against the table, `reconstruction._silhouette`; a cavity is closed).
         mesh_reason: why the full mesh failed, for a fallback.
     """
 
