@@ -31,7 +31,6 @@ class ObjectsOptions:
     # objects the fused surface missed, from their silhouettes against the table (`_silhouette`); None: off
     silhouettes: _silhouette.SilhouetteOptions | None = field(default_factory=_silhouette.SilhouetteOptions)
     max_float_voxels: float = 6.0  # an object whose lowest point is higher, over the table only, floats: dropped
-    max_carved_fraction: float = 0.5  # a fused object mostly in space the frames see table through is dropped
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -191,7 +190,7 @@ def find_objects(
     if options.silhouettes is not None:
         report("silhouettes", 0, 1)
         instances = _with_silhouettes(
-            instances, views, k, roi, dense.voxel_size, options.silhouettes, options.max_carved_fraction
+            instances, views, k, _hull_region(result, roi), dense.voxel_size, options.silhouettes
         )
         report("silhouettes", 1, 1)
     if not instances:
@@ -232,34 +231,38 @@ def _resting(instances: list[ObjectInstance], max_float_m: float) -> list[Object
     return [replace(o, name=f"object_{i}") for i, o in enumerate(kept)]
 
 
+def _hull_region(result: ReconstructionResult, roi: _dense.RegionOfInterest) -> _dense.RegionOfInterest:
+    """Where the silhouettes look for objects: the region of interest, widened to the table most frames see (a
+    plain object has no sparse points to widen the region to it: tuning seed 0's book lay outside)."""
+    cams = np.array([f.centre_world_m for f in result.frames])
+    scene_size = float(np.median(np.linalg.norm(cams - (roi.min_world + roi.max_world) / 2, axis=1)))
+    seen = _seen_region(result, scene_size)
+    if seen is None:
+        return roi
+    return _dense.RegionOfInterest(
+        min_world=np.minimum(roi.min_world, seen.min_world) * np.array([1, 1, 0]) + roi.min_world * np.array([0, 0, 1]),
+        max_world=np.maximum(roi.max_world, seen.max_world) * np.array([1, 1, 0]) + roi.max_world * np.array([0, 0, 1]),
+    )
+
+
 def _with_silhouettes(
     instances: list[ObjectInstance],
     views: list[_dense.StereoView],
     k: np.ndarray,
-    roi: _dense.RegionOfInterest,
+    region: _dense.RegionOfInterest,
     voxel: float,
     options: _silhouette.SilhouetteOptions,
-    max_carved_fraction: float,
 ) -> list[ObjectInstance]:
-    """`instances` checked against the visual hull, plus the hull's pieces the fused surface missed.
+    """`instances` plus the visual hull's pieces the fused surface missed, searched for in `region`.
 
-    A fused object whose inner part (its vertices pulled a third of the way to its centre) lies mostly where the
-    frames see the table through it is a phantom of the stereo (seen on the family's low passes: table-coloured
-    pieces floating behind a bottle) and is dropped. A hull piece whose footprint meets no fused object's is an
-    object the stereo could not see (a plain ball, a white mug): it is meshed from the hull, a coarser surface
-    (cavities closed), recorded as mesh quality "silhouette"."""
-    hull = _silhouette.visual_hull(views, k, roi, voxel, options)
+    A hull piece whose footprint meets no fused object's is an object the stereo could not see (a plain ball, a
+    white mug): it is meshed from the hull, a coarser surface (cavities closed), recorded as mesh quality
+    "silhouette". The hull does not overrule the fused surface: an object the colour of the table (a cardboard
+    cube on cork, tuning seed 0) is carved from it, so a fused object is never dropped for the hull's sake."""
+    hull = _silhouette.visual_hull(views, k, region, voxel, options)
     if hull is None:
         return instances
-    kept: list[ObjectInstance] = []
-    for obj in instances:
-        vertices = obj.mesh.vertices_m
-        inner = obj.world_from_object[:3, 3] + vertices - (vertices - vertices.mean(axis=0)) / 3
-        carved = hull.carved_fraction(inner)
-        if carved > max_carved_fraction:
-            log.warning("dropped a candidate object: the frames see the table through %.0f%% of it", 100 * carved)
-            continue
-        kept.append(obj)
+    kept = list(instances)
     boxes = [_bounds(o) for o in kept]
     for piece in hull.pieces:
         points = piece.points_world

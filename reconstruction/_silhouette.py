@@ -76,21 +76,9 @@ class HullObject:
 
 @dataclass(frozen=True, kw_only=True)
 class VisualHull:
-    """The pieces of the hull, and the cells most frames that saw them saw table through (grid index (i, j, k):
-    centre at ``origin_world + (i, j, k) * cell_m``)."""
+    """The pieces of the hull that rest on the table."""
 
     pieces: tuple[HullObject, ...]
-    carved: np.ndarray  # (I, J, K) bool
-    origin_world: np.ndarray  # (3,)
-    cell_m: float
-
-    def carved_fraction(self, points_world: np.ndarray) -> float:
-        """Fraction of `points_world` (N, 3) in carved cells (points outside the grid are not counted)."""
-        index = np.round((points_world - self.origin_world) / self.cell_m).astype(int)
-        inside = np.all((index >= 0) & (index < np.array(self.carved.shape)), axis=1)
-        if not inside.any():
-            return 0.0
-        return float(self.carved[tuple(index[inside].T)].mean())
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -278,8 +266,8 @@ def visual_hull(
     voxel_m: float,
     options: SilhouetteOptions | None = None,
 ) -> VisualHull | None:
-    """The visual hull inside `roi`: its connected pieces that rest on the table, largest first, and the cells
-    it carved; None with too few frames for one.
+    """The visual hull inside `roi`: its connected pieces that rest on the table, largest first; None with too
+    few frames for one.
 
     Each piece is grown down to the table through the cells no frame sees table at once the table under it is
     unknown (the drawing holds the object's colour there, so its lowest part was carved); a piece that cannot
@@ -315,7 +303,7 @@ def visual_hull(
     min_cells = (options.min_size_voxels * voxel_m / cell) ** 3
     candidates = [m for m in (np.argwhere(pieces == i) for i in range(1, count + 1)) if len(m) >= min_cells]
     if not candidates:
-        return VisualHull(pieces=(), carved=np.zeros(tuple(shape), bool), origin_world=origin, cell_m=cell)
+        return VisualHull(pieces=())
 
     # Second look under the pieces, with the table under them unknown.
     table = _without_footprints(table, origin[:2] + np.concatenate(candidates)[:, :2] * cell, cell)
@@ -337,10 +325,7 @@ def visual_hull(
             continue
         found.append(HullObject(cells=grown, origin_world=origin, cell_m=cell))
     found.sort(key=lambda h: -len(h.cells))
-    carved_grid = (background > options.max_background_fraction * np.maximum(background + foreground, 1)) & (
-        background + foreground >= options.min_foreground_views
-    )
-    return VisualHull(pieces=tuple(found), carved=carved_grid.reshape(tuple(shape)), origin_world=origin, cell_m=cell)
+    return VisualHull(pieces=tuple(found))
 
 
 def _column_lowest(member: np.ndarray) -> tuple[list[tuple[int, int]], list[int]]:
