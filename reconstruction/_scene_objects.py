@@ -267,8 +267,9 @@ def _with_silhouettes(
     for piece in hull.pieces:
         points = piece.points_world
         lo, hi = points.min(axis=0), points.max(axis=0)
-        if any(np.all(lo[:2] <= b_hi[:2] + voxel) and np.all(hi[:2] >= b_lo[:2] - voxel) for b_lo, b_hi in boxes):
-            continue  # the fused surface has it
+        gap = options.min_gap_voxels * voxel
+        if any(np.all(lo[:2] <= b_hi[:2] + gap) and np.all(hi[:2] >= b_lo[:2] - gap) for b_lo, b_hi in boxes):
+            continue  # the fused surface has it, or it is a part of a fused object stereo missed, or its reflection
         try:
             vertices, faces = _silhouette.hull_mesh(piece)
         except Exception as exc:  # a hull that cannot be meshed is no object; the scene goes on

@@ -45,6 +45,9 @@ class SilhouetteOptions:
         min_foreground_views: a kept cell is seen as "not table" by at least this many frames.
         min_size_voxels: smallest object kept: a cube this many fused voxels wide.
         rest_cells: an object's lowest cell lies at most this many cells above the table (it rests on it).
+        min_gap_voxels: a piece becomes an object only this far (fused voxels, on the table) from every fused object:
+            nearer, it is a part of that object the stereo missed, or the colour it casts on the table (the real
+            apple's red glow beside it became a second body at 2 mm).
     """
 
     max_image_size_px: int = 320
@@ -59,6 +62,7 @@ class SilhouetteOptions:
     min_foreground_views: int = 6
     min_size_voxels: float = 6.0
     rest_cells: int = 2
+    min_gap_voxels: float = 4.0
 
 
 @dataclass(frozen=True, kw_only=True)
