@@ -122,8 +122,13 @@ def _bake_table(scene: SceneObjects, views: list[TextureView], warnings: list[st
 def _extent_factor(scene: SceneObjects, known_extent_m: float) -> tuple[float, str]:
     """The scale factor that gives the largest object its known longest extent. "Largest" is the object with the
     longest extent, as `--known-extent` says and as the sparse estimate chose it (`world_from_extent`): by volume,
-    a bowl outranks a wider plate, and the plate's length given to the bowl scaled a whole scene by 1.18."""
-    largest = max(scene.objects, key=lambda o: float(np.ptp(o.mesh.vertices_m, axis=0).max()))
+    a bowl outranks a wider plate, and the plate's length given to the bowl scaled a whole scene by 1.18.
+
+    Objects meshed from their silhouettes count only when nothing else was found: a visual hull is never smaller
+    than its object and may join two (tuning seed 5: a plate and a mug as one 22 cm hull took the bottle's 22.4 cm
+    and the scene came out x 1.31)."""
+    fused = [o for o in scene.objects if o.mesh_quality != "silhouette"] or list(scene.objects)
+    largest = max(fused, key=lambda o: float(np.ptp(o.mesh.vertices_m, axis=0).max()))
     return known_extent_m / float(np.ptp(largest.mesh.vertices_m, axis=0).max()), largest.name
 
 

@@ -323,14 +323,30 @@ def test_known_extent_goes_to_the_longest_object_not_the_bulkiest() -> None:
 
     from grounder._ground import _extent_factor
 
-    def box(name: str, extents: tuple[float, float, float]) -> SimpleNamespace:
-        corners = np.array(np.meshgrid(*[[0, e] for e in extents])).reshape(3, -1).T
-        return SimpleNamespace(name=name, mesh=SimpleNamespace(vertices_m=corners))
-
-    scene = SimpleNamespace(objects=(box("bowl", (0.16, 0.16, 0.06)), box("plate", (0.19, 0.19, 0.02))))
+    scene = SimpleNamespace(objects=(_box("bowl", (0.16, 0.16, 0.06)), _box("plate", (0.19, 0.19, 0.02))))
     factor, largest = _extent_factor(scene, 0.198)
     assert largest == "plate"
     assert factor == pytest.approx(0.198 / 0.19)
+
+
+def _box(name: str, extents: tuple[float, float, float], quality: str = "full") -> object:
+    from types import SimpleNamespace
+
+    corners = np.array(np.meshgrid(*[[0, e] for e in extents])).reshape(3, -1).T
+    return SimpleNamespace(name=name, mesh=SimpleNamespace(vertices_m=corners), mesh_quality=quality)
+
+
+def test_known_extent_goes_to_a_fused_object_before_a_visual_hull() -> None:
+    """Tuning seed 5 (issue 60): a plate and a plain mug came out of the silhouettes as one 22 cm hull, longer than
+    the 22.2 cm bottle the fused surface measured, and took the bottle's known extent: the scene was x 1.31. A
+    hull is never smaller than its object, so it gets the extent only when nothing else was found."""
+    from types import SimpleNamespace
+
+    from grounder._ground import _extent_factor
+
+    bottle, hull = _box("bottle", (0.06, 0.06, 0.222)), _box("hull", (0.23, 0.14, 0.07), "silhouette")
+    assert _extent_factor(SimpleNamespace(objects=(bottle, hull)), 0.224)[1] == "bottle"
+    assert _extent_factor(SimpleNamespace(objects=(hull,)), 0.224)[1] == "hull"
 
 
 def test_table_top_carries_the_texture_the_cameras_saw(scene_dir: Path) -> None:
