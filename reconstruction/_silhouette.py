@@ -10,12 +10,13 @@ table. A cell of space above the table is kept when the frames that see it almos
 are objects.
 
 A visual hull closes cavities (a cup's inside) and is never smaller than the object, so it is used only where the
-fused surface found nothing (`new_objects`).
+fused surface found nothing (`reconstruction._scene_objects._with_silhouettes`).
 """
 
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -156,12 +157,9 @@ def table_drawing(
         ok = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
         if ok.any():
             samples[slot, ok] = _sample(images_lab[i], uv[ok])
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # texels no frame saw: NaN
-            colour = np.nanmedian(samples, axis=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # texels no frame saw: NaN
+        colour = np.nanmedian(samples, axis=0)
     return TableDrawing(image_lab=colour.reshape(rows, cols, 3), origin_world=origin, step_m=step_m)
 
 
