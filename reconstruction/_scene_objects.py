@@ -167,13 +167,11 @@ def find_objects(
             # A cluster whose solid the depth maps see through almost entirely (a shadow, a reflection): not an object.
             log.warning("dropped a candidate object of %.2g m^3: too small to be an object", volume)
             continue
-        centre = (mesh.vertices_world.min(axis=0) + mesh.vertices_world.max(axis=0)) / 2
-        world_from_object = np.eye(4)
-        world_from_object[:3, 3] = centre
+        own_mesh, world_from_object = _in_own_frame(mesh.vertices_world, mesh.faces)
         instances.append(
             ObjectInstance(
                 name=f"object_{len(instances)}",
-                mesh=TexturedMesh(vertices_m=mesh.vertices_world - centre, faces=mesh.faces),
+                mesh=own_mesh,
                 world_from_object=world_from_object,
                 num_views=segment.num_views,
                 closed_bottom=mesh.closed_bottom,
@@ -205,6 +203,15 @@ def find_objects(
         num_stereo_pairs=dense.num_pairs,
         table_half_extents=table,
     )
+
+
+def _in_own_frame(vertices_world: np.ndarray, faces: np.ndarray) -> tuple[TexturedMesh, np.ndarray]:
+    """A world-frame mesh in its object's frame (origin at its bounding-box centre, axes the world's), and the
+    (4, 4) pose of that frame."""
+    centre = (vertices_world.min(axis=0) + vertices_world.max(axis=0)) / 2
+    world_from_object = np.eye(4)
+    world_from_object[:3, 3] = centre
+    return TexturedMesh(vertices_m=vertices_world - centre, faces=faces), world_from_object
 
 
 def _bounds(obj: ObjectInstance) -> tuple[np.ndarray, np.ndarray]:
@@ -275,14 +282,12 @@ def _with_silhouettes(
         except Exception as exc:  # a hull that cannot be meshed is no object; the scene goes on
             log.warning("a silhouette object could not be meshed (%s): dropped", exc)
             continue
-        centre = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
-        world_from_object = np.eye(4)
-        world_from_object[:3, 3] = centre
+        own_mesh, world_from_object = _in_own_frame(vertices, faces)
         reason = "no fused surface (too little texture for stereo): meshed from its silhouettes (visual hull)"
         kept.append(
             ObjectInstance(
                 name=f"object_{len(kept)}",
-                mesh=TexturedMesh(vertices_m=vertices - centre, faces=faces),
+                mesh=own_mesh,
                 world_from_object=world_from_object,
                 num_views=len(views),
                 closed_bottom=True,

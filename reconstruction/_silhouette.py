@@ -25,6 +25,7 @@ import numpy as np
 from scipy import ndimage
 
 from reconstruction._dense import RegionOfInterest, StereoView
+from reconstruction._texture import _sample_bilinear
 
 log = logging.getLogger(__name__)
 
@@ -124,16 +125,6 @@ def _project(points_world: np.ndarray, world_from_cam: np.ndarray, k: np.ndarray
     return uv, depth
 
 
-def _sample(image: np.ndarray, uv: np.ndarray, width: int = 4096) -> np.ndarray:
-    """(N, C) bilinear samples of `image` at (N, 2) pixel coordinates (OpenCV's remap, in rows of `width`)."""
-    n = len(uv)
-    rows = max(1, -(-n // width))
-    maps = np.full((2, rows * width), -1.0, np.float32)
-    maps[:, :n] = uv.T
-    out = cv2.remap(image, maps[0].reshape(rows, width), maps[1].reshape(rows, width), cv2.INTER_LINEAR)
-    return out.reshape(rows * width, -1)[:n]
-
-
 def table_drawing(
     images_lab: Sequence[np.ndarray],
     views: Sequence[StereoView],
@@ -156,7 +147,7 @@ def table_drawing(
         h, w = images_lab[i].shape[:2]
         ok = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
         if ok.any():
-            samples[slot, ok] = _sample(images_lab[i], uv[ok])
+            samples[slot, ok] = _sample_bilinear(images_lab[i], uv[ok, 0], uv[ok, 1])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # texels no frame saw: NaN
         colour = np.nanmedian(samples, axis=0)
