@@ -330,12 +330,21 @@ def refine_disparity(
     return d
 
 
+def voxel_size(views: list[StereoView], roi: RegionOfInterest, options: DenseOptions) -> float:
+    """The TSDF voxel size: `options.voxel_fraction` of the median camera distance to the centre of `roi`."""
+    centres = np.array([v.world_from_cam[:3, 3] for v in views])
+    return options.voxel_fraction * float(
+        np.median(np.linalg.norm(centres - (roi.min_world + roi.max_world) / 2, axis=1))
+    )
+
+
 def fuse_views(
     views: list[StereoView],
     intrinsics: CameraIntrinsics,
     roi: RegionOfInterest,
     options: DenseOptions | None = None,
     progress: Callable[[int, int], None] | None = None,
+    voxel_m: float | None = None,
 ) -> DenseResult:
     """Depth maps from stereo pairs fused into a TSDF inside `roi`; returns the fused surface mesh.
 
@@ -345,6 +354,7 @@ def fuse_views(
         roi: box in the world frame to reconstruct (objects plus a margin of table).
         options: settings.
         progress: called as progress(done, total) per stereo pair.
+        voxel_m: the TSDF voxel size; by default `voxel_size(views, roi, options)`.
     """
     import open3d as o3d
 
@@ -361,9 +371,7 @@ def fuse_views(
         ]
     k, dist = _opencv_k(intrinsics, scale)
     roi_centre = (roi.min_world + roi.max_world) / 2
-    centres = np.array([v.world_from_cam[:3, 3] for v in views])
-    scene_size = float(np.median(np.linalg.norm(centres - roi_centre, axis=1)))
-    voxel = options.voxel_fraction * scene_size
+    voxel = voxel_m if voxel_m is not None else voxel_size(views, roi, options)
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
     corners = roi.min_world + corners * (roi.max_world - roi.min_world)
     # Open3D's tensor VoxelBlockGrid: sparse blocks, and the TSDF values stay accessible for meshing.

@@ -31,6 +31,10 @@ class ObjectsOptions:
     # objects the fused surface missed, from their silhouettes against the table (`_silhouette`); None: off
     silhouettes: _silhouette.SilhouetteOptions | None = field(default_factory=_silhouette.SilhouetteOptions)
     max_float_voxels: float = 6.0  # an object whose lowest point is higher, over the table only, floats: dropped
+    # an object the region's top cuts (fused points within 2 voxels of it) is fused again with the top this many
+    # times higher, at most `max_roi_raises` times and not past 0.4 x the median camera distance
+    roi_raise_factor: float = 1.5
+    max_roi_raises: int = 2
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -144,13 +148,43 @@ def find_objects(
     views = load_views(result)
     roi = region_of_interest(result, options.roi_margin_fraction)
     k, _ = _dense._opencv_k(result.intrinsics, 1.0)
-    dense = _dense.fuse_views(
-        views, result.intrinsics, roi, options.dense, progress=lambda done, total: report("dense stereo", done, total)
-    )
+    voxel = _dense.voxel_size(views, roi, options.dense)
+    hull = None
+    if options.silhouettes is not None:
+        report("silhouettes", 0, 1)
+        hull = _silhouette.visual_hull(views, k, _hull_region(result, roi), voxel, options.silhouettes)
+        report("silhouettes", 1, 1)
+        if hull is not None:
+            roi = _raised_to_hull(roi, hull)
     size = (result.intrinsics.width_px, result.intrinsics.height_px)
     cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
-    report("segmenting objects", 0, 1)
-    segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
+    ceiling = 0.4 * float(
+        np.median(
+            np.linalg.norm(
+                np.array([v.world_from_cam[:3, 3] for v in views]) - (roi.min_world + roi.max_world) / 2, axis=1
+            )
+        )
+    )
+    for attempt in range(options.max_roi_raises + 1):
+        dense = _dense.fuse_views(
+            views,
+            result.intrinsics,
+            roi,
+            options.dense,
+            progress=lambda done, total: report("dense stereo", done, total),
+            voxel_m=voxel,
+        )
+        report("segmenting objects", 0, 1)
+        segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
+        top = float(roi.max_world[2])
+        if attempt == options.max_roi_raises or top >= ceiling or not _cut_at_top(segments, top, voxel):
+            break
+        # The region's top comes from the sparse points, which on a tall, thin or plain object may stop well
+        # below its top (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled
+        # the scene x 1.34); the silhouettes need not catch it (the can's orange band reads as the cork table).
+        raised = min(ceiling, top * options.roi_raise_factor)
+        log.info("an object reaches the top of the fused region (%.3g): fusing again up to %.3g", top, raised)
+        roi = _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([*roi.max_world[:2], raised]))
     cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
     instances: list[ObjectInstance] = []
     for index, segment in enumerate(segments):
@@ -185,12 +219,8 @@ def find_objects(
         )
     report("meshing objects", len(segments), len(segments))
     instances = _resting(instances, options.max_float_voxels * dense.voxel_size)
-    if options.silhouettes is not None:
-        report("silhouettes", 0, 1)
-        instances = _with_silhouettes(
-            instances, views, k, _hull_region(result, roi), dense.voxel_size, options.silhouettes
-        )
-        report("silhouettes", 1, 1)
+    if hull is not None and options.silhouettes is not None:
+        instances = _with_silhouettes(instances, hull, len(views), dense.voxel_size, options.silhouettes)
     if not instances:
         raise _objects.SegmentationError(
             "no object found: every cluster above the table meshed to almost nothing; film the objects from more sides"
@@ -203,6 +233,11 @@ def find_objects(
         num_stereo_pairs=dense.num_pairs,
         table_half_extents=table,
     )
+
+
+def _cut_at_top(segments: list[_objects.ObjectSegment], top_m: float, voxel_m: float) -> bool:
+    """Whether any segment's fused points reach within two voxels of the region's top (the region cut it)."""
+    return any(float(seg.points_world[:, 2].max()) > top_m - 2 * voxel_m for seg in segments)
 
 
 def _in_own_frame(vertices_world: np.ndarray, faces: np.ndarray) -> tuple[TexturedMesh, np.ndarray]:
@@ -240,35 +275,44 @@ def _resting(instances: list[ObjectInstance], max_float_m: float) -> list[Object
 
 def _hull_region(result: ReconstructionResult, roi: _dense.RegionOfInterest) -> _dense.RegionOfInterest:
     """Where the silhouettes look for objects: the region of interest, widened to the table most frames see (a
-    plain object has no sparse points to widen the region to it: tuning seed 0's book lay outside)."""
+    plain object has no sparse points to widen the region to it: tuning seed 0's book lay outside), and reaching
+    at least 0.4 x the camera distance up (a tall can's sparse points may stop at three quarters of its height)."""
     cams = np.array([f.centre_world_m for f in result.frames])
     scene_size = float(np.median(np.linalg.norm(cams - (roi.min_world + roi.max_world) / 2, axis=1)))
+    top = max(float(roi.max_world[2]), 0.4 * scene_size)
     seen = _seen_region(result, scene_size)
-    if seen is None:
-        return roi
-    return _dense.RegionOfInterest(
-        min_world=np.minimum(roi.min_world, seen.min_world) * np.array([1, 1, 0]) + roi.min_world * np.array([0, 0, 1]),
-        max_world=np.maximum(roi.max_world, seen.max_world) * np.array([1, 1, 0]) + roi.max_world * np.array([0, 0, 1]),
-    )
+    lo_xy, hi_xy = roi.min_world[:2], roi.max_world[:2]
+    if seen is not None:
+        lo_xy, hi_xy = np.minimum(lo_xy, seen.min_world[:2]), np.maximum(hi_xy, seen.max_world[:2])
+    return _dense.RegionOfInterest(min_world=np.array([*lo_xy, roi.min_world[2]]), max_world=np.array([*hi_xy, top]))
+
+
+def _raised_to_hull(roi: _dense.RegionOfInterest, hull: _silhouette.VisualHull) -> _dense.RegionOfInterest:
+    """`roi` reaching up over the top of every hull piece whose footprint meets it (plus two hull cells).
+
+    The region's top comes from the sparse points, which on a tall, thin or plain object may stop well below its
+    top (tuning seed 1: a can cut at three quarters of its height, so the known extent scaled the scene wrong)."""
+    top = float(roi.max_world[2])
+    for piece in hull.pieces:
+        lo, hi = piece.points_world.min(axis=0), piece.points_world.max(axis=0)
+        if np.all(lo[:2] <= roi.max_world[:2]) and np.all(hi[:2] >= roi.min_world[:2]):
+            top = max(top, float(hi[2]) + 2 * piece.cell_m)
+    return _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([*roi.max_world[:2], top]))
 
 
 def _with_silhouettes(
     instances: list[ObjectInstance],
-    views: list[_dense.StereoView],
-    k: np.ndarray,
-    region: _dense.RegionOfInterest,
+    hull: _silhouette.VisualHull,
+    num_views: int,
     voxel: float,
     options: _silhouette.SilhouetteOptions,
 ) -> list[ObjectInstance]:
-    """`instances` plus the visual hull's pieces the fused surface missed, searched for in `region`.
+    """`instances` plus the visual hull's pieces the fused surface missed.
 
     A hull piece whose footprint meets no fused object's is an object the stereo could not see (a plain ball, a
     white mug): it is meshed from the hull, a coarser surface (cavities closed), recorded as mesh quality
     "silhouette". The hull does not overrule the fused surface: an object the colour of the table (a cardboard
     cube on cork, tuning seed 0) is carved from it, so a fused object is never dropped for the hull's sake."""
-    hull = _silhouette.visual_hull(views, k, region, voxel, options)
-    if hull is None:
-        return instances
     kept = list(instances)
     boxes = [_bounds(o) for o in kept]
     for piece in hull.pieces:
@@ -289,7 +333,7 @@ def _with_silhouettes(
                 name=f"object_{len(kept)}",
                 mesh=own_mesh,
                 world_from_object=world_from_object,
-                num_views=len(views),
+                num_views=num_views,
                 closed_bottom=True,
                 warnings=(f"{reason}; a cavity would be closed",),
                 mesh_quality="silhouette",

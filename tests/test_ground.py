@@ -336,17 +336,38 @@ def _box(name: str, extents: tuple[float, float, float], quality: str = "full") 
     return SimpleNamespace(name=name, mesh=SimpleNamespace(vertices_m=corners), mesh_quality=quality)
 
 
-def test_known_extent_goes_to_a_fused_object_before_a_visual_hull() -> None:
-    """Tuning seed 5 (issue 60): a plate and a plain mug came out of the silhouettes as one 22 cm hull, longer than
-    the 22.2 cm bottle the fused surface measured, and took the bottle's known extent: the scene was x 1.31. A
-    hull is never smaller than its object, so it gets the extent only when nothing else was found."""
+def test_known_extent_counts_a_visual_hull_by_its_height() -> None:
+    """Tuning seed 5 (issue 60): a plate and a plain mug came out of the silhouettes as one 22 cm wide hull, longer
+    than the 22.2 cm bottle the fused surface measured, and took the bottle's known extent: the scene was x 1.31.
+    Tuning seed 8: a plain 21 cm bottle only the silhouettes found lost its known extent to a 10 cm fused can: x 2.06.
+    A hull may join objects side by side, not make them taller, so it counts by its height."""
     from types import SimpleNamespace
 
     from grounder._ground import _extent_factor
 
-    bottle, hull = _box("bottle", (0.06, 0.06, 0.222)), _box("hull", (0.23, 0.14, 0.07), "silhouette")
-    assert _extent_factor(SimpleNamespace(objects=(bottle, hull)), 0.224)[1] == "bottle"
-    assert _extent_factor(SimpleNamespace(objects=(hull,)), 0.224)[1] == "hull"
+    bottle, wide_hull = _box("bottle", (0.06, 0.06, 0.222)), _box("hull", (0.23, 0.14, 0.07), "silhouette")
+    assert _extent_factor(SimpleNamespace(objects=(bottle, wide_hull)), 0.224)[1] == "bottle"
+    factor, name = _extent_factor(SimpleNamespace(objects=(wide_hull,)), 0.07)
+    assert name == "hull" and factor == pytest.approx(1.0)
+    can, tall_hull = _box("can", (0.08, 0.08, 0.10)), _box("hull", (0.08, 0.086, 0.177), "silhouette")
+    factor, name = _extent_factor(SimpleNamespace(objects=(can, tall_hull)), 0.2106)
+    assert name == "hull" and factor == pytest.approx(0.2106 / 0.177)
+
+
+def test_known_extent_is_measured_along_the_footprint_not_the_world_axes() -> None:
+    """Tuning seed 15 (issue 60): a 10.8 x 8.8 cm carton turned on the table spans 12.8 cm along a world axis; that
+    span given the carton's known 10.8 cm scaled the scene x 0.84. The footprint's own sides are measured."""
+    from types import SimpleNamespace
+
+    from grounder._ground import _extent_factor
+
+    box = _box("carton", (0.108, 0.088, 0.051))
+    turn = np.deg2rad(40.0)
+    rotation = np.array([[np.cos(turn), -np.sin(turn), 0.0], [np.sin(turn), np.cos(turn), 0.0], [0.0, 0.0, 1.0]])
+    box.mesh.vertices_m = box.mesh.vertices_m @ rotation.T
+    assert np.ptp(box.mesh.vertices_m[:, 0]) > 0.12
+    factor, _ = _extent_factor(SimpleNamespace(objects=(box,)), 0.108)
+    assert factor == pytest.approx(1.0, abs=1e-4)
 
 
 def test_table_top_carries_the_texture_the_cameras_saw(scene_dir: Path) -> None:
