@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from reconstruction import _dense, _objects, _silhouette, _world
-from reconstruction._types import ObjectInstance, ReconstructionResult, TexturedMesh
+from reconstruction._types import CameraIntrinsics, ObjectInstance, ReconstructionResult, TexturedMesh
 from reconstruction.errors import ReconstructionError
 
 log = logging.getLogger(__name__)
@@ -156,35 +156,7 @@ def find_objects(
         report("silhouettes", 1, 1)
         if hull is not None:
             roi = _raised_to_hull(roi, hull)
-    size = (result.intrinsics.width_px, result.intrinsics.height_px)
-    cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
-    ceiling = 0.4 * float(
-        np.median(
-            np.linalg.norm(
-                np.array([v.world_from_cam[:3, 3] for v in views]) - (roi.min_world + roi.max_world) / 2, axis=1
-            )
-        )
-    )
-    for attempt in range(options.max_roi_raises + 1):
-        dense = _dense.fuse_views(
-            views,
-            result.intrinsics,
-            roi,
-            options.dense,
-            progress=lambda done, total: report("dense stereo", done, total),
-            voxel_m=voxel,
-        )
-        report("segmenting objects", 0, 1)
-        segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
-        top = float(roi.max_world[2])
-        if attempt == options.max_roi_raises or top >= ceiling or not _cut_at_top(segments, top, voxel):
-            break
-        # The region's top comes from the sparse points, which on a tall, thin or plain object may stop well
-        # below its top (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled
-        # the scene x 1.34); the silhouettes need not catch it (the can's orange band reads as the cork table).
-        raised = min(ceiling, top * options.roi_raise_factor)
-        log.info("an object reaches the top of the fused region (%.3g): fusing again up to %.3g", top, raised)
-        roi = _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([*roi.max_world[:2], raised]))
+    dense, segments, roi = _fused_and_segmented(views, result.intrinsics, roi, k, voxel, options, report)
     cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
     instances: list[ObjectInstance] = []
     for index, segment in enumerate(segments):
@@ -233,6 +205,45 @@ def find_objects(
         num_stereo_pairs=dense.num_pairs,
         table_half_extents=table,
     )
+
+
+def _fused_and_segmented(
+    views: list[_dense.StereoView],
+    intrinsics: CameraIntrinsics,
+    roi: _dense.RegionOfInterest,
+    k: np.ndarray,
+    voxel: float,
+    options: ObjectsOptions,
+    report: ProgressFn,
+) -> tuple[_dense.DenseResult, list[_objects.ObjectSegment], _dense.RegionOfInterest]:
+    """The fused surface inside `roi`, its objects, and the region they were fused in: raised (`roi_raise_factor`)
+    and fused again while an object reaches its top, up to `max_roi_raises` times and 0.4 x the camera distance.
+
+    The region's top comes from the sparse points, which on a tall, thin or plain object may stop well below its
+    top (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled the scene
+    x 1.34); the silhouettes need not catch it (the can's orange band reads as the cork table)."""
+    size = (intrinsics.width_px, intrinsics.height_px)
+    cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
+    centres = np.array([v.world_from_cam[:3, 3] for v in views])
+    ceiling = 0.4 * float(np.median(np.linalg.norm(centres - (roi.min_world + roi.max_world) / 2, axis=1)))
+    for attempt in range(options.max_roi_raises + 1):
+        dense = _dense.fuse_views(
+            views,
+            intrinsics,
+            roi,
+            options.dense,
+            progress=lambda done, total: report("dense stereo", done, total),
+            voxel_m=voxel,
+        )
+        report("segmenting objects", 0, 1)
+        segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
+        top = float(roi.max_world[2])
+        if attempt == options.max_roi_raises or top >= ceiling or not _cut_at_top(segments, top, voxel):
+            break
+        raised = min(ceiling, top * options.roi_raise_factor)
+        log.info("an object reaches the top of the fused region (%.3g): fusing again up to %.3g", top, raised)
+        roi = _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([*roi.max_world[:2], raised]))
+    return dense, segments, roi
 
 
 def _cut_at_top(segments: list[_objects.ObjectSegment], top_m: float, voxel_m: float) -> bool:

@@ -322,3 +322,54 @@ def test_the_table_reaches_under_every_object() -> None:
     )
     assert table_under_objects((0.27, 0.29), [mug]) == pytest.approx((0.27, 0.313 + 0.04 + 0.02))
     assert table_under_objects((0.5, 0.5), [mug]) == (0.5, 0.5)  # a larger table seen stays as seen
+
+
+def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tuning seed 1 (issue 60): the sparse points of a thin 15.5 cm can stopped low, the region's top cut the fused
+    can at three quarters of its height, and `--known-extent` then scaled the whole scene x 1.34. A fused object
+    that reaches the region's top is fused again with the top raised 1.5x, until it stands clear of it (here a
+    0.3 m column under a 0.12 m top: 0.12 -> 0.18 -> 0.27 -> stop at the second raise, as allowed), never past
+    0.4 x the camera distance; an object clear of the top is fused once."""
+    from reconstruction import _dense, _objects
+    from reconstruction._objects import ObjectSegment
+    from reconstruction._scene_objects import ObjectsOptions, _fused_and_segmented
+    from reconstruction._types import CameraIntrinsics
+
+    tops: list[float] = []
+    column = {"height_m": 0.3}
+
+    def fuse(views, intrinsics, roi, options, progress=None, voxel_m=None):  # type: ignore[no-untyped-def]
+        tops.append(float(roi.max_world[2]))
+        z = np.arange(0.0, min(column["height_m"], roi.max_world[2]), voxel_m)
+        points = np.c_[np.zeros((len(z), 2)), z]
+        return _dense.DenseResult(
+            vertices_world=points,
+            faces=np.zeros((0, 3), int),
+            vertex_rgb=np.zeros((len(z), 3), np.uint8),
+            vertex_normals=points,
+            voxel_size=voxel_m,
+            num_pairs=1,
+        )
+
+    def segment(dense, roi, cams, k, size, options):  # type: ignore[no-untyped-def]
+        pts = dense.vertices_world
+        return [ObjectSegment(points_world=pts, normals_world=pts, face_ids=np.arange(0), num_views=3, warnings=())]
+
+    monkeypatch.setattr(_dense, "fuse_views", fuse)
+    monkeypatch.setattr(_objects, "segment_objects", segment)
+    views = [_dense.StereoView(image_bgr=np.zeros((2, 2, 3), np.uint8), world_from_cam=_looking_down(1.0))]
+    intrinsics = CameraIntrinsics(width_px=2, height_px=2, fx_px=1.0, fy_px=1.0, cx_px=1.0, cy_px=1.0)
+    roi = _dense.RegionOfInterest(min_world=np.array([-0.2, -0.2, -0.01]), max_world=np.array([0.2, 0.2, 0.12]))
+    for height_m, expected in ((0.3, [0.12, 0.18, 0.27]), (0.05, [0.12]), (0.2, [0.12, 0.18, 0.27])):
+        tops.clear()
+        column["height_m"] = height_m
+        _, segments, last = _fused_and_segmented(views, intrinsics, roi, K, 0.002, ObjectsOptions(), lambda *a: None)
+        np.testing.assert_allclose(tops, expected)
+        assert last.max_world[2] == pytest.approx(expected[-1])
+        assert segments[0].points_world[:, 2].max() == pytest.approx(min(height_m, expected[-1]), abs=0.003)
+    high = _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([0.2, 0.2, 0.3]))
+    tops.clear()
+    column["height_m"] = 0.6
+    _fused_and_segmented(views, intrinsics, high, K, 0.002, ObjectsOptions(), lambda *a: None)
+    ceiling = 0.4 * (1.0 - (0.3 - 0.01) / 2)  # 0.4 x the camera's distance to the region's centre
+    np.testing.assert_allclose(tops, [0.3, ceiling])
