@@ -31,8 +31,9 @@ class ObjectsOptions:
     # objects the fused surface missed, from their silhouettes against the table (`_silhouette`); None: off
     silhouettes: _silhouette.SilhouetteOptions | None = field(default_factory=_silhouette.SilhouetteOptions)
     max_float_voxels: float = 6.0  # an object whose lowest point is higher, over the table only, floats: dropped
-    # an object the region's top cuts (fused points within 2 voxels of it) is fused again with the top this many
-    # times higher, at most `max_roi_raises` times and not past 0.4 x the median camera distance
+    # an object the region cuts (fused points within 2 voxels of a side or the top) is fused again in a region
+    # grown there, at most `max_roi_raises` times: a side by the margin, the top this many times higher (not past
+    # 0.4 x the median camera distance)
     roi_raise_factor: float = 1.5
     max_roi_raises: int = 2
 
@@ -216,16 +217,17 @@ def _fused_and_segmented(
     options: ObjectsOptions,
     report: ProgressFn,
 ) -> tuple[_dense.DenseResult, list[_objects.ObjectSegment], _dense.RegionOfInterest]:
-    """The fused surface inside `roi`, its objects, and the region they were fused in: raised (`roi_raise_factor`)
-    and fused again while an object reaches its top, up to `max_roi_raises` times and 0.4 x the camera distance.
+    """The fused surface inside `roi`, its objects, and the region they were fused in: grown and fused again while
+    an object reaches one of its sides or its top, up to `max_roi_raises` times (`_grown`).
 
-    The region's top comes from the sparse points, which on a tall, thin or plain object may stop well below its
-    top (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled the scene
-    x 1.34); the silhouettes need not catch it (the can's orange band reads as the cork table)."""
+    The region comes from the sparse points, which on a tall, thin or plain object may stop well short of it
+    (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled the scene x 1.34;
+    seed 5: a plain bottle and mug cut at the region's sides); the silhouettes need not catch it (the can's orange
+    band reads as the cork table)."""
     size = (intrinsics.width_px, intrinsics.height_px)
     cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
     centres = np.array([v.world_from_cam[:3, 3] for v in views])
-    ceiling = 0.4 * float(np.median(np.linalg.norm(centres - (roi.min_world + roi.max_world) / 2, axis=1)))
+    distance = float(np.median(np.linalg.norm(centres - (roi.min_world + roi.max_world) / 2, axis=1)))
     for attempt in range(options.max_roi_raises + 1):
         dense = _dense.fuse_views(
             views,
@@ -237,18 +239,46 @@ def _fused_and_segmented(
         )
         report("segmenting objects", 0, 1)
         segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
-        top = float(roi.max_world[2])
-        if attempt == options.max_roi_raises or top >= ceiling or not _cut_at_top(segments, top, voxel):
+        grown = _grown(roi, segments, voxel, distance, options)
+        if attempt == options.max_roi_raises or grown is None:
             break
-        raised = min(ceiling, top * options.roi_raise_factor)
-        log.info("an object reaches the top of the fused region (%.3g): fusing again up to %.3g", top, raised)
-        roi = _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([*roi.max_world[:2], raised]))
+        log.info(
+            "an object reaches the side or top of the fused region: fusing again in %s .. %s",
+            np.round(grown.min_world, 3).tolist(),
+            np.round(grown.max_world, 3).tolist(),
+        )
+        roi = grown
     return dense, segments, roi
 
 
-def _cut_at_top(segments: list[_objects.ObjectSegment], top_m: float, voxel_m: float) -> bool:
-    """Whether any segment's fused points reach within two voxels of the region's top (the region cut it)."""
-    return any(float(seg.points_world[:, 2].max()) > top_m - 2 * voxel_m for seg in segments)
+def _grown(
+    roi: _dense.RegionOfInterest,
+    segments: list[_objects.ObjectSegment],
+    voxel_m: float,
+    distance_m: float,
+    options: ObjectsOptions,
+) -> _dense.RegionOfInterest | None:
+    """`roi` grown where a segment's fused points come within two voxels of it: a side moves out by the region's
+    margin (`roi_margin_fraction` x `distance_m`, the median camera distance), the top rises `roi_raise_factor`
+    times, not past 0.4 x `distance_m`; None where no segment reaches a side or the top it may still move."""
+    if not segments:
+        return None
+    points = np.concatenate([seg.points_world for seg in segments])
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    near = 2 * voxel_m
+    step = options.roi_margin_fraction * distance_m
+    ceiling = 0.4 * distance_m
+    new_lo, new_hi = roi.min_world.copy(), roi.max_world.copy()
+    for axis in (0, 1):
+        if lo[axis] < roi.min_world[axis] + near:
+            new_lo[axis] -= step
+        if hi[axis] > roi.max_world[axis] - near:
+            new_hi[axis] += step
+    if hi[2] > roi.max_world[2] - near and roi.max_world[2] < ceiling:
+        new_hi[2] = min(ceiling, roi.max_world[2] * options.roi_raise_factor)
+    if np.array_equal(new_lo, roi.min_world) and np.array_equal(new_hi, roi.max_world):
+        return None
+    return _dense.RegionOfInterest(min_world=new_lo, max_world=new_hi)
 
 
 def _in_own_frame(vertices_world: np.ndarray, faces: np.ndarray) -> tuple[TexturedMesh, np.ndarray]:

@@ -329,19 +329,22 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
     can at three quarters of its height, and `--known-extent` then scaled the whole scene x 1.34. A fused object
     that reaches the region's top is fused again with the top raised 1.5x, until it stands clear of it (here a
     0.3 m column under a 0.12 m top: 0.12 -> 0.18 -> 0.27 -> stop at the second raise, as allowed), never past
-    0.4 x the camera distance; an object clear of the top is fused once."""
+    0.4 x the camera distance; an object clear of the top is fused once. A side that cuts an object moves out."""
     from reconstruction import _dense, _objects
     from reconstruction._objects import ObjectSegment
     from reconstruction._scene_objects import ObjectsOptions, _fused_and_segmented
     from reconstruction._types import CameraIntrinsics
 
     tops: list[float] = []
-    column = {"height_m": 0.3}
+    column = {"height_m": 0.3, "x_m": 0.0}
+    sides: list[float] = []
 
     def fuse(views, intrinsics, roi, options, progress=None, voxel_m=None):  # type: ignore[no-untyped-def]
         tops.append(float(roi.max_world[2]))
+        sides.append(float(roi.max_world[0]))
         z = np.arange(0.0, min(column["height_m"], roi.max_world[2]), voxel_m)
-        points = np.c_[np.zeros((len(z), 2)), z]
+        x = np.clip(np.linspace(column["x_m"] - 0.04, column["x_m"] + 0.04, len(z)), None, roi.max_world[0])
+        points = np.c_[x, np.zeros(len(z)), z]
         return _dense.DenseResult(
             vertices_world=points,
             faces=np.zeros((0, 3), int),
@@ -373,3 +376,10 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
     _fused_and_segmented(views, intrinsics, high, K, 0.002, ObjectsOptions(), lambda *a: None)
     ceiling = 0.4 * (1.0 - (0.3 - 0.01) / 2)  # 0.4 x the camera's distance to the region's centre
     np.testing.assert_allclose(tops, [0.3, ceiling])
+    # A low object the region's +x side cuts (seed 5's plain bottle): that side moves out by the margin, once.
+    tops.clear()
+    sides.clear()
+    column.update(height_m=0.05, x_m=0.19)
+    _fused_and_segmented(views, intrinsics, roi, K, 0.002, ObjectsOptions(), lambda *a: None)
+    np.testing.assert_allclose(tops, [0.12, 0.12])
+    np.testing.assert_allclose(sides, [0.2, 0.2 + 0.08 * np.linalg.norm([0.0, 0.0, 1.0 - 0.055])])
