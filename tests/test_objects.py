@@ -329,7 +329,7 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
     can at three quarters of its height, and `--known-extent` then scaled the whole scene x 1.34. A fused object
     that reaches the region's top is fused again with the top raised 1.5x, until it stands clear of it (here a
     0.3 m column under a 0.12 m top: 0.12 -> 0.18 -> 0.27 -> stop at the second raise, as allowed), never past
-    0.4 x the camera distance; an object clear of the top is fused once. A side that cuts an object moves out."""
+    0.4 x the camera distance; an object clear of the top is fused once, and so is one a side cuts."""
     from reconstruction import _dense, _objects
     from reconstruction._objects import ObjectSegment
     from reconstruction._scene_objects import ObjectsOptions, _fused_and_segmented
@@ -376,10 +376,10 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
     _fused_and_segmented(views, intrinsics, high, K, 0.002, ObjectsOptions(), lambda *a: None)
     ceiling = 0.4 * (1.0 - (0.3 - 0.01) / 2)  # 0.4 x the camera's distance to the region's centre
     np.testing.assert_allclose(tops, [0.3, ceiling])
-    # A low object the region's +x side cuts (seed 5's plain bottle): that side moves out by the margin, once.
+    # A low object the region's +x side cuts: the sides are not moved for the fused surface (grown sides brought
+    # table phantoms in on a low pass), so it is fused once.
     tops.clear()
     sides.clear()
     column.update(height_m=0.05, x_m=0.19)
     _fused_and_segmented(views, intrinsics, roi, K, 0.002, ObjectsOptions(), lambda *a: None)
-    np.testing.assert_allclose(tops, [0.12, 0.12])
-    np.testing.assert_allclose(sides, [0.2, 0.2 + 0.08 * np.linalg.norm([0.0, 0.0, 1.0 - 0.055])])
+    assert tops == [0.12] and sides == [0.2]
