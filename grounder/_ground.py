@@ -134,10 +134,15 @@ def _extent_factor(scene: SceneObjects, known_extent_m: float) -> tuple[float, s
         height = float(np.ptp(obj.mesh.vertices_m[:, 2]))
         if obj.mesh_quality in ("silhouette", "fallback"):
             return height  # a hull (of silhouettes, or of fused points) may join objects side by side
-        # Along the footprint's own sides, not the world axes: a box turned 45 deg is a diagonal wider on the axes
-        # (tuning seed 15: a 10.8 cm carton measured 12.8 cm, and the scene came out x 0.84).
-        (_, _), (side_a, side_b), _ = cv2.minAreaRect(np.asarray(obj.mesh.vertices_m[:, :2], np.float32))
-        return max(height, float(side_a), float(side_b))
+        # A box-like footprint (filling 90% of its smallest rectangle) is measured along its own sides, not the
+        # world axes: a box turned 45 deg is a diagonal wider on the axes (tuning seed 15: a 10.8 cm carton measured
+        # 12.8 cm, and the scene came out x 0.84). A round one has no sides to turn: the world axes, as before.
+        footprint = np.asarray(obj.mesh.vertices_m[:, :2], np.float32)
+        (_, _), (side_a, side_b), _ = cv2.minAreaRect(footprint)
+        filled = float(cv2.contourArea(cv2.convexHull(footprint))) / max(float(side_a * side_b), 1e-12)
+        if filled >= 0.9:
+            return max(height, float(side_a), float(side_b))
+        return float(np.ptp(obj.mesh.vertices_m, axis=0).max())
 
     largest = max(scene.objects, key=length)
     return known_extent_m / length(largest), largest.name

