@@ -330,12 +330,15 @@ def refine_disparity(
     return d
 
 
+def camera_distance(views: list[StereoView], roi: RegionOfInterest) -> float:
+    """The median distance from the cameras to the centre of `roi` (the scene's scale for sizes and margins)."""
+    centres = np.array([v.world_from_cam[:3, 3] for v in views])
+    return float(np.median(np.linalg.norm(centres - (roi.min_world + roi.max_world) / 2, axis=1)))
+
+
 def voxel_size(views: list[StereoView], roi: RegionOfInterest, options: DenseOptions) -> float:
     """The TSDF voxel size: `options.voxel_fraction` of the median camera distance to the centre of `roi`."""
-    centres = np.array([v.world_from_cam[:3, 3] for v in views])
-    return options.voxel_fraction * float(
-        np.median(np.linalg.norm(centres - (roi.min_world + roi.max_world) / 2, axis=1))
-    )
+    return options.voxel_fraction * camera_distance(views, roi)
 
 
 def fuse_views(

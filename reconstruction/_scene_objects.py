@@ -149,11 +149,7 @@ def find_objects(
     roi = region_of_interest(result, options.roi_margin_fraction)
     k, _ = _dense._opencv_k(result.intrinsics, 1.0)
     voxel = _dense.voxel_size(views, roi, options.dense)
-    hull = None
-    if options.silhouettes is not None:
-        report("silhouettes", 0, 1)
-        hull = _silhouette.visual_hull(views, k, _hull_region(result, roi), voxel, options.silhouettes)
-        report("silhouettes", 1, 1)
+    hull_region = _hull_region(result, roi)  # of the region from the sparse points, before any raise
     dense, segments, roi = _fused_and_segmented(views, result.intrinsics, roi, k, voxel, options, report)
     cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
     instances: list[ObjectInstance] = []
@@ -189,8 +185,10 @@ def find_objects(
         )
     report("meshing objects", len(segments), len(segments))
     instances = _resting(instances, options.max_float_voxels * dense.voxel_size)
-    if hull is not None and options.silhouettes is not None:
-        instances = _with_silhouettes(instances, hull, len(views), dense.voxel_size, options.silhouettes)
+    if options.silhouettes is not None:
+        report("silhouettes", 0, 1)
+        instances = _with_silhouettes(instances, views, k, hull_region, dense.voxel_size, options.silhouettes)
+        report("silhouettes", 1, 1)
     if not instances:
         raise _objects.SegmentationError(
             "no object found: every cluster above the table meshed to almost nothing; film the objects from more sides"
@@ -222,8 +220,7 @@ def _fused_and_segmented(
     x 1.34); the silhouettes need not catch it (the can's orange band reads as the cork table)."""
     size = (intrinsics.width_px, intrinsics.height_px)
     cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
-    centres = np.array([v.world_from_cam[:3, 3] for v in views])
-    distance = float(np.median(np.linalg.norm(centres - (roi.min_world + roi.max_world) / 2, axis=1)))
+    distance = _dense.camera_distance(views, roi)
     for attempt in range(options.max_roi_raises + 1):
         dense = _dense.fuse_views(
             views,
@@ -306,27 +303,32 @@ def _hull_region(result: ReconstructionResult, roi: _dense.RegionOfInterest) -> 
     plain object has no sparse points to widen the region to it: tuning seed 0's book lay outside)."""
     cams = np.array([f.centre_world_m for f in result.frames])
     scene_size = float(np.median(np.linalg.norm(cams - (roi.min_world + roi.max_world) / 2, axis=1)))
-    top = float(roi.max_world[2])
     seen = _seen_region(result, scene_size)
-    lo_xy, hi_xy = roi.min_world[:2], roi.max_world[:2]
-    if seen is not None:
-        lo_xy, hi_xy = np.minimum(lo_xy, seen.min_world[:2]), np.maximum(hi_xy, seen.max_world[:2])
-    return _dense.RegionOfInterest(min_world=np.array([*lo_xy, roi.min_world[2]]), max_world=np.array([*hi_xy, top]))
+    if seen is None:
+        return roi
+    return _dense.RegionOfInterest(
+        min_world=np.minimum(roi.min_world, seen.min_world) * np.array([1, 1, 0]) + roi.min_world * np.array([0, 0, 1]),
+        max_world=np.maximum(roi.max_world, seen.max_world) * np.array([1, 1, 0]) + roi.max_world * np.array([0, 0, 1]),
+    )
 
 
 def _with_silhouettes(
     instances: list[ObjectInstance],
-    hull: _silhouette.VisualHull,
-    num_views: int,
+    views: list[_dense.StereoView],
+    k: np.ndarray,
+    region: _dense.RegionOfInterest,
     voxel: float,
     options: _silhouette.SilhouetteOptions,
 ) -> list[ObjectInstance]:
-    """`instances` plus the visual hull's pieces the fused surface missed.
+    """`instances` plus the visual hull's pieces the fused surface missed, searched for in `region`.
 
     A hull piece whose footprint meets no fused object's is an object the stereo could not see (a plain ball, a
     white mug): it is meshed from the hull, a coarser surface (cavities closed), recorded as mesh quality
     "silhouette". The hull does not overrule the fused surface: an object the colour of the table (a cardboard
     cube on cork, tuning seed 0) is carved from it, so a fused object is never dropped for the hull's sake."""
+    hull = _silhouette.visual_hull(views, k, region, voxel, options)
+    if hull is None:
+        return instances
     kept = list(instances)
     boxes = [_bounds(o) for o in kept]
     for piece in hull.pieces:
@@ -347,7 +349,7 @@ def _with_silhouettes(
                 name=f"object_{len(kept)}",
                 mesh=own_mesh,
                 world_from_object=world_from_object,
-                num_views=num_views,
+                num_views=len(views),
                 closed_bottom=True,
                 warnings=(f"{reason}; a cavity would be closed",),
                 mesh_quality="silhouette",

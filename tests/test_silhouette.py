@@ -120,9 +120,7 @@ def test_the_hull_adds_what_the_fused_surface_missed_and_keeps_what_it_found(
     views, k, cup = plain_cup
     x, y, _ = cup["pos_m"]
     fused = _box((x + 0.09, y, 0.02), 0.02)  # on bare table beside the cup: the hull carves it
-    hull = visual_hull(views, k, _roi(cup), VOXEL_M)
-    assert hull is not None
-    kept = _with_silhouettes([fused], hull, len(views), VOXEL_M, SilhouetteOptions())
+    kept = _with_silhouettes([fused], views, k, _roi(cup), VOXEL_M, SilhouetteOptions())
     assert len(kept) == 2
     assert kept[0].mesh_quality == "full" and kept[0].world_from_object[0, 3] == pytest.approx(x + 0.09)
     added = kept[1]
