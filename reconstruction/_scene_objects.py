@@ -335,8 +335,11 @@ def _with_silhouettes(
         points = piece.points_world
         lo, hi = points.min(axis=0), points.max(axis=0)
         gap = options.min_gap_voxels * voxel
-        if any(np.all(lo[:2] <= b_hi[:2] + gap) and np.all(hi[:2] >= b_lo[:2] - gap) for b_lo, b_hi in boxes):
-            continue  # the fused surface has it, or it is a part of a fused object stereo missed, or its reflection
+        if any(np.all(lo[:2] <= b_hi[:2]) and np.all(hi[:2] >= b_lo[:2]) for b_lo, b_hi in boxes):
+            continue  # the fused surface has it, or it is a part of a fused object stereo missed
+        near = any(np.all(lo[:2] <= b_hi[:2] + gap) and np.all(hi[:2] >= b_lo[:2] - gap) for b_lo, b_hi in boxes)
+        if near and piece.fill < options.min_fill_near:
+            continue  # the colour a fused object casts on the table beside it (a glow, a reflection)
         try:
             vertices, faces = _silhouette.hull_mesh(piece)
         except Exception as exc:  # a hull that cannot be meshed is no object; the scene goes on
