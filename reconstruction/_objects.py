@@ -41,7 +41,8 @@ class SegmentOptions:
     """Instance segmentation settings; lengths are multiples of the fused voxel size.
 
     Attributes:
-        seed_height_voxels: points higher than this above the table seed object clusters.
+        seed_height_voxels, max_seed_height_m: points higher than this above the table seed object clusters (the
+            lower of the two: six 3 mm voxels are 1.8 cm, and a 1.2-1.9 cm dinner plate would never seed one).
         min_height_voxels: points lower than this belong to the table.
         cluster_eps_voxels: DBSCAN neighbourhood radius.
         min_points: smallest cluster kept as an object.
@@ -53,6 +54,7 @@ class SegmentOptions:
     """
 
     seed_height_voxels: float = 6.0
+    max_seed_height_m: float = 0.008
     min_height_voxels: float = 0.8
     cluster_eps_voxels: float = 4.0
     min_points: int = 300
@@ -143,7 +145,7 @@ def segment_objects(
     voxel = dense.voxel_size
     verts = dense.vertices_world
     height = verts[:, 2]
-    seeds = np.flatnonzero(height > options.seed_height_voxels * voxel)
+    seeds = np.flatnonzero(height > min(options.seed_height_voxels * voxel, options.max_seed_height_m))
     if len(seeds) < options.min_points:
         raise SegmentationError(
             "no object found on the table: the fused surface has nothing standing above the table plane; "
