@@ -308,6 +308,36 @@ def test_a_plate_lower_than_six_voxels_is_an_object() -> None:
     assert np.ptp(top[:, 0]) == pytest.approx(0.2, abs=0.01)
 
 
+def test_low_seeds_do_not_join_neighbours_through_stereo_bleeding() -> None:
+    """Held-out 1014: seeded 8 mm up everywhere, a thin can and a small box 1.4 cm apart were one object, joined by
+    the surface stereo bleeds between neighbours low down. The low seeds (for plates) are taken only away from
+    objects higher than six voxels: two objects."""
+    import trimesh
+
+    from reconstruction._dense import DenseResult, RegionOfInterest
+    from reconstruction._objects import segment_objects
+
+    voxel_m = 0.003
+    table = _grid_patch((0.0, 0.0), 0.3, 0.0, voxel_m)
+    can = trimesh.creation.cylinder(radius=0.016, height=0.14, sections=48).subdivide_to_size(voxel_m)
+    can.apply_translation([0.0, 0.0, 0.07])
+    box = trimesh.creation.box(extents=(0.03, 0.03, 0.03)).subdivide_to_size(voxel_m)
+    box.apply_translation([0.045, 0.0, 0.015])
+    bridge = _grid_patch((0.023, 0.0), 0.007, 0.012, 0.001)  # bleeding between them, 1.2 cm up
+    surface = trimesh.util.concatenate([table, can, box, bridge])
+    dense = DenseResult(
+        vertices_world=np.asarray(surface.vertices), faces=np.asarray(surface.faces, np.int64),
+        vertex_rgb=np.full((len(surface.vertices), 3), 128, np.uint8),
+        vertex_normals=np.asarray(surface.vertex_normals), voxel_size=voxel_m, num_pairs=1,
+    )  # fmt: skip
+    roi = RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.02]), max_world=np.array([0.3, 0.3, 0.2]))
+    cam_from_world = np.linalg.inv(_looking_down(1.0))
+    k = np.array([[300.0, 0, 320], [0, 300.0, 240], [0, 0, 1]])
+    segments = segment_objects(dense, roi, [cam_from_world], k, (640, 480))
+    tops = sorted(round(float(s.points_world[:, 2].max()), 3) for s in segments)
+    assert tops == [0.03, 0.14]
+
+
 def test_canonical_mesh_order_is_the_same_for_any_listing_of_one_surface() -> None:
     """Open3D lists the fused surface in a thread-dependent order; the canonical order depends on the surface only,
     keeps every face's winding (the signed volume) and the same triangles."""
