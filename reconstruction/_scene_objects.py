@@ -312,6 +312,13 @@ def _hull_region(result: ReconstructionResult, roi: _dense.RegionOfInterest) -> 
     )
 
 
+def _meets_a_footprint(
+    lo: np.ndarray, hi: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]], gap_m: float
+) -> bool:
+    """Whether the box `lo`-`hi` comes within `gap_m` of any of `boxes` on the table (x and y only)."""
+    return any(np.all(lo[:2] <= b_hi[:2] + gap_m) and np.all(hi[:2] >= b_lo[:2] - gap_m) for b_lo, b_hi in boxes)
+
+
 def _with_silhouettes(
     instances: list[ObjectInstance],
     views: list[_dense.StereoView],
@@ -334,11 +341,9 @@ def _with_silhouettes(
     for piece in hull.pieces:
         points = piece.points_world
         lo, hi = points.min(axis=0), points.max(axis=0)
-        gap = options.min_gap_voxels * voxel
-        if any(np.all(lo[:2] <= b_hi[:2]) and np.all(hi[:2] >= b_lo[:2]) for b_lo, b_hi in boxes):
+        if _meets_a_footprint(lo, hi, boxes, 0.0):
             continue  # the fused surface has it, or it is a part of a fused object stereo missed
-        near = any(np.all(lo[:2] <= b_hi[:2] + gap) and np.all(hi[:2] >= b_lo[:2] - gap) for b_lo, b_hi in boxes)
-        if near and piece.fill < options.min_fill_near:
+        if piece.fill < options.min_fill_near and _meets_a_footprint(lo, hi, boxes, options.min_gap_voxels * voxel):
             continue  # the colour a fused object casts on the table beside it (a glow, a reflection)
         try:
             vertices, faces = _silhouette.hull_mesh(piece)

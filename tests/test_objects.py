@@ -15,6 +15,8 @@ from reconstruction._objects import MeshOptions, _largest_component, _measured, 
 if TYPE_CHECKING:
     import trimesh
 
+    from reconstruction._objects import ObjectSegment
+
 VOXEL_M = 0.01
 
 
@@ -239,6 +241,22 @@ def _grid_patch(centre_xy: tuple[float, float], half_m: float, z_m: float, step_
     return trimesh.Trimesh(verts, faces, process=False)
 
 
+def _segmented(surface: trimesh.Trimesh, voxel_m: float) -> list[ObjectSegment]:
+    """`segment_objects` on a fused surface made by hand, seen by one camera 1 m above the table."""
+    from reconstruction._dense import DenseResult, RegionOfInterest
+    from reconstruction._objects import segment_objects
+
+    dense = DenseResult(
+        vertices_world=np.asarray(surface.vertices), faces=np.asarray(surface.faces, np.int64),
+        vertex_rgb=np.full((len(surface.vertices), 3), 128, np.uint8),
+        vertex_normals=np.asarray(surface.vertex_normals), voxel_size=voxel_m, num_pairs=1,
+    )  # fmt: skip
+    roi = RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.02]), max_world=np.array([0.3, 0.3, 0.2]))
+    cam_from_world = np.linalg.inv(_looking_down(1.0))
+    k = np.array([[300.0, 0, 320], [0, 300.0, 240], [0, 0, 1]])
+    return segment_objects(dense, roi, [cam_from_world], k, (640, 480))
+
+
 def test_clusters_stacked_one_over_the_other_are_one_object() -> None:
     """A fused surface of a table and two 8 cm objects the fusion split apart (DBSCAN clusters the pieces apart):
     on the left a cylinder with a patch floating 4 cm above its top (a stem, a glint); on the right the walls of a
@@ -246,9 +264,6 @@ def test_clusters_stacked_one_over_the_other_are_one_object() -> None:
     Two objects, each holding all of its pieces and fused faces of its own. (A CI run once made a piece an object
     with no faces, and meshing it failed the whole scene.)"""
     import trimesh
-
-    from reconstruction._dense import DenseResult, RegionOfInterest
-    from reconstruction._objects import segment_objects
 
     voxel_m = 0.004
     table = _grid_patch((0.0, 0.0), 0.3, 0.0, voxel_m)
@@ -259,16 +274,8 @@ def test_clusters_stacked_one_over_the_other_are_one_object() -> None:
     walls.apply_translation([0.12, 0.0, 0.025])
     top = _grid_patch((0.12, 0.0), 0.015, 0.08, 0.001)  # 961 points, more than the walls' above the seed height
     surface = trimesh.util.concatenate([table, cylinder, floating, walls, top])
-    dense = DenseResult(
-        vertices_world=np.asarray(surface.vertices), faces=np.asarray(surface.faces, np.int64),
-        vertex_rgb=np.full((len(surface.vertices), 3), 128, np.uint8),
-        vertex_normals=np.asarray(surface.vertex_normals), voxel_size=voxel_m, num_pairs=1,
-    )  # fmt: skip
-    roi = RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.02]), max_world=np.array([0.3, 0.3, 0.2]))
-    cam_from_world = np.linalg.inv(_looking_down(1.0))
-    k = np.array([[300.0, 0, 320], [0, 300.0, 240], [0, 0, 1]])
     segments = sorted(
-        segment_objects(dense, roi, [cam_from_world], k, (640, 480)),
+        _segmented(surface, voxel_m),
         key=lambda s: float(np.mean(s.points_world[:, 0])),
     )
     assert len(segments) == 2
@@ -286,23 +293,12 @@ def test_a_plate_lower_than_six_voxels_is_an_object() -> None:
     bowl and scaled the scene x 1.39). Seeds start at 8 mm when 6 voxels are higher: the plate is found whole."""
     import trimesh
 
-    from reconstruction._dense import DenseResult, RegionOfInterest
-    from reconstruction._objects import segment_objects
-
     voxel_m = 0.003
     table = _grid_patch((0.0, 0.0), 0.3, 0.0, voxel_m)
     plate = trimesh.creation.cylinder(radius=0.1, height=0.014, sections=96).subdivide_to_size(voxel_m)
     plate.apply_translation([0.05, 0.02, 0.007])
     surface = trimesh.util.concatenate([table, plate])
-    dense = DenseResult(
-        vertices_world=np.asarray(surface.vertices), faces=np.asarray(surface.faces, np.int64),
-        vertex_rgb=np.full((len(surface.vertices), 3), 128, np.uint8),
-        vertex_normals=np.asarray(surface.vertex_normals), voxel_size=voxel_m, num_pairs=1,
-    )  # fmt: skip
-    roi = RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.02]), max_world=np.array([0.3, 0.3, 0.2]))
-    cam_from_world = np.linalg.inv(_looking_down(1.0))
-    k = np.array([[300.0, 0, 320], [0, 300.0, 240], [0, 0, 1]])
-    (segment,) = segment_objects(dense, roi, [cam_from_world], k, (640, 480))
+    (segment,) = _segmented(surface, voxel_m)
     top = segment.points_world[segment.points_world[:, 2] > 0.01]
     np.testing.assert_allclose(top[:, :2].mean(axis=0), [0.05, 0.02], atol=0.003)
     assert np.ptp(top[:, 0]) == pytest.approx(0.2, abs=0.01)
@@ -314,9 +310,6 @@ def test_low_seeds_do_not_join_neighbours_through_stereo_bleeding() -> None:
     objects higher than six voxels: two objects."""
     import trimesh
 
-    from reconstruction._dense import DenseResult, RegionOfInterest
-    from reconstruction._objects import segment_objects
-
     voxel_m = 0.003
     table = _grid_patch((0.0, 0.0), 0.3, 0.0, voxel_m)
     can = trimesh.creation.cylinder(radius=0.016, height=0.14, sections=48).subdivide_to_size(voxel_m)
@@ -325,15 +318,7 @@ def test_low_seeds_do_not_join_neighbours_through_stereo_bleeding() -> None:
     box.apply_translation([0.045, 0.0, 0.015])
     bridge = _grid_patch((0.023, 0.0), 0.007, 0.012, 0.001)  # bleeding between them, 1.2 cm up
     surface = trimesh.util.concatenate([table, can, box, bridge])
-    dense = DenseResult(
-        vertices_world=np.asarray(surface.vertices), faces=np.asarray(surface.faces, np.int64),
-        vertex_rgb=np.full((len(surface.vertices), 3), 128, np.uint8),
-        vertex_normals=np.asarray(surface.vertex_normals), voxel_size=voxel_m, num_pairs=1,
-    )  # fmt: skip
-    roi = RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.02]), max_world=np.array([0.3, 0.3, 0.2]))
-    cam_from_world = np.linalg.inv(_looking_down(1.0))
-    k = np.array([[300.0, 0, 320], [0, 300.0, 240], [0, 0, 1]])
-    segments = segment_objects(dense, roi, [cam_from_world], k, (640, 480))
+    segments = _segmented(surface, voxel_m)
     tops = sorted(round(float(s.points_world[:, 2].max()), 3) for s in segments)
     assert tops == [0.03, 0.14]
 
