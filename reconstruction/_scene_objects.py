@@ -159,6 +159,9 @@ def find_objects(
         try:
             mesh = _objects.mesh_object(dense, segment, cam_centres, options.mesh)
         except Exception as exc:  # one object's failure must not lose the scene: a coarser surface made another way
+            if segment.cut_at_neck:  # stereo smear cut off an object's footprint: the object itself was meshed
+                log.info("a part cut off at a footprint's neck has no solid of its own: dropped (%s)", exc)
+                continue
             reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
             mesh = _objects.fallback_mesh(segment)  # SegmentationError where even that cannot be closed
             quality = "fallback"
