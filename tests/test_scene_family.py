@@ -2,7 +2,7 @@
 
 The scenes are the first two of the tests' seed range (100-199, `samples/make_scene_family.py --small`: 640x480
 video, 1-3 objects), rendered here and grounded by the CLI a user runs. Each check is one of the issue's targets;
-`benchmarks/scene_family.py` measures the same targets on 24 held-out scenes (seeds 1000+).
+`benchmarks/scene_family.py` measures the same targets on held-out scenes (seeds 1000+).
 """
 
 from __future__ import annotations
