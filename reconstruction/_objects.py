@@ -303,12 +303,9 @@ def _split_at_necks(seed_ids: np.ndarray, verts: np.ndarray, voxel: float, optio
         necks = _neck_depths(regions, depth)
         if len(ids) < 2 or not necks:
             break
-        peak = {r: float(depth[regions == r].max()) for r in ids}
-        small = {
-            r
-            for r in ids
-            if peak[r] < options.min_part_radius_voxels or np.count_nonzero(point_region == r) < options.min_points
-        }
+        peak = dict(zip(ids, map(float, ndimage.maximum(depth, regions, ids)), strict=True))
+        points = np.bincount(point_region, minlength=count + 1)
+        small = {r for r in ids if peak[r] < options.min_part_radius_voxels or points[r] < options.min_points}
         ranked = {
             pair: (bool(small & set(pair)), neck_voxels / min(peak[pair[0]], peak[pair[1]]))
             for pair, neck_voxels in necks.items()
@@ -318,8 +315,6 @@ def _split_at_necks(seed_ids: np.ndarray, verts: np.ndarray, voxel: float, optio
         if not is_small and ratio < options.split_neck_ratio:
             break
         merged_into[merged_into == pair[1]] = pair[0]
-    if len(ids) < 2:
-        return [seed_ids]
     parts = sorted((seed_ids[point_region == r] for r in ids), key=len, reverse=True)
     # a part the footprint's closing left apart from the rest, too small to be an object, stays with the largest
     kept = [parts[0]] + [p for p in parts[1:] if len(p) >= options.min_points]
@@ -544,8 +539,7 @@ def mesh_object(
         # Within `margin` of the table no depth map can tell the object from the table behind it: there the object
         # keeps the cross-section it has just above (a flared wall's carved undercut reaches down to the table).
         above = min(shape[2] - 1, z0 + int(np.ceil(margin / voxel)))
-        reference = solid[:, :, above : above + 4].any(axis=2)  # a few layers: one may be broken by carving
-        solid[:, :, z0:above] &= ndimage.binary_fill_holes(reference)[:, :, None]
+        solid[:, :, z0:above] &= _outline(solid, above, 4)[:, :, None]  # 4 layers: one may be broken by carving
         solid = _largest_piece(solid, "the depth maps see through the whole object; film it from more sides")
     # Shadowed table next to an object is poorly matched and leaves thin skirts at its base: open the lowest
     # layers in the table plane, outside the outline of the layers just above them (walls higher up are left alone,
@@ -555,8 +549,7 @@ def mesh_object(
     top_layer = min(shape[2], z0 + int(np.ceil(options.skirt_height_voxels * refine)))
     base_layers = slice(z0, top_layer)
     opened = ndimage.binary_opening(solid[:, :, base_layers], structure=np.ones((4 * refine + 1, 4 * refine + 1, 1)))
-    above_outline = ndimage.binary_fill_holes(solid[:, :, top_layer : top_layer + 2 * refine].any(axis=2))
-    above_outline = ndimage.binary_dilation(above_outline, iterations=refine)
+    above_outline = ndimage.binary_dilation(_outline(solid, top_layer, 2 * refine), iterations=refine)
     solid[:, :, base_layers] = opened | (solid[:, :, base_layers] & above_outline[:, :, None])
     closed_bottom = bool(extrude.any() or len(cap_f) > 0)
     field = ndimage.gaussian_filter(solid.astype(np.float32), sigma=0.7 * options.grid_refinement)
@@ -633,6 +626,12 @@ def _tapered_bottom(
     anchor_reach = np.maximum(from_standing[ai, aj], 1.0)
     slope_bottom = z0 + np.floor(anchor_height * np.minimum(from_standing / anchor_reach, 1.0)).astype(int)
     return np.where(footprint & ~standing, slope_bottom, z0)
+
+
+def _outline(solid: np.ndarray, first_layer: int, layers: int) -> np.ndarray:
+    """(X, Y) outline of a voxel solid over `layers` layers from `first_layer` up, its enclosed holes filled (a
+    cup's cavity is inside its outline)."""
+    return np.asarray(ndimage.binary_fill_holes(solid[:, :, first_layer : first_layer + layers].any(axis=2)))
 
 
 def _largest_piece(solid: np.ndarray, empty_message: str) -> np.ndarray:

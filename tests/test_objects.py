@@ -383,6 +383,7 @@ def test_a_thin_walled_cup_keeps_its_foot_on_the_table() -> None:
     shadowed table leaves, which also cut a cup's 4 mm wall off its floor in the lowest 1.8 cm: the mesh kept the
     upper part, hanging above the table (tuning seed 45: a mug 14 mm up, 14 mm drift in the settle test). The walls'
     foot under the outline above is kept: the cup stands on the table, full height, its cavity open."""
+    import igl
     import trimesh
 
     from reconstruction._dense import DenseResult
@@ -410,8 +411,6 @@ def test_a_thin_walled_cup_keeps_its_foot_on_the_table() -> None:
     z = mesh.vertices_world[:, 2]
     assert z.min() == pytest.approx(0.0, abs=0.002)
     assert z.max() == pytest.approx(0.09, abs=0.004)
-    import igl
-
     probes = np.array([[0.0, 0.0, 0.05], [0.038, 0.0, 0.008]])  # in the cavity; in the wall's foot
     winding = igl.fast_winding_number(mesh.vertices_world.astype(np.float64), mesh.faces.astype(np.int64), probes)
     assert winding[0] < 0.5 < winding[1]  # the cavity stays open, the foot is solid
