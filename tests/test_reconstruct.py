@@ -541,11 +541,14 @@ def test_read_frames_bounds_memory_and_refuses_image_bombs(tmp_path: Path, monke
 def test_dense_stereo_on_several_threads_fuses_what_one_thread_fuses(
     truth_cameras: dict, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The sample's first 24 frames (less its two duplicates) at their true poses, fused from 8 stereo pairs computed
-    one at a time and three ahead on other threads: the same depth maps, TSDF and surface to the bit."""
+    """The sample's first 24 frames (less its two duplicates) at their true poses, fused one at a time and three ahead
+    on other threads: the same depth maps, TSDF and surface to the bit. Once from 8 stereo pairs alone (``min_pairs``
+    0), once with the plane sweep's depth maps beside a few pairs (every second frame at half size: the sweep is what a
+    photo set gets, and at full size on all 22 frames it took 6 minutes of the test run)."""
     import cv2
 
     from reconstruction import _dense
+    from reconstruction._sweep import SweepOptions
     from reconstruction._types import CameraIntrinsics
 
     truth = {f["frame_index"]: np.array(f["world_from_cam"]) for f in truth_cameras["frames"]}
@@ -562,17 +565,22 @@ def test_dense_stereo_on_several_threads_fuses_what_one_thread_fuses(
         width_px=i["width"], height_px=i["height"], fx_px=i["fx"], fy_px=i["fy"], cx_px=i["cx"], cy_px=i["cy"]
     )
     roi = _dense.RegionOfInterest(min_world=np.array([-0.35, -0.3, -0.02]), max_world=np.array([0.35, 0.3, 0.2]))
-    fused = []
-    for cores in (1, 3):
-        monkeypatch.setattr(_dense, "usable_cores", lambda cores=cores: cores)
-        fused.append(_dense.fuse_views(views, intrinsics, roi, _dense.DenseOptions(num_reference_views=8)))
-    one, many = fused
-    assert one.num_pairs >= 6 and len(one.faces) > 1000
-    assert one.num_pairs == many.num_pairs
-    for name in ("vertices_world", "faces", "vertex_rgb", "tsdf_voxels", "tsdf_values"):
-        np.testing.assert_array_equal(getattr(one, name), getattr(many, name), err_msg=name)
-    for a, b in zip(one.depth_maps, many.depth_maps, strict=True):
-        np.testing.assert_array_equal(a.depth, b.depth)
+    stereo_only = _dense.DenseOptions(num_reference_views=8, min_pairs=0)
+    with_sweep = _dense.DenseOptions(
+        num_reference_views=8, max_image_size_px=320, sweep=SweepOptions(num_planes=48, table_planes=32)
+    )
+    for options, subset, min_maps in ((stereo_only, views, 6), (with_sweep, views[::2], 13)):
+        fused = []
+        for cores in (1, 3):
+            monkeypatch.setattr(_dense, "usable_cores", lambda cores=cores: cores)
+            fused.append(_dense.fuse_views(subset, intrinsics, roi, options))
+        one, many = fused
+        assert len(one.depth_maps) >= min_maps and len(one.faces) > 1000
+        assert one.num_pairs == many.num_pairs and len(one.depth_maps) == len(many.depth_maps)
+        for name in ("vertices_world", "faces", "vertex_rgb", "tsdf_voxels", "tsdf_values"):
+            np.testing.assert_array_equal(getattr(one, name), getattr(many, name), err_msg=name)
+        for a, b in zip(one.depth_maps, many.depth_maps, strict=True):
+            np.testing.assert_array_equal(a.depth, b.depth)
 
 
 def test_an_image_that_cannot_be_written_is_one_error(tmp_path: Path) -> None:
