@@ -129,6 +129,8 @@ class ObjectSegment:
     # cut from a larger cluster at a neck of its footprint (`_split_at_necks`): when it cannot be meshed it was
     # stereo smeared beside that object (a ball's shadowed base), not an object of its own
     cut_at_neck: bool = False
+    # its points reach a side of the fused region: the object may go on past it, and its mesh be cut short
+    at_region_edge: bool = False
 
 
 def segment_objects(
@@ -219,9 +221,11 @@ def segment_objects(
         if views < options.min_view_fraction * len(cams_from_world):
             warnings.append(f"seen whole in only {views} of {len(cams_from_world)} frames: partly out of view")
         margin = 2 * voxel
-        if np.any(points[:, :2].min(0) < roi.min_world[:2] + margin) or np.any(
-            points[:, :2].max(0) > roi.max_world[:2] - margin
-        ):
+        at_edge = bool(
+            np.any(points[:, :2].min(0) < roi.min_world[:2] + margin)
+            or np.any(points[:, :2].max(0) > roi.max_world[:2] - margin)
+        )
+        if at_edge:
             warnings.append("touches the edge of the reconstructed region: it may be cut")
         solidity = _solidity(footprint)
         if solidity < options.solidity_warning:
@@ -236,6 +240,7 @@ def segment_objects(
                 num_views=views,
                 warnings=tuple(warnings),
                 cut_at_neck=cut_at_neck,
+                at_region_edge=at_edge,
             )
         )
     if not segments:
@@ -393,6 +398,18 @@ class WatertightMesh:
     closed_bottom: bool
 
 
+def footprint_aspect(points_world: np.ndarray) -> float:
+    """Short side over long side of the smallest rectangle around the points' footprint on the table (1: square or
+    round, near 0: a sheet standing on edge)."""
+    import cv2
+
+    footprint = np.asarray(points_world[:, :2], np.float32)
+    if len(footprint) < 3:
+        return 0.0
+    (_, _), (side_a, side_b), _ = cv2.minAreaRect(footprint)
+    return float(min(side_a, side_b) / max(side_a, side_b, 1e-12))
+
+
 def fallback_mesh(segment: ObjectSegment) -> WatertightMesh:
     """A closed surface for an object that `mesh_object` could not mesh: the convex hull of its fused points and of
     their footprint on the table (z = 0), so that it stands where the object stands. Coarser than the real mesh (a
@@ -402,13 +419,25 @@ def fallback_mesh(segment: ObjectSegment) -> WatertightMesh:
         SegmentationError: the object has too few points, or they are flat, for any closed surface.
     """
     import trimesh
+    from scipy.spatial import ConvexHull
 
     points = np.asarray(segment.points_world, float)
     points = points[np.isfinite(points).all(axis=1)]
     footprint = points.copy()
     footprint[:, 2] = 0.0
+    every = np.vstack([points, footprint])
     try:
-        hull = trimesh.Trimesh(np.vstack([points, footprint])).convex_hull if len(points) >= 4 else None
+        # Qhull's triangulated facets, oriented by its outward normals, close by construction; trimesh's
+        # `convex_hull` merged near-coincident hull vertices of a few thousand points on a can's wall and left the
+        # hull open (a test's can of 6000 points), which lost the object.
+        qhull = ConvexHull(every)
+        faces = qhull.simplices.copy()
+        tri = every[faces]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        inward = np.einsum("ij,ij->i", normals, qhull.equations[:, :3]) < 0
+        faces[inward] = faces[inward][:, ::-1]
+        used, remapped = np.unique(faces, return_inverse=True)
+        hull = trimesh.Trimesh(every[used], remapped.reshape(-1, 3), process=False) if len(points) >= 4 else None
     except Exception:  # qhull's errors for flat or degenerate input
         hull = None
     if hull is None or not hull.is_watertight or hull.volume <= 0:

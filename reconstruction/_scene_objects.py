@@ -35,6 +35,9 @@ class ObjectsOptions:
     # times higher, at most `max_roi_raises` times and not past 0.4 x the median camera distance
     roi_raise_factor: float = 1.5
     max_roi_raises: int = 2
+    # an object whose fused shell encloses no volume and whose points' footprint is thinner than this (short side /
+    # long side) is a sheet of smeared depth (held-out 1033: 1.8 x 25 cm, 12 cm tall), not a fallback hull: dropped
+    min_fallback_aspect: float = 0.25
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -163,6 +166,10 @@ def find_objects(
                 log.info("a part cut off at a footprint's neck has no solid of its own: dropped (%s)", exc)
                 continue
             reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+            aspect = _objects.footprint_aspect(segment.points_world)
+            if aspect < options.min_fallback_aspect:
+                log.warning("dropped a sheet of fused points (footprint aspect %.2f) that encloses no solid", aspect)
+                continue
             mesh = _objects.fallback_mesh(segment)  # SegmentationError where even that cannot be closed
             quality = "fallback"
         volume = _mesh_volume(mesh.vertices_world, mesh.faces)
@@ -184,6 +191,7 @@ def find_objects(
                 ),
                 mesh_quality=quality,
                 mesh_reason=reason,
+                at_region_edge=segment.at_region_edge,
             )
         )
     report("meshing objects", len(segments), len(segments))

@@ -257,6 +257,8 @@ class ObjectInstance:
             points, `reconstruction._objects.fallback_mesh`) or "silhouette" (no fused surface: the visual hull of
             its outlines against the table, `reconstruction._silhouette`; a cavity is closed).
         mesh_reason: why the full mesh failed, for a fallback.
+        at_region_edge: its fused points reach a side of the region that was fused: it may go on past it, and its
+            mesh be cut short there.
     """
 
     name: str
@@ -267,3 +269,4 @@ class ObjectInstance:
     warnings: tuple[str, ...] = ()
     mesh_quality: str = "full"
     mesh_reason: str | None = None
+    at_region_edge: bool = False

@@ -519,3 +519,65 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
     column.update(height_m=0.05, x_m=0.19)
     _fused_and_segmented(views, intrinsics, roi, K, 0.002, ObjectsOptions(), lambda *a: None)
     assert tops == [0.12] and sides == [0.2]
+
+
+def test_a_sheet_of_smeared_points_is_no_fallback_object() -> None:
+    """Held-out 1033 and tuning seed 41 (issue 60): a fused shell that encloses no volume became the convex hull of
+    its points, and on a low pass those points were sheets of stereo smear (1.8 x 25 cm and 1.1 x 24 cm footprints,
+    12-21 cm tall): phantom walls in the scene. Photo sets' cans and bottles fail the same way and their hulls are
+    good (Chamfer 3-4 mm): a round or square footprint is kept, a sheet's is dropped (`min_fallback_aspect`)."""
+    from reconstruction._objects import footprint_aspect
+    from reconstruction._scene_objects import ObjectsOptions
+
+    rng = np.random.default_rng(7)
+    limit = ObjectsOptions().min_fallback_aspect
+    along = rng.uniform(-0.125, 0.125, 2000)
+    sheet = np.c_[along, 0.3 * along + rng.normal(0.0, 0.003, 2000), rng.uniform(0.0, 0.12, 2000)]  # turned, noisy
+    assert footprint_aspect(sheet) < limit
+    angle = rng.uniform(0.0, 2 * np.pi, 2000)
+    can_wall = np.c_[0.033 * np.cos(angle), 0.033 * np.sin(angle), rng.uniform(0.0, 0.11, 2000)]
+    half_seen = can_wall[np.cos(angle) > -0.2]  # a photo set that saw one side better
+    for solid in (can_wall, half_seen):
+        assert footprint_aspect(solid) > 0.5
+    assert footprint_aspect(sheet[:2]) == 0.0
+
+
+def test_find_objects_drops_a_smear_sheet_and_keeps_a_hull_that_fails_to_mesh(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The rule above where it acts: both clusters fail `mesh_object` (as the can and the sheet did); the can becomes
+    a fallback hull, the sheet is dropped, not made into a phantom wall."""
+    from types import SimpleNamespace
+
+    from reconstruction import _dense, _objects, _scene_objects
+    from reconstruction._objects import ObjectSegment
+    from reconstruction._scene_objects import ObjectsOptions
+
+    rng = np.random.default_rng(3)
+    angle = rng.uniform(0.0, 2 * np.pi, 3000)
+    # (trimesh's `convex_hull` of these 3000 points and their foot was left open: `fallback_mesh` raised)
+    can = np.c_[0.1 + 0.033 * np.cos(angle), 0.033 * np.sin(angle), rng.uniform(0.0, 0.11, 3000)]
+    along = rng.uniform(-0.12, 0.12, 3000)
+    sheet = np.c_[-0.1 + rng.normal(0.0, 0.003, 3000), along, rng.uniform(0.0, 0.12, 3000)]
+    segments = [
+        ObjectSegment(points_world=p, normals_world=p, face_ids=np.arange(0), num_views=9, warnings=())
+        for p in (sheet, can)
+    ]
+    roi = _dense.RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.01]), max_world=np.array([0.3, 0.3, 0.2]))
+    dense = SimpleNamespace(voxel_size=0.003, num_pairs=8)
+
+    def fails(*args, **kwargs):  # type: ignore[no-untyped-def]
+        raise ValueError("Surface level must be within volume data range.")
+
+    monkeypatch.setattr(_scene_objects, "load_views", lambda result: [])
+    monkeypatch.setattr(_scene_objects, "region_of_interest", lambda result, margin: roi)
+    monkeypatch.setattr(_scene_objects, "_hull_region", lambda result, region: region)
+    monkeypatch.setattr(_scene_objects, "points_table_extent", lambda result: (0.5, 0.5))
+    monkeypatch.setattr(_dense, "voxel_size", lambda views, region, options: 0.003)
+    monkeypatch.setattr(_scene_objects, "_fused_and_segmented", lambda *a: (dense, segments, roi))
+    monkeypatch.setattr(_objects, "mesh_object", fails)
+    intrinsics = SimpleNamespace(fx_px=500.0, fy_px=500.0, cx_px=320.0, cy_px=240.0, k1=0.0, k2=0.0)
+    result = SimpleNamespace(intrinsics=intrinsics)
+    scene = _scene_objects.find_objects(result, ObjectsOptions(silhouettes=None))  # type: ignore[arg-type]
+    assert [o.mesh_quality for o in scene.objects] == ["fallback"]
+    (can_hull,) = scene.objects
+    np.testing.assert_allclose(can_hull.world_from_object[:2, 3], [0.1, 0.0], atol=0.005)
+    assert np.ptp(can_hull.mesh.vertices_m, axis=0) == pytest.approx([0.066, 0.066, 0.11], abs=0.004)
