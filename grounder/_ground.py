@@ -257,7 +257,7 @@ def _ground_staged(
         rec = reconstruct(
             source,
             stage / "reconstruction",
-            options.reconstruct,
+            replace(options.reconstruct, extent_on_meshes=True),  # a plain object's known extent: on its mesh
             progress=report,
             on_mapping=lambda: warm_up.append(_start_warm_up(options, stop_warm_up)),
         )
@@ -273,6 +273,12 @@ def _ground_staged(
         if rec.world.scale_source == ScaleSource.KNOWN_EXTENT and options.reconstruct.known_extent_m:
             known = options.reconstruct.known_extent_m
             factor, largest, declined = _extent_step(scene, known)
+            if rec.world.scale_provisional:  # no sparse estimate to fall back on: the meshes' measure is all there is
+                (factor, largest), declined = _extent_factor(scene, known), None
+                warnings.append(
+                    f"scale: no sparse point stood on any object, so --known-extent was measured on the mesh of "
+                    f"{largest} alone; check its size in the preview, or film with a marker (--aruco-size)"
+                )
             step, second_pass = factor, ""
             if abs(np.log(factor)) > np.log(1 + RESEGMENT_SCALE_CHANGE):
                 # Segmentation and meshing work in metres (voxels, gaps, margins): at a scale this far off they

@@ -298,7 +298,9 @@ def _establish_world(
     if options.aruco_size_m is not None:
         return _world.world_from_marker(rec, plane, observations, options.aruco_size_m)
     if options.known_extent_m is not None:
-        return _world.world_from_extent(rec, plane, points, cam_centres, options.known_extent_m)
+        return _world.world_from_extent(
+            rec, plane, points, cam_centres, options.known_extent_m, provisional_ok=options.extent_on_meshes
+        )
     log.warning(
         "SCALE UNKNOWN: no --aruco-size or --known-extent given; the world frame is gravity-aligned with the "
         "table at z = 0, but its units are arbitrary, not metres"

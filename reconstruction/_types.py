@@ -130,6 +130,9 @@ class ReconstructOptions:
         sfm: structure-from-motion settings.
         aruco_dictionary: OpenCV ArUco dictionary name.
         aruco_id: id of the marker that defines the world frame.
+        extent_on_meshes: with `known_extent_m`, when no cluster of sparse points stands above the table (a plain
+            object), give a provisional scale (`WorldFrame.scale_provisional`) instead of refusing: for a caller
+            that measures the known extent on the objects' meshes (`ground` does; `reconstruct` alone refuses).
     """
 
     aruco_size_m: float | None = None
@@ -138,6 +141,7 @@ class ReconstructOptions:
     sfm: SfmOptions = field(default_factory=SfmOptions)
     aruco_dictionary: str = "DICT_4X4_50"
     aruco_id: int = 0
+    extent_on_meshes: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -189,6 +193,9 @@ class WorldFrame:
     marker_views: int = 0  # frames in which the marker was detected and used
     marker_corner_rms_px: float = float("nan")  # reprojection RMS of the triangulated marker corners
     notes: tuple[str, ...] = ()
+    # known extent with no cluster of sparse points above the table: a stand-in scale (the cameras at
+    # `_world.NOMINAL_CAMERA_DISTANCE_M`) until the caller measures the known extent on the meshes (`ground`)
+    scale_provisional: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -360,11 +360,36 @@ def footprint_extents(points: np.ndarray, plane: Plane, x_hint: np.ndarray) -> n
     return np.array([spans[0], spans[1], top])
 
 
+NOMINAL_CAMERA_DISTANCE_M = 0.6  # a provisional scale puts the cameras this far from the table's centre
+
+
 def world_from_extent(
-    rec: pycolmap.Reconstruction, plane: Plane, points: np.ndarray, cam_centres: np.ndarray, extent_m: float
+    rec: pycolmap.Reconstruction,
+    plane: Plane,
+    points: np.ndarray,
+    cam_centres: np.ndarray,
+    extent_m: float,
+    provisional_ok: bool = False,
 ) -> WorldFrame:
+    """The world frame scaled so that the largest cluster of points above the table spans `extent_m`; with
+    `provisional_ok` and no such cluster (a plain object gives SfM no points), a provisional scale that puts the
+    cameras `NOMINAL_CAMERA_DISTANCE_M` from the table's centre, for the caller to correct on the meshes."""
     scene_size = float(np.median(np.linalg.norm(cam_centres - np.median(points, 0), axis=1)))
     clusters = objects_above_plane(points, plane, scene_size)
+    if not clusters and provisional_ok:
+        centre = points[plane.inliers].mean(axis=0)
+        scale = NOMINAL_CAMERA_DISTANCE_M / float(np.median(np.linalg.norm(cam_centres - centre, axis=1)))
+        return WorldFrame(
+            world_from_sfm=_frame_on_plane(plane, centre, _first_camera_x(rec), scale),
+            scale_source=ScaleSource.KNOWN_EXTENT,
+            scale=scale,
+            plane_inlier_ratio=float(plane.inliers.mean()),
+            notes=(
+                "no cluster of points stands above the plane: provisional scale (cameras "
+                f"{NOMINAL_CAMERA_DISTANCE_M} m from the table's centre) until the known extent is measured on a mesh",
+            ),
+            scale_provisional=True,
+        )
     if not clusters:
         raise WorldFrameError(
             "--known-extent needs an object on the table, but no cluster of points stands above the table "

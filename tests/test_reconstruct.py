@@ -156,6 +156,30 @@ def test_known_extent_and_unknown_scale_on_the_same_model(reconstruction_dir: Pa
     assert np.abs(moved_cams_world - cams_world).max() < 5e-3
 
 
+def test_known_extent_without_points_on_any_object_is_provisional_for_ground_only(reconstruction_dir: Path) -> None:
+    """A plain object gives SfM no points (family seed 100: one low-texture cup): `reconstruct` alone refuses, with
+    the way out; for `ground` (`extent_on_meshes`) the frame is the same gravity-aligned table frame, at a
+    provisional scale that puts the cameras 0.6 m from the table's centre, to be measured on the meshes."""
+    from reconstruction._world import NOMINAL_CAMERA_DISTANCE_M
+    from reconstruction.errors import WorldFrameError
+
+    rec = pycolmap.Reconstruction(reconstruction_dir / "sparse")
+    points, cams = _points_and_cameras(rec)
+    plane = fit_support_plane(points, cams)
+    table_only = points[plane.inliers]  # the objects' points gone
+    plane = fit_support_plane(table_only, cams)
+    with pytest.raises(WorldFrameError, match="no cluster of points stands above the table plane"):
+        world_from_extent(rec, plane, table_only, cams, 0.2)
+    world = world_from_extent(rec, plane, table_only, cams, 0.2, provisional_ok=True)
+    assert world.scale_provisional and world.scale_source == ScaleSource.KNOWN_EXTENT
+    cams_world = cams @ world.world_from_sfm[:3, :3].T + world.world_from_sfm[:3, 3]
+    table_world = table_only @ world.world_from_sfm[:3, :3].T + world.world_from_sfm[:3, 3]
+    assert np.abs(table_world[:, 2]).max() < 0.01 and (cams_world[:, 2] > 0.1).all()  # on the table, cameras above
+    distance = np.linalg.norm(cams_world - table_world.mean(axis=0), axis=1)
+    assert np.median(distance) == pytest.approx(NOMINAL_CAMERA_DISTANCE_M, rel=0.01)
+    assert not world_from_extent(rec, fit_support_plane(points, cams), points, cams, 0.2, True).scale_provisional
+
+
 def test_real_apple_video_with_known_extent(grounded_apple: Path) -> None:
     """Transfer to a real handheld phone video: registration, gravity, and a plausible metric scale (the reconstruct
     stage's output inside the grounded apple scene, `reconstruction/`)."""

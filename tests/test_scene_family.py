@@ -34,8 +34,10 @@ def family_scenes(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # at rest since 2026-12-07, its figure no longer toppling); each mark goes once the figure passes (strict: a pass
 # then fails the run, so the list cannot go stale). The held-out figures are in docs/results/scene_family.md.
 NOT_YET: dict[tuple[int, str], str] = {
-    (100, "scene"): "a single low-texture cup on a half orbit with --known-extent: no sparse point stands on it, so "
-    "ground refuses with one line (exit 2: no cluster of points stands above the table plane)",
+    (100, "found"): "a single low-texture cup on a half orbit with --known-extent: no sparse point stands on it; "
+    "since 2026-12-07 the scene grounds (a provisional scale, then the known extent on the cup's mesh), but the "
+    "cup's fused mesh reaches 62% of its height, so the scene is scaled x 1.61 and the cup counts as an extra body",
+    (100, "objects"): "nothing found to measure (the cup, above)",
     (101, "chamfer"): "bowl_0: 5.73 mm, its rim torn and ragged (issue 60 item 6)",
     (101, "normals"): "bowl_0: 0.680, the torn rim",
     (101, "topology"): "bowl_0: Euler number -8 (holes through the wall), truth 2",
@@ -44,12 +46,17 @@ NOT_YET: dict[tuple[int, str], str] = {
 BORDERLINE = {(101, "centres"): "irregular_1: 5.2 mm against 5 mm (its extents are off)"}
 
 
+PER_OBJECT = ("centres", "chamfer", "extents", "normals", "topology", "cavity")  # checks of each found object
+
+
 def _seeds(check: str) -> list[object]:
     """The seeds as parameters, each marked where `check` is not met yet on it."""
     params = []
     for seed in SEEDS:
         marks = []
         reason = NOT_YET.get((seed, check)) or NOT_YET.get((seed, "scene"))
+        if check in PER_OBJECT:
+            reason = reason or NOT_YET.get((seed, "objects"))
         if reason and not (check == "traceback"):
             marks.append(pytest.mark.xfail(reason=f"not yet: {reason}", strict=True))
         elif (seed, check) in BORDERLINE:
@@ -89,7 +96,11 @@ def score(grounded: tuple[subprocess.CompletedProcess[str], Path, Path]) -> Scen
 
 
 def _found(score: SceneScore) -> list[ObjectScore]:
-    return [o for o in score.objects if o.found]
+    """The found objects, for the per-object checks; none found fails them (a check of nothing proves nothing)."""
+    found = [o for o in score.objects if o.found]
+    if not found:
+        pytest.fail(f"no object found to measure (of {len(score.objects)})")
+    return found
 
 
 @pytest.mark.parametrize("grounded", _seeds("traceback"), indirect=True)
