@@ -154,13 +154,18 @@ def _length_on_mesh(obj: ObjectInstance) -> float:
     return float(np.ptp(obj.mesh.vertices_m, axis=0).max())
 
 
-def _extent_step(scene: SceneObjects, known_extent_m: float) -> tuple[float, str, str | None]:
+def _extent_step(
+    scene: SceneObjects, known_extent_m: float, prior: float = 1.0, trust_any: bool = False
+) -> tuple[float, str, str | None]:
     """The known extent's correction of the current scale (`_extent_factor`), its object, and why it was declined.
 
-    A correction beyond +-`DOUBTFUL_EXTENT_STEP` is taken only from a mesh that can be measured: not the convex hull
-    of fused points that enclosed no solid (mesh quality "fallback"), not a mesh cut by a side of the fused region,
-    and with no such mesh that might be the longer object (any extent of it, footprint included, longer than the
-    chosen length). Otherwise the scale from the sparse points stands (factor 1) and the reason is returned.
+    `scene` is at `prior` x the sparse points' scale (a second segmentation's). A correction that leaves the scale
+    more than `DOUBTFUL_EXTENT_STEP` off the sparse estimate is taken only from a mesh that can be measured: not the
+    convex hull of fused points that enclosed no solid (mesh quality "fallback"), not a mesh cut by a side of the
+    fused region, and with no such mesh that might be the longer object (any extent of it, footprint included,
+    longer than the chosen length; a cut mesh's extent is what is left of it, a lower bound). Otherwise the step is
+    declined (factor 1) and the reason returned. `trust_any`: there is no sparse estimate (a provisional scale),
+    whatever the meshes say is taken.
 
     A visual hull ("silhouette") counts by its height, as in `_extent_factor`: tuning seed 53's plain bottle, a
     silhouette hull, corrected a sparse estimate 1.49 x too large to 0.97 (a thin can's fallback hull beside it was
@@ -169,7 +174,7 @@ def _extent_step(scene: SceneObjects, known_extent_m: float) -> tuple[float, str
     mug meshed as a fallback hull: x 1.41) and 1033 (a 23 cm phantom sheet, a fallback hull: x 0.64); the sparse
     estimate was within 8% in all three."""
     factor, name = _extent_factor(scene, known_extent_m)
-    if abs(np.log(factor)) <= np.log(1 + DOUBTFUL_EXTENT_STEP):
+    if trust_any or abs(np.log(prior * factor)) <= np.log(1 + DOUBTFUL_EXTENT_STEP):
         return factor, name, None
 
     def doubt(obj: ObjectInstance) -> str | None:
@@ -185,6 +190,58 @@ def _extent_step(scene: SceneObjects, known_extent_m: float) -> tuple[float, str
         if other.name != name and why is not None and _length_on_mesh(other) > known_extent_m / factor:
             return 1.0, name, f"{other.name} ({why}) may be longer than {name}"
     return factor, name, None
+
+
+@dataclass(frozen=True, kw_only=True)
+class _ExtentRefinement:
+    """What the known extent did to the scale (`_refine_known_extent`)."""
+
+    scene: SceneObjects  # the segmentation to rescale: the first, or the second made at x `first_factor`
+    step: float  # rescales `scene` to the final metres
+    factor: float  # the final scale over the sparse points' (or the provisional) scale
+    note: str  # for the reconstruction record
+    warning: str | None  # for the manifest
+
+
+def _refine_known_extent(
+    scene: SceneObjects,
+    known_extent_m: float,
+    provisional: bool,
+    resegment: Callable[[float], SceneObjects],
+) -> _ExtentRefinement:
+    """The known extent measured on the meshes (`_extent_step`). A correction beyond +-`RESEGMENT_SCALE_CHANGE`
+    segments again at the corrected scale (`resegment(factor)`, which returns the new segmentation) and measures
+    there; a second measure that is declined returns the scale to the sparse estimate, as a first would have.
+    `provisional`: no sparse estimate (no point stood on any object), the meshes' measure is taken whatever it is."""
+    factor, largest, declined = _extent_step(scene, known_extent_m, trust_any=provisional)
+    step, second_pass = factor, ""
+    if abs(np.log(factor)) > np.log(1 + RESEGMENT_SCALE_CHANGE):
+        # Segmentation and meshing work in metres (voxels, gaps, margins): at a scale this far off they merged or
+        # fattened the objects. Segment and mesh again in the corrected metres, then refine.
+        scene = resegment(factor)
+        step, second_largest, declined = _extent_step(scene, known_extent_m, prior=factor, trust_any=provisional)
+        if declined is None:
+            largest, second_pass = second_largest, f" (x {step:.4f} on the second segmentation)"
+        else:
+            step = 1.0 / factor  # back to the sparse estimate
+        factor *= step
+    if declined is not None:
+        return _ExtentRefinement(
+            scene=scene,
+            step=step,
+            factor=factor,
+            note=f"known extent: the meshes' correction was declined ({declined}); the sparse points' scale stands",
+            warning=f"scale: --known-extent was measured on the sparse points only ({declined}), coarser than on a "
+            "mesh; a marker (--aruco-size) scales a scene exactly",
+        )
+    warning = None
+    if provisional:
+        warning = (
+            f"scale: no sparse point stood on any object, so --known-extent was measured on the mesh of {largest} "
+            "alone; check its size in the preview, or film with a marker (--aruco-size)"
+        )
+    note = f"known extent refined on the segmented mesh of {largest}: scale x {factor:.4f}{second_pass}"
+    return _ExtentRefinement(scene=scene, step=step, factor=factor, note=note, warning=warning)
 
 
 def _rescale(
@@ -271,36 +328,22 @@ def _ground_staged(
         seconds["dense_segment_mesh"] = time.perf_counter() - tick
         scale_note = None
         if rec.world.scale_source == ScaleSource.KNOWN_EXTENT and options.reconstruct.known_extent_m:
-            known = options.reconstruct.known_extent_m
-            factor, largest, declined = _extent_step(scene, known)
-            if rec.world.scale_provisional:  # no sparse estimate to fall back on: the meshes' measure is all there is
-                (factor, largest), declined = _extent_factor(scene, known), None
-                warnings.append(
-                    f"scale: no sparse point stood on any object, so --known-extent was measured on the mesh of "
-                    f"{largest} alone; check its size in the preview, or film with a marker (--aruco-size)"
-                )
-            step, second_pass = factor, ""
-            if abs(np.log(factor)) > np.log(1 + RESEGMENT_SCALE_CHANGE):
-                # Segmentation and meshing work in metres (voxels, gaps, margins): at a scale this far off they
-                # merged or fattened the objects. Segment and mesh again in the corrected metres, then refine.
-                _, rec = _rescale(scene, rec, factor, f"known extent on a first segmentation: scale x {factor:.4f}")
-                scene = find_objects(rec, options.objects, progress=report)
-                step, largest, declined = _extent_step(scene, known)
-                factor *= step
-                second_pass = f" (x {step:.4f} on the second segmentation)"
-                if declined is not None:
-                    second_pass = f" (the second segmentation's correction declined: {declined})"
-            scale_note = f"known extent refined on the segmented mesh of {largest}: scale x {factor:.4f}"
-            if declined is not None and not second_pass:
-                scale_note = (
-                    f"known extent: the meshes' correction was declined ({declined}); "
-                    f"scale x {factor:.4f} on the sparse points' estimate"
-                )
-                warnings.append(
-                    f"scale: --known-extent was measured on the sparse points only ({declined}), coarser than on "
-                    "a mesh; a marker (--aruco-size) scales a scene exactly"
-                )
-            scene, rec = _rescale(scene, rec, step, scale_note + second_pass)
+            reconstruction = rec
+
+            def resegment(factor: float) -> SceneObjects:
+                nonlocal reconstruction
+                note = f"known extent on a first segmentation: scale x {factor:.4f}"
+                _, reconstruction = _rescale(scene, reconstruction, factor, note)
+                return find_objects(reconstruction, options.objects, progress=report)
+
+            refined = _refine_known_extent(
+                scene, options.reconstruct.known_extent_m, rec.world.scale_provisional, resegment
+            )
+            scale_note = refined.note
+            if refined.warning is not None:
+                warnings.append(refined.warning)
+            scene, rec = _rescale(refined.scene, reconstruction, refined.step, refined.note)
+            rec = replace(rec, world=replace(rec.world, scale_provisional=False))  # measured now
         for obj in scene.objects:
             warnings.extend(f"{obj.name}: {w}" for w in obj.warnings)
 

@@ -398,16 +398,24 @@ class WatertightMesh:
     closed_bottom: bool
 
 
-def footprint_aspect(points_world: np.ndarray) -> float:
-    """Short side over long side of the smallest rectangle around the points' footprint on the table (1: square or
-    round, near 0: a sheet standing on edge)."""
+def standing_sheet(points_world: np.ndarray, max_aspect: float, min_height_ratio: float = 2.0) -> bool:
+    """Whether points form a sheet standing on edge: the smallest rectangle around their footprint on the table has
+    a short side under `max_aspect` x its long side, and they stand over `min_height_ratio` x that short side tall
+    (a pen or a box lying flat is no sheet).
+
+    Args:
+        points_world: (N, 3) float, metres, world frame (table top z = 0); non-finite rows are ignored.
+        max_aspect: short side / long side below which a footprint is sheet-like.
+        min_height_ratio: height / short side above which the points stand up.
+    """
     import cv2
 
-    footprint = np.asarray(points_world[:, :2], np.float32)
-    if len(footprint) < 3:
-        return 0.0
-    (_, _), (side_a, side_b), _ = cv2.minAreaRect(footprint)
-    return float(min(side_a, side_b) / max(side_a, side_b, 1e-12))
+    points = points_world[np.isfinite(points_world).all(axis=1)]
+    if len(points) < 3:
+        return False
+    (_, _), (side_a, side_b), _ = cv2.minAreaRect(np.asarray(points[:, :2], np.float32))
+    short, long = min(side_a, side_b), max(side_a, side_b)
+    return bool(short < max_aspect * long and np.ptp(points[:, 2]) > min_height_ratio * short)
 
 
 def fallback_mesh(segment: ObjectSegment) -> WatertightMesh:
@@ -426,20 +434,23 @@ def fallback_mesh(segment: ObjectSegment) -> WatertightMesh:
     footprint = points.copy()
     footprint[:, 2] = 0.0
     every = np.vstack([points, footprint])
-    try:
-        # Qhull's triangulated facets, oriented by its outward normals, close by construction; trimesh's
-        # `convex_hull` merged near-coincident hull vertices of a few thousand points on a can's wall and left the
-        # hull open (a test's can of 6000 points), which lost the object.
-        qhull = ConvexHull(every)
-        faces = qhull.simplices.copy()
-        tri = every[faces]
-        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        inward = np.einsum("ij,ij->i", normals, qhull.equations[:, :3]) < 0
-        faces[inward] = faces[inward][:, ::-1]
-        used, remapped = np.unique(faces, return_inverse=True)
-        hull = trimesh.Trimesh(every[used], remapped.reshape(-1, 3), process=False) if len(points) >= 4 else None
-    except Exception:  # qhull's errors for flat or degenerate input
-        hull = None
+    # Qhull's triangulated facets, oriented by its outward normals, close by construction; trimesh's `convex_hull`
+    # merged near-coincident hull vertices of a few thousand points on a can's wall and left the hull open (a test's
+    # can of 6000 points), which lost the object.
+    hull = None
+    if len(points) >= 4:
+        try:
+            qhull = ConvexHull(every)
+        except Exception:  # Qhull's errors for flat or degenerate input
+            qhull = None
+        if qhull is not None:
+            faces = qhull.simplices.copy()
+            tri = every[faces]
+            normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            inward = np.einsum("ij,ij->i", normals, qhull.equations[:, :3]) < 0
+            faces[inward] = faces[inward][:, ::-1]
+            used, remapped = np.unique(faces, return_inverse=True)
+            hull = trimesh.Trimesh(every[used], remapped.reshape(-1, 3), process=False)
     if hull is None or not hull.is_watertight or hull.volume <= 0:
         raise SegmentationError(
             f"an object of {len(points)} fused points could not be closed even as their convex hull; film it from "

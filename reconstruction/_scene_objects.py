@@ -35,8 +35,9 @@ class ObjectsOptions:
     # times higher, at most `max_roi_raises` times and not past 0.4 x the median camera distance
     roi_raise_factor: float = 1.5
     max_roi_raises: int = 2
-    # an object whose fused shell encloses no volume and whose points' footprint is thinner than this (short side /
-    # long side) is a sheet of smeared depth (held-out 1033: 1.8 x 25 cm, 12 cm tall), not a fallback hull: dropped
+    # an object that cannot be meshed whose points stand as a sheet, their footprint thinner than this (short side /
+    # long side) and over twice as tall as thick, is smeared depth (held-out 1033: 1.8 x 25 cm, 12 cm tall), not a
+    # fallback hull: dropped (`_objects.standing_sheet`)
     min_fallback_aspect: float = 0.25
 
 
@@ -166,9 +167,8 @@ def find_objects(
                 log.info("a part cut off at a footprint's neck has no solid of its own: dropped (%s)", exc)
                 continue
             reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-            aspect = _objects.footprint_aspect(segment.points_world)
-            if aspect < options.min_fallback_aspect:
-                log.warning("dropped a sheet of fused points (footprint aspect %.2f) that encloses no solid", aspect)
+            if _objects.standing_sheet(segment.points_world, options.min_fallback_aspect):
+                log.warning("dropped a sheet of fused points standing on edge that could not be meshed (%s)", reason)
                 continue
             mesh = _objects.fallback_mesh(segment)  # SegmentationError where even that cannot be closed
             quality = "fallback"

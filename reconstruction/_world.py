@@ -369,6 +369,7 @@ def world_from_extent(
     points: np.ndarray,
     cam_centres: np.ndarray,
     extent_m: float,
+    *,
     provisional_ok: bool = False,
 ) -> WorldFrame:
     """The world frame scaled so that the largest cluster of points above the table spans `extent_m`; with

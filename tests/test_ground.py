@@ -376,6 +376,58 @@ def test_known_extent_keeps_the_sparse_scale_when_the_longest_mesh_cannot_be_mea
     assert factor == pytest.approx(0.2113 / 0.213) and why is None
 
 
+def test_known_extent_refinement_judges_the_total_against_the_sparse_scale() -> None:
+    """The two passes of `_refine_known_extent` (a correction beyond 10% segments again at the corrected scale and
+    measures there): the 10% doubt rule applies to the total off the sparse estimate, not to each step; a second
+    measure that is declined returns the scale to the sparse estimate, with the warning; with a provisional scale
+    (no sparse point on any object) whatever the meshes say is taken, and the warning names the final object."""
+    from types import SimpleNamespace
+
+    from grounder._ground import _refine_known_extent
+
+    calls: list[float] = []
+
+    def resegment_to(*objects: object):  # type: ignore[no-untyped-def]
+        def resegment(factor: float) -> object:
+            calls.append(factor)
+            return SimpleNamespace(objects=objects)
+
+        return resegment
+
+    def scene(*objects: object) -> object:
+        return SimpleNamespace(objects=objects)
+
+    can = _box("can", (0.066, 0.066, 0.11))
+    # within 10%: taken, no second segmentation
+    calls.clear()
+    small = _refine_known_extent(scene(_box("bottle", (0.06, 0.06, 0.21)), can), 0.22, False, resegment_to())
+    assert calls == [] and small.step == pytest.approx(0.22 / 0.21) and small.warning is None
+    # a measured bottle x 1.375, confirmed on the second segmentation
+    calls.clear()
+    first = scene(_box("bottle", (0.06, 0.06, 0.16)), can)
+    again = resegment_to(_box("object_0", (0.08, 0.08, 0.219)), _box("object_1", (0.09, 0.09, 0.15)))
+    good = _refine_known_extent(first, 0.22, False, again)
+    assert calls == [pytest.approx(1.375)] and good.factor == pytest.approx(0.22 / 0.16 * 0.22 / 0.219)
+    assert good.warning is None and "mesh of object_0" in good.note
+    # ... but there a fallback hull is the longest and asks x 1.05 more: 1.44 off the sparse points on a hull, declined
+    calls.clear()
+    hull_again = resegment_to(_box("object_0", (0.08, 0.08, 0.21), "fallback"), _box("object_1", (0.09, 0.09, 0.15)))
+    back = _refine_known_extent(first, 0.22, False, hull_again)
+    assert calls == [pytest.approx(1.375)] and back.factor == pytest.approx(1.0)
+    assert back.step == pytest.approx(1 / 1.375) and "sparse points only" in back.warning
+    assert "object_0 is the convex hull of its points" in back.note
+    # declined on the first pass (a bottle cut by the region's side): no second segmentation
+    calls.clear()
+    cut = _refine_known_extent(scene(_box("bottle", (0.06, 0.06, 0.16), at_edge=True), can), 0.22, False, again)
+    assert calls == [] and cut.step == 1.0 and cut.factor == 1.0 and "cut by the region's side" in cut.warning
+    # provisional: the hull's measure is taken on both passes, and the warning names the object of the final scene
+    calls.clear()
+    hull = scene(_box("hull", (0.06, 0.05, 0.05), "fallback"))
+    trusted = _refine_known_extent(hull, 0.10, True, resegment_to(_box("object_0", (0.06, 0.05, 0.098), "fallback")))
+    assert calls == [pytest.approx(2.0)] and trusted.factor == pytest.approx(2.0 * 0.10 / 0.098)
+    assert "measured on the mesh of object_0 alone" in trusted.warning
+
+
 def test_known_extent_counts_a_visual_hull_by_its_height() -> None:
     """Tuning seed 5 (issue 60): a plate and a plain mug came out of the silhouettes as one 22 cm wide hull, longer
     than the 22.2 cm bottle the fused surface measured, and took the bottle's known extent: the scene was x 1.31.

@@ -525,21 +525,23 @@ def test_a_sheet_of_smeared_points_is_no_fallback_object() -> None:
     """Held-out 1033 and tuning seed 41 (issue 60): a fused shell that encloses no volume became the convex hull of
     its points, and on a low pass those points were sheets of stereo smear (1.8 x 25 cm and 1.1 x 24 cm footprints,
     12-21 cm tall): phantom walls in the scene. Photo sets' cans and bottles fail the same way and their hulls are
-    good (Chamfer 3-4 mm): a round or square footprint is kept, a sheet's is dropped (`min_fallback_aspect`)."""
-    from reconstruction._objects import footprint_aspect
+    good (Chamfer 3-4 mm): a round or square footprint is kept, and so is an elongated one lying flat (a pen, a box
+    on its side); only a sheet standing on edge is dropped (`standing_sheet`)."""
+    from reconstruction._objects import standing_sheet
     from reconstruction._scene_objects import ObjectsOptions
 
     rng = np.random.default_rng(7)
     limit = ObjectsOptions().min_fallback_aspect
     along = rng.uniform(-0.125, 0.125, 2000)
     sheet = np.c_[along, 0.3 * along + rng.normal(0.0, 0.003, 2000), rng.uniform(0.0, 0.12, 2000)]  # turned, noisy
-    assert footprint_aspect(sheet) < limit
+    assert standing_sheet(sheet, limit)
     angle = rng.uniform(0.0, 2 * np.pi, 2000)
     can_wall = np.c_[0.033 * np.cos(angle), 0.033 * np.sin(angle), rng.uniform(0.0, 0.11, 2000)]
     half_seen = can_wall[np.cos(angle) > -0.2]  # a photo set that saw one side better
-    for solid in (can_wall, half_seen):
-        assert footprint_aspect(solid) > 0.5
-    assert footprint_aspect(sheet[:2]) == 0.0
+    lying_box = rng.uniform([-0.095, -0.0175, 0.0], [0.095, 0.0175, 0.04], (2000, 3))  # 19 x 3.5 x 4 cm, aspect 0.18
+    for solid in (can_wall, half_seen, lying_box):
+        assert not standing_sheet(solid, limit)
+    assert not standing_sheet(sheet[:2], limit) and not standing_sheet(np.full((9, 3), np.nan), limit)
 
 
 def test_find_objects_drops_a_smear_sheet_and_keeps_a_hull_that_fails_to_mesh(monkeypatch: pytest.MonkeyPatch) -> None:

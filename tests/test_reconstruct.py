@@ -177,7 +177,9 @@ def test_known_extent_without_points_on_any_object_is_provisional_for_ground_onl
     assert np.abs(table_world[:, 2]).max() < 0.01 and (cams_world[:, 2] > 0.1).all()  # on the table, cameras above
     distance = np.linalg.norm(cams_world - table_world.mean(axis=0), axis=1)
     assert np.median(distance) == pytest.approx(NOMINAL_CAMERA_DISTANCE_M, rel=0.01)
-    assert not world_from_extent(rec, fit_support_plane(points, cams), points, cams, 0.2, True).scale_provisional
+    assert not world_from_extent(
+        rec, fit_support_plane(points, cams), points, cams, 0.2, provisional_ok=True
+    ).scale_provisional
 
 
 def test_real_apple_video_with_known_extent(grounded_apple: Path) -> None:
