@@ -206,7 +206,7 @@ def reconstruction_of_points() -> Callable[[np.ndarray], ReconstructionResult]:
 # `make test` hands whole files to the workers in collection order (`--dist loadfile --no-loadscope-reorder`): the
 # files that take minutes go first, so that the run does not end with one worker busy on one of them, and the files
 # that read test_ground.py's groundings go last, when the groundings are made (a worker waiting on one does nothing).
-_FIRST = ("test_ground.py", "test_interaction_shooting.py", "test_track.py", "test_cli.py",
+_FIRST = ("test_ground.py", "test_scene_family.py", "test_interaction_shooting.py", "test_track.py", "test_cli.py",
           "test_interaction_impacts.py", "test_track_markers.py")  # fmt: skip
 _LAST = ("test_properties.py", "test_reconstruct.py")
 
