@@ -196,7 +196,7 @@ def _extent_step(
 class _ExtentRefinement:
     """What the known extent did to the scale (`_refine_known_extent`)."""
 
-    scene: SceneObjects  # the segmentation to rescale: the first, or the second made at x `first_factor`
+    scene: SceneObjects  # the segmentation to rescale: the first, or the second (made at the first pass's scale)
     step: float  # rescales `scene` to the final metres
     factor: float  # the final scale over the sparse points' (or the provisional) scale
     note: str  # for the reconstruction record

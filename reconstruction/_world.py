@@ -378,7 +378,7 @@ def world_from_extent(
     scene_size = float(np.median(np.linalg.norm(cam_centres - np.median(points, 0), axis=1)))
     clusters = objects_above_plane(points, plane, scene_size)
     if not clusters and provisional_ok:
-        centre = points[plane.inliers].mean(axis=0)
+        centre = _table_centre(points, plane)
         scale = NOMINAL_CAMERA_DISTANCE_M / float(np.median(np.linalg.norm(cam_centres - centre, axis=1)))
         return WorldFrame(
             world_from_sfm=_frame_on_plane(plane, centre, _first_camera_x(rec), scale),
@@ -415,14 +415,18 @@ def world_from_extent(
 
 
 def world_unknown_scale(rec: pycolmap.Reconstruction, plane: Plane, points: np.ndarray) -> WorldFrame:
-    origin = points[plane.inliers].mean(axis=0)
     return WorldFrame(
-        world_from_sfm=_frame_on_plane(plane, origin, _first_camera_x(rec), 1.0),
+        world_from_sfm=_frame_on_plane(plane, _table_centre(points, plane), _first_camera_x(rec), 1.0),
         scale_source=ScaleSource.UNKNOWN,
         scale=1.0,
         plane_inlier_ratio=float(plane.inliers.mean()),
         notes=("scale unknown: units are SfM units, not metres",),
     )
+
+
+def _table_centre(points: np.ndarray, plane: Plane) -> np.ndarray:
+    """The origin of a frame with no object to stand under: the mean of the table's points (SfM coordinates)."""
+    return np.asarray(points[plane.inliers].mean(axis=0))
 
 
 def _first_camera_x(rec: pycolmap.Reconstruction) -> np.ndarray:
