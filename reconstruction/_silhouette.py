@@ -10,7 +10,7 @@ table. A cell of space above the table is kept when the frames that see it almos
 are objects.
 
 A visual hull closes cavities (a cup's inside) and is never smaller than the object, so it is used only where the
-fused surface found nothing (`reconstruction._scene_objects._with_silhouettes`).
+fused surface found nothing, or only a fragment of the piece (`reconstruction._scene_objects._with_silhouettes`).
 """
 
 from __future__ import annotations
@@ -53,6 +53,9 @@ class SilhouetteOptions:
             and became a second body 2 mm beside it). A solid piece that near is a neighbour (held-out 1006: two
             bottles 1 cm from a book, 47% full, were lost to a plain gap rule); objects filled 20-56% on tuning
             seeds 0-8, but for a plate's hull seen from a pass (7.4%, tuning seed 5), which that near is dropped.
+        max_fragment_box_ratio: a fused object whose bounding box holds less than this fraction of the box of the
+            one solid hull piece it meets is a fragment of that piece's object: the hull replaces it
+            (`reconstruction._scene_objects._fragment_of`).
     """
 
     max_image_size_px: int = 320
@@ -69,6 +72,7 @@ class SilhouetteOptions:
     rest_cells: int = 2
     min_gap_voxels: float = 4.0
     min_fill_near: float = 0.12
+    max_fragment_box_ratio: float = 0.2
 
 
 @dataclass(frozen=True, kw_only=True)

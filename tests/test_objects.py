@@ -583,3 +583,26 @@ def test_find_objects_drops_a_smear_sheet_and_keeps_a_hull_that_fails_to_mesh(mo
     (can_hull,) = scene.objects
     np.testing.assert_allclose(can_hull.world_from_object[:2, 3], [0.1, 0.0], atol=0.005)
     assert np.ptp(can_hull.mesh.vertices_m, axis=0) == pytest.approx([0.066, 0.066, 0.11], abs=0.004)
+
+
+def test_a_torn_ring_still_holds_its_floor_inside_the_outline() -> None:
+    """Issue 60: next to the table an object keeps the cross-section it has just above; a bowl's low wall ring was
+    torn (stereo holes), so its hole was not filled and the cut removed the bowl's whole floor (tuning seed 42: the
+    bowl became a ring, Euler number -16). Gaps up to about twice `gap_cells` are closed first; wider ones are not
+    (a C-shaped part keeps its opening), and the outline does not grow past the ring."""
+    from reconstruction._objects import _outline
+
+    n = 81
+    x, y = np.mgrid[:n, :n] - n // 2
+    r, angle = np.hypot(x, y), np.degrees(np.arctan2(y, x))
+    ring = (r >= 30) & (r <= 33)
+    torn = ring & ~(np.abs(angle) < 8)  # a gap about 9 cells wide
+    open_c = ring & ~(np.abs(angle) < 45)  # a gap about 45 cells wide
+    solid = np.zeros((n, n, 6), bool)
+    for section, expect_floor in ((torn, True), (open_c, False)):
+        solid[:] = False
+        solid[:, :, 2:6] = section[:, :, None]
+        assert not _outline(solid, 2, 4)[n // 2, n // 2]  # as before: a torn ring has no inside
+        outline = _outline(solid, 2, 4, gap_cells=6)
+        assert bool(outline[n // 2, n // 2]) is expect_floor
+        assert not (outline & (r > 34)).any()  # nothing outside the ring's outer edge

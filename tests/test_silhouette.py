@@ -155,3 +155,26 @@ def test_a_solid_piece_beside_a_fused_object_is_kept_and_a_thin_cone_beside_it_i
     kept = _with_silhouettes([book], [], np.eye(3), region, VOXEL_M, SilhouetteOptions())
     assert [o.mesh_quality for o in kept] == ["full", "silhouette"]
     assert kept[1].world_from_object[0, 3] > 0.03  # the column, not the cone
+
+
+def test_a_fused_fragment_of_a_plain_cup_gives_way_to_its_hull(
+    plain_cup: tuple[list[StereoView], np.ndarray, dict],
+) -> None:
+    """Held-out 1043 (issue 60): stereo fused a 2.9 x 1.8 x 1.5 cm crumb at the foot of a plain cup 8.7 x 8.7 x 10 cm;
+    its footprint met the cup's hull piece, which was then taken for a part of it, and the cup was never meshed.
+    A fused object that small inside the one solid hull piece it meets is a fragment: the hull replaces it (one
+    object, "silhouette" quality, a warning that says why). A fused object the cup's size there is kept as fused."""
+    views, k, cup = plain_cup
+    x, y, _ = cup["pos_m"]
+    half = np.array(cup["extents_m"]) / 2
+    crumb = _box((x + 0.6 * half[0], y, 0.008), 0.008)
+    kept = _with_silhouettes([crumb], views, k, _roi(cup), VOXEL_M, SilhouetteOptions())
+    assert len(kept) == 1
+    (cup_object,) = kept
+    assert cup_object.mesh_quality == "silhouette" and "fragment" in cup_object.warnings[0]
+    assert np.linalg.norm(cup_object.world_from_object[:2, 3] - np.array([x, y])) < 0.005
+    assert np.ptp(cup_object.mesh.vertices_m[:, 2]) == pytest.approx(cup["extents_m"][2], rel=0.15)
+
+    whole = _box((x, y, half[2]), float(half.min()))  # the cup's width, fused (a cube as wide as the cup)
+    kept = _with_silhouettes([whole], views, k, _roi(cup), VOXEL_M, SilhouetteOptions())
+    assert [o.mesh_quality for o in kept] == ["full"]
