@@ -585,7 +585,7 @@ def mesh_object(
         # That cross-section's ring may be torn (a bowl's low wall, stereo holes); closed across its gaps, the floor
         # inside it stays (tuning seed 42: with the ring's hole unfilled, the bowl lost its floor and became a ring).
         above = min(shape[2] - 1, z0 + int(np.ceil(margin / voxel)))
-        gap_cells = int(round(options.outline_gap_voxels * options.grid_refinement))
+        gap_cells = round(options.outline_gap_voxels * options.grid_refinement)
         solid[:, :, z0:above] &= _outline(solid, above, 4, gap_cells)[:, :, None]  # 4 layers: one may be broken
         solid = _largest_piece(solid, "the depth maps see through the whole object; film it from more sides")
     # Shadowed table next to an object is poorly matched and leaves thin skirts at its base: open the lowest
