@@ -112,6 +112,26 @@ def test_floating_pieces_are_dropped_and_stacked_ones_kept() -> None:
     assert [o.name for o in kept] == ["object_0", "object_1"]
 
 
+def test_a_wide_phantom_high_over_a_small_object_is_not_resting_on_it() -> None:
+    """Held-out 1048 and 1053 (issue 60): wide phantoms of smeared depth 7-12 cm above the table were kept because
+    a ball or a mug stood somewhere under them, and fell over in the settle test. Resting on another object means
+    lying on its top (within the float tolerance), centred over it; a box on a box is still kept."""
+    ball = _box((0.0, 0.0, 0.02), 0.02)  # top at 4 cm
+    # 36 x 3.5 x 10 cm, 8.6 cm up, one end over the ball
+    corners = np.array([[x, y, z] for x in (-0.02, 0.34) for y in (-0.0175, 0.0175) for z in (0.086, 0.186)])
+    import trimesh
+
+    hull = trimesh.Trimesh(corners).convex_hull
+    phantom = ObjectInstance(
+        name="object_1",
+        mesh=TexturedMesh(vertices_m=np.asarray(hull.vertices), faces=np.asarray(hull.faces)),
+        world_from_object=np.eye(4),
+    )
+    on_top = _box((0.0, 0.0, 0.055), 0.015)  # bottom at 4 cm, on the ball's top
+    kept = _resting([ball, phantom, on_top], max_float_m=0.018)
+    assert [tuple(np.round(o.world_from_object[:3, 3], 3)) for o in kept] == [(0.0, 0.0, 0.02), (0.0, 0.0, 0.055)]
+
+
 def test_the_hull_adds_what_the_fused_surface_missed_and_keeps_what_it_found(
     plain_cup: tuple[list[StereoView], np.ndarray, dict],
 ) -> None:
