@@ -352,8 +352,8 @@ def _with_silhouettes(
     A hull piece whose footprint meets no fused object's is an object the stereo could not see (a plain ball, a
     white mug): it is meshed from the hull, a coarser surface (cavities closed), recorded as mesh quality
     "silhouette". The hull does not overrule the fused surface: an object the colour of the table (a cardboard
-    cube on cork, tuning seed 0) is carved from it, so a fused object is kept for the hull's sake, unless it is a
-    small fragment of one solid hull piece (`_fragment_of`), which then replaces it."""
+    cube on cork, tuning seed 0) is carved from it, so a fused object is never dropped for the hull's sake, unless it
+    is a small fragment of one solid hull piece (`_fragment_of`), which then replaces it."""
     hull = _silhouette.visual_hull(views, k, region, voxel, options)
     if hull is None:
         return instances
