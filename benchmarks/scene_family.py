@@ -79,9 +79,9 @@ def score_into(record: dict[str, object], scene: Path, out: Path) -> bool:
     return True
 
 
-def registered_by_ground(out: Path, folder: str = "reconstruction") -> int | None:
-    """How many frames the reconstruction under `out` registered (its transforms.json), None without one."""
-    transforms = out / folder / "transforms.json"
+def registered(reconstruction: Path) -> int | None:
+    """How many frames a reconstruction folder registered (its transforms.json), None without one."""
+    transforms = reconstruction / "transforms.json"
     return len(json.loads(transforms.read_text())["frames"]) if transforms.exists() else None
 
 
@@ -112,13 +112,13 @@ def ground_one(scene: Path, out: Path) -> dict[str, object]:
         # or, where ground stopped before writing them, `image2sim reconstruct`'s. (`reconstruct` alone refuses a
         # known extent with no sparse point on any object, where ground goes on at a provisional scale: held-out
         # 1046 counted 0 of 31 that way, though ground had registered all 31.)
-        record["registered"] = registered_by_ground(out)
+        record["registered"] = registered(out / "reconstruction")
         if record["registered"] is None:
             with tempfile.TemporaryDirectory() as tmp:
                 cli = str(REPO / ".venv" / "bin" / "image2sim")
                 cmd = [cli, "reconstruct", str(scene / "photos"), "-o", tmp + "/r", *family["ground_args"]]
                 subprocess.run(cmd, capture_output=True, text=True)
-                record["registered"] = registered_by_ground(Path(tmp) / "r", folder="") or 0
+                record["registered"] = registered(Path(tmp) / "r") or 0
         record["colmap_defaults_registered"] = colmap_defaults_registered(scene / "photos")
         record["photos"] = len(list((scene / "photos").iterdir()))
     return record
@@ -301,7 +301,8 @@ def main() -> None:
                 record["rc"] = 0
                 score_into(record, args.work / "scenes" / name, args.work / "grounded" / name)
             if "photos" in record and record["rc"] == 0:
-                record["registered"] = registered_by_ground(args.work / "grounded" / name) or record["registered"]
+                grounded = args.work / "grounded" / name / "reconstruction"
+                record["registered"] = registered(grounded) or record["registered"]
         (args.work / "results.json").write_text(json.dumps(records, indent=1, default=float) + "\n")
         text = report(records, _command())
         print(text)

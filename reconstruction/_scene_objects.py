@@ -363,7 +363,7 @@ def _with_silhouettes(
         points = piece.points_world
         lo, hi = points.min(axis=0), points.max(axis=0)
         meets = [i for i, box in enumerate(boxes) if _meets_a_footprint(lo, hi, [box], 0.0)]
-        fragment = _fragment_of(piece, meets, boxes, kept, options)
+        fragment = _fragment_of(piece, (lo, hi), meets, boxes, kept, options)
         if meets and fragment is None:
             continue  # the fused surface has it, or it is a part of a fused object stereo missed
         if piece.fill < options.min_fill_near and _meets_a_footprint(lo, hi, boxes, options.min_gap_voxels * voxel):
@@ -402,25 +402,26 @@ def _size_cm(box: tuple[np.ndarray, np.ndarray]) -> str:
 
 def _fragment_of(
     piece: _silhouette.HullObject,
+    piece_box: tuple[np.ndarray, np.ndarray],
     meets: list[int],
     boxes: list[tuple[np.ndarray, np.ndarray]],
     instances: list[ObjectInstance],
     options: _silhouette.SilhouetteOptions,
 ) -> int | None:
     """The one fused object (index) that is only a fragment of the solid hull piece whose footprint it meets, or
-    None. A visual hull is never smaller than its object, and on a plain object stereo may fuse only a crumb of it
-    (held-out 1043: a 2.9 x 1.8 x 1.5 cm fused piece at the foot of a plain 8.7 x 8.7 x 10 cm cup, whose hull it
-    then kept out). A fused object whose box holds under `max_fragment_box_ratio` of the piece's box gives way to
-    the hull, if it is the only object the piece meets and the piece is solid (no glow: `min_fill_near`)."""
+    None (`piece_box`: the bounds of the piece's cell centres). A visual hull is never smaller than its object, and
+    on a plain object stereo may fuse only a crumb of it (held-out 1043: a 2.9 x 1.8 x 1.5 cm fused piece at the
+    foot of a plain 8.7 x 8.7 x 10 cm cup, whose hull it then kept out). A fused object whose box holds under
+    `max_fragment_box_ratio` of the piece's box gives way to the hull, if it is the only object the piece meets and
+    the piece is solid (no glow: `min_fill_near`)."""
     if len(meets) != 1 or piece.fill < options.min_fill_near:
         return None
     index = meets[0]
     if instances[index].mesh_quality not in ("full", "fallback"):
         return None
-    lo, hi = piece.points_world.min(axis=0), piece.points_world.max(axis=0)
-    piece_box = float(np.prod(hi - lo + piece.cell_m))
-    fused_box = float(np.prod(boxes[index][1] - boxes[index][0]))
-    return index if fused_box < options.max_fragment_box_ratio * piece_box else None
+    piece_volume = float(np.prod(piece_box[1] - piece_box[0] + piece.cell_m))
+    fused_volume = float(np.prod(boxes[index][1] - boxes[index][0]))
+    return index if fused_volume < options.max_fragment_box_ratio * piece_volume else None
 
 
 def _mesh_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
