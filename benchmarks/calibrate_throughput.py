@@ -1,6 +1,6 @@
 """Simulation throughput during calibration vs raw `mujoco.rollout` on the same model and initial states.
 
-Calibration evaluates K candidate parameter vectors on B trajectories per call (`grounder._calibrate.Evaluator`):
+Calibration evaluates K candidate parameter vectors on B trajectories per call (`grounder.calibration.fit.Evaluator`):
 building the candidate models, one batched `mujoco.rollout` per length group, and the per-trajectory losses. The
 raw figure is `mujoco.rollout.rollout` alone on the same candidate models, initial states and step counts (one call
 per length group, as calibration makes), with nothing else; for reference also on the nominal model only (cheaper:
@@ -27,9 +27,9 @@ CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
 
 
 def _trajectories(count: int) -> list:
-    from grounder import _simulate as sim
-    from grounder._import import load_dair_pll_cube
-    from grounder._trajectory import Trajectory
+    import grounder.sim.rollout as sim
+    from grounder.core.importers import load_dair_pll_cube
+    from grounder.core.trajectory import Trajectory
 
     if (DATA / "tosses").is_dir():
         return load_dair_pll_cube(DATA)[:count]
@@ -56,9 +56,9 @@ def main() -> None:
     parser.add_argument("--nthread", type=int, default=None)
     args = parser.parse_args()
 
-    from grounder import _simulate as sim
-    from grounder._calibrate import Evaluator
-    from grounder._calibrate_params import resolve_parameters
+    import grounder.sim.rollout as sim
+    from grounder.calibration.fit import Evaluator
+    from grounder.calibration.parameters import resolve_parameters
 
     model = mujoco.MjModel.from_xml_path(str(CUBE_XML))
     trajs = _trajectories(args.trajectories)

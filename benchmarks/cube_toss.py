@@ -3,9 +3,9 @@
 Per toss: rolled out open loop from its first recorded state, the time-average of the position error as a percentage
 of the cube width (0.1048 m) and of the geodesic rotation error in degrees; mean and std over tosses.
 
-Split: the 400 tosses of ../shared/data/cube_toss, by `grounder._calibrate.split_names` (names shuffled with
+Split: the 400 tosses of ../shared/data/cube_toss, by `grounder.calibration.fit.split_names` (names shuffled with
 numpy's default_rng(split_seed = 0), 30% validation = 120 tosses; the 18 tosses the data holds twice each stay on one
-side, `grounder._repeats`); the fit uses a seeded subset of the 280 training tosses.
+side, `grounder.core.repeats`); the fit uses a seeded subset of the 280 training tosses.
 
     .venv/bin/python benchmarks/cube_toss.py                 # defaults below, a few minutes on 2 cores
     .venv/bin/python benchmarks/cube_toss.py --out out/cube  # also write the calibrated scene folder
@@ -40,9 +40,9 @@ DEFAULT_PARAMS = (
 
 
 def metric(model: mujoco.MjModel, trajs: list, preds: list | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Independent of the calibration code: grounder._simulate.simulate + free_body_errors, per toss (``preds``:
+    """Independent of the calibration code: grounder.sim.rollout.simulate + free_body_errors, per toss (``preds``:
     the rollouts, when already simulated)."""
-    from grounder._simulate import free_body_errors, simulate
+    from grounder.sim.rollout import free_body_errors, simulate
 
     preds = simulate(model, trajs) if preds is None else preds  # type: ignore[assignment]
     pos, rot = [], []
@@ -55,7 +55,8 @@ def metric(model: mujoco.MjModel, trajs: list, preds: list | None = None) -> tup
 
 def outcome_breakdown(model: mujoco.MjModel, trajs: list) -> None:
     """Where the calibrated error comes from: tosses that end turned another way, and how far the cube turns."""
-    from grounder._simulate import quat_angle_rad, simulate
+    from grounder.sim.rollout import simulate
+    from image2sim_common.rotations import quat_angle_rad
 
     preds = simulate(model, trajs)
     pos, rot = metric(model, trajs, preds)  # type: ignore[arg-type]
@@ -101,8 +102,8 @@ def main() -> None:
     if not (DATA / "tosses").is_dir():
         sys.exit(f"real cube tosses not found at {DATA}")
 
-    from grounder._calibrate import CalibrateOptions, calibrate
-    from grounder._import import load_dair_pll_cube
+    from grounder.calibration.fit import CalibrateOptions, calibrate
+    from grounder.core.importers import load_dair_pll_cube
 
     trajs = load_dair_pll_cube(DATA)
     options = CalibrateOptions(

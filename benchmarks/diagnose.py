@@ -6,7 +6,7 @@ Real data: `.venv/bin/python benchmarks/diagnose.py --real-cube 32 --out out/cub
 cube tosses in ../shared/data/cube_toss (every k-th toss, spread over the set) against `samples/cube_toss/cube.xml`.
 
 Each case: a nominal scene; the true system = nominal + hidden effect(s) (values in the table) + sensor noise;
-16 trajectories of 1 s at 100 Hz (see `grounder/_cases.py`). The diagnosis (`grounder.diagnose`, default
+16 trajectories of 1 s at 100 Hz (see `grounder/diagnosis/cases.py`). The diagnosis (`grounder.diagnose`, default
 `DiagnoseOptions`, 2 rollout threads) sees only the nominal scene and the noisy trajectories.
 
 Targets (gap-diagnosis issue): top-1 effect correct in >= 90% of in-library cases, held-out reduction >= 60% on those,
@@ -25,7 +25,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from grounder._diagnose_bench import BenchResult, format_table, run_case, select_cases
+from grounder.diagnosis.benchmark import BenchResult, format_table, run_case, select_cases
 
 
 def _one(args: tuple[str, int, int, int]) -> BenchResult:
@@ -37,8 +37,8 @@ def real_cube(count: int, out: Path, threads: int, seed: int) -> None:
     import tempfile
 
     from grounder import save_trajectories
-    from grounder._diagnose import DiagnoseOptions, diagnose_files
-    from grounder._import import load_dair_pll_cube
+    from grounder.core.importers import load_dair_pll_cube
+    from grounder.diagnosis.pipeline import DiagnoseOptions, diagnose_files
 
     repo = Path(__file__).resolve().parents[1]
     src = repo.parent / "shared" / "data" / "cube_toss"

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from grounder import GroundOptions, ground
-from grounder._evaluate import compare_to_truth
+from grounder.grounding.evaluate import compare_to_truth
 from reconstruction import ReconstructOptions
 
 REPO = Path(__file__).resolve().parents[1]

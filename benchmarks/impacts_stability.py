@@ -1,4 +1,4 @@
-"""How stable the impacts calibration (`grounder._interaction_impacts`, the default of `ground --interaction`) is
+"""How stable the impacts calibration (`grounder.interaction.impacts`, the default of `ground --interaction`) is
 under changes of the tracked poses far below the tracking error: each object's friction and restitution fitted from
 saved tracks as they are, then from copies whose positions are moved by `--sigma-um` per axis (default 0.1 um, the
 rounding of `track.json`; seeded draws), against the values the clip was rendered with.
@@ -48,8 +48,8 @@ def true_contacts(scene: Path, clip: Path) -> tuple[Any, dict[str, TrueContact]]
     `TrueContact` in `clip` (`clip/truth/scene.xml`, else `samples/toss`'s: the occluded clip is that toss)."""
     import mujoco
 
-    from grounder._calibrate_params import collision_geoms
-    from grounder._restitution import body_restitution
+    from grounder.calibration.parameters import collision_geoms
+    from grounder.sim.restitution import body_restitution
 
     truth_xml = clip / "truth/scene.xml"
     if not truth_xml.exists():
@@ -83,11 +83,11 @@ def main() -> None:
 
     import mujoco
 
-    from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction import camera_poses_of, single_body_scene, view_point_of
-    from grounder._interaction_impacts import _CONTACT_FIELDS, ImpactOptions, _moved, find_impacts, fit_impacts
-    from grounder._restitution import simulated_restitution
-    from grounder._track import load_object_trajectories
+    from grounder.calibration.parameters import resolve_parameters
+    from grounder.interaction.impacts import _CONTACT_FIELDS, ImpactOptions, _moved, find_impacts, fit_impacts
+    from grounder.interaction.pipeline import camera_poses_of, single_body_scene, view_point_of
+    from grounder.sim.restitution import simulated_restitution
+    from grounder.tracking.pipeline import load_object_trajectories
 
     track_json = json.loads((args.tracks / "track.json").read_text())
     view = view_point_of(camera_poses_of(track_json["world_from_cam"]))

@@ -1,7 +1,7 @@
 """An alternative to the impacts calibration's sampled start-error covariance, measured here and not in the tool:
 each grid point's start state fitted to the frames after the contact.
 
-The default (`grounder._interaction_impacts.fit_impacts`) rolls every grid point out from the flight's fitted start
+The default (`grounder.interaction.impacts.fit_impacts`) rolls every grid point out from the flight's fitted start
 and carries the start's uncertainty to the compared frames as the sample covariance of 64 rollouts; a tumbling
 can's landings are chaotic, so that covariance, and the fit with it, moves with the last digits of the tracks
 (`benchmarks/impacts_stability.py`). Here each point of a coarser grid (every `--coarse`-th friction and restitution,
@@ -37,9 +37,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from impacts_stability import true_contacts  # noqa: E402
 
-from grounder._calibrate_params import collision_geoms, contact_priority, resolve_parameters  # noqa: E402
-from grounder._interaction import camera_poses_of, single_body_scene, view_point_of  # noqa: E402
-from grounder._interaction_impacts import (  # noqa: E402
+from grounder.calibration.parameters import collision_geoms, contact_priority, resolve_parameters  # noqa: E402
+from grounder.interaction.impacts import (  # noqa: E402
     _CONTACT_FIELDS,
     ImpactOptions,
     _compared,
@@ -52,9 +51,10 @@ from grounder._interaction_impacts import (  # noqa: E402
     profile_range,
     widened,
 )
-from grounder._restitution import contact_solref, simulated_restitution  # noqa: E402
-from grounder._simulate import initial_state, prepare  # noqa: E402
-from grounder._track import load_object_trajectories  # noqa: E402
+from grounder.interaction.pipeline import camera_poses_of, single_body_scene, view_point_of  # noqa: E402
+from grounder.sim.restitution import contact_solref, simulated_restitution  # noqa: E402
+from grounder.sim.rollout import initial_state, prepare  # noqa: E402
+from grounder.tracking.pipeline import load_object_trajectories  # noqa: E402
 
 
 def joint_chol(impact, rotation=True):

@@ -50,11 +50,14 @@ sys.path.insert(0, str(REPO / "benchmarks"))
 
 from residual import DATA, fmt, metric, split  # noqa: E402  (benchmarks/residual.py: same split and metric)
 
-from grounder._import import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
-from grounder._residual import quat_to_mat, quat_to_rotvec  # noqa: E402
-from grounder._simulate import _offsets, load_scene_model  # noqa: E402
-from grounder._track_smooth import quat_from_matrix  # noqa: E402
-from grounder._trajectory import Trajectory  # noqa: E402
+from grounder.core.importers import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
+from grounder.core.trajectory import Trajectory  # noqa: E402
+from grounder.sim.rollout import _offsets, load_scene_model  # noqa: E402
+from image2sim_common.rotations import (  # noqa: E402
+    quat_from_matrix,
+    quat_to_mat,
+    quat_to_rotvec,
+)
 
 CUBE_HALF_WIDTH_M = 0.0524
 CORNERS_BODY_M = CUBE_HALF_WIDTH_M * np.array(

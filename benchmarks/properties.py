@@ -29,8 +29,8 @@ def main() -> None:
     parser.add_argument("--skip-sample", action="store_true", help="do not ground the tabletop sample")
     args = parser.parse_args()
 
-    from grounder._properties import WEIGHTS_DIR
-    from grounder._properties_model import evaluate, train
+    from grounder.properties.model_files import WEIGHTS_DIR
+    from grounder.properties.network import evaluate, train
 
     weights = WEIGHTS_DIR
     if args.train:
@@ -51,7 +51,7 @@ def main() -> None:
         return
 
     from grounder import GroundOptions, ground
-    from grounder._evaluate import compare_to_truth
+    from grounder.grounding.evaluate import compare_to_truth
     from reconstruction import ReconstructOptions
 
     sample = REPO / "samples" / "tabletop"

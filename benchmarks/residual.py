@@ -2,10 +2,10 @@
 
 Metric (Acosta, Yang & Posa, RA-L 2022): per toss, the time-average of the position error divided by the cube
 width (0.1048 m) and of the geodesic rotation error (deg), rolled out from the first recorded state; mean and std
-over the validation tosses. Split: the calibration's (`grounder._calibrate.split_names`: 30% validation, seed 0,
+over the validation tosses. Split: the calibration's (`grounder.calibration.fit.split_names`: 30% validation, seed 0,
 the tosses the data holds twice kept on one side).
 
-The calibrated scene comes from ``grounder._calibrate.calibrate`` with ``benchmarks/cube_toss.py``'s settings
+The calibrated scene comes from ``grounder.calibration.fit.calibrate`` with ``benchmarks/cube_toss.py``'s settings
 (``--calibrated DIR`` reuses one); without that module (or with ``--grid``) this script calibrates friction and
 contact softness itself by a grid search on the training tosses.
 
@@ -85,15 +85,21 @@ sys.path.insert(0, str(REPO))
 
 from cube_toss import DEFAULT_PARAMS as CUBE_TOSS_PARAMS  # noqa: E402  (benchmarks/cube_toss.py's fit)
 
-from grounder._import import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
-from grounder._interaction_impacts import fit_flight  # noqa: E402
-from grounder._repeats import repeated_motions  # noqa: E402
-from grounder._residual import quat_to_mat, quat_to_rotvec, rotvec_to_quat  # noqa: E402
-from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
-from grounder._simulate import quat_angle_rad, simulate  # noqa: E402
-from grounder._simulator import Simulator  # noqa: E402
-from grounder._track_smooth import quat_conj, quat_mul  # noqa: E402
-from grounder._trajectory import Trajectory  # noqa: E402
+from grounder.core.importers import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
+from grounder.core.repeats import repeated_motions  # noqa: E402
+from grounder.core.trajectory import Trajectory  # noqa: E402
+from grounder.interaction.impacts import fit_flight  # noqa: E402
+from grounder.residual.simulator import Simulator  # noqa: E402
+from grounder.residual.train import ResidualOptions, train_residual  # noqa: E402
+from grounder.sim.rollout import simulate  # noqa: E402
+from image2sim_common.rotations import (  # noqa: E402
+    quat_angle_rad,
+    quat_conj,
+    quat_mul,
+    quat_to_mat,
+    quat_to_rotvec,
+    rotvec_to_quat,
+)
 
 DATA = REPO.parent / "shared" / "data" / "cube_toss"
 NOMINAL_XML = REPO / "samples" / "cube_toss" / "cube.xml"
@@ -103,15 +109,15 @@ TRAIN_FRACTION = 0.7
 
 
 def split(trajs: list[Trajectory]) -> tuple[list[Trajectory], list[Trajectory]]:
-    """The calibration's split (``grounder._calibrate.split_names``, 30% validation, seed 0, copies of one toss
+    """The calibration's split (``grounder.calibration.fit.split_names``, 30% validation, seed 0, copies of one toss
     kept on one side as `image2sim calibrate` keeps them), so that validation here is validation there."""
-    from grounder._calibrate import split_names
+    from grounder.calibration.fit import split_names
 
     by_name = {t.name: t for t in trajs}
     repeats = repeated_motions(trajs, mujoco.MjModel.from_xml_path(str(NOMINAL_XML)))
     train_names, val_names = split_names(list(by_name), 1.0 - TRAIN_FRACTION, SPLIT_SEED, repeats)
     print(
-        f"split: grounder._calibrate.split_names(validation 0.3, seed 0), as benchmarks/cube_toss.py; "
+        f"split: grounder.calibration.fit.split_names(validation 0.3, seed 0), as benchmarks/cube_toss.py; "
         f"{len(repeats)} tosses stored twice kept on one side"
     )
     return [by_name[n] for n in train_names], [by_name[n] for n in val_names]
@@ -161,7 +167,7 @@ def calibrated_scene(
     """The calibration engineer's calibration (benchmarks/cube_toss.py's settings), else this script's grid."""
     if not force_grid:
         try:
-            from grounder._calibrate import CalibrateOptions, calibrate
+            from grounder.calibration.fit import CalibrateOptions, calibrate
         except ImportError:
             calibrate = None  # type: ignore[assignment]
         if calibrate is not None:
@@ -179,7 +185,10 @@ def calibrated_scene(
                 local_iterations=4,
             )
             calibrate(nominal, trajs, options=options, out=out)
-            return out, "grounder._calibrate.calibrate, benchmarks/cube_toss.py settings (fit on 40 training tosses)"
+            return (
+                out,
+                "grounder.calibration.fit.calibrate, benchmarks/cube_toss.py settings (fit on 40 training tosses)",
+            )
     return grid_calibrate(train, work / "grid")
 
 
@@ -231,7 +240,7 @@ def output_ablation(residual_dir: Path, val: list[Trajectory]) -> None:
 
     import torch
 
-    from grounder._residual import WEIGHTS_FILE
+    from grounder.residual.model import WEIGHTS_FILE
 
     state = torch.load(residual_dir / WEIGHTS_FILE, weights_only=True)
     last = max(int(k.split(".")[2]) for k in state if k.startswith("nets.0."))
@@ -780,7 +789,7 @@ def twin_tosses(scene: Path) -> None:
     print(
         f"copies (records within 0.5% / 0.2 deg once aligned): {int(is_copy.sum())} pairs, {len(across)} of them "
         f"across the split{': ' if across else ''}{', '.join(f'{x}~{y}' for x, y in across)}; the same pairs as "
-        f"grounder._repeats finds (heights and speeds alone): {found == {frozenset(n) for n in names}}"
+        f"grounder.core.repeats finds (heights and speeds alone): {found == {frozenset(n) for n in names}}"
     )
     others = pairs[~is_copy]
     for within, within_deg in ((0.05, 5.0), (0.10, 10.0), (0.15, 15.0)):

@@ -2,8 +2,8 @@
 
 Run: `.venv/bin/python benchmarks/residual_cases.py [--cases NAME ...] [--train 64] [--heldout 16] [--json F]`
 
-Each case of `grounder._cases.BENCHMARK` (true system = nominal + hidden effect + sensor noise, 1 s at 100 Hz) gives
-`--train` recorded trajectories (seed 0, default 64) and `--heldout` others (seed 1). From the training ones only:
+Each case of `grounder.diagnosis.cases.BENCHMARK` (true system = nominal + hidden effect + sensor noise, 1 s at 100 Hz)
+gives `--train` recorded trajectories (seed 0, default 64) and `--heldout` others (seed 1). From the training ones only:
 
 - **calibrated**: `grounder.calibrate` of the nominal scene with the scene's default parameters (free bodies:
   friction and contact; joints: damping, friction loss, armature; actuators: gains), default budget, 2 threads,
@@ -17,7 +17,7 @@ Each case of `grounder._cases.BENCHMARK` (true system = nominal + hidden effect 
 Every model is then rolled out open loop over each held-out trajectory from its first recorded state. Figures per
 case: time-averaged position error (mm) and rotation error (deg) of the free body, or joint-angle error (mrad, a
 full turn counts as none) for jointed scenes, mean over held-out trajectories. Jointed scenes (pendulum, arm) get
-the joint-space residual (`grounder/_residual_joint.py`).
+the joint-space residual (`grounder/residual/joint.py`).
 """
 
 from __future__ import annotations
@@ -34,17 +34,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from grounder._calibrate import CalibrateOptions, calibrate
-from grounder._cases import make_case
-from grounder._diagnose import DiagnoseOptions, diagnose
-from grounder._diagnose_bench import select_cases
-from grounder._effects import Transforms, apply_effects
-from grounder._gap import make_windows, predict
-from grounder._residual_joint import joint_error, joint_space
-from grounder._residual_train import ResidualOptions, train_residual
-from grounder._simulate import quat_angle_rad
-from grounder._simulator import Simulator
-from grounder._trajectory import Trajectory
+from grounder.calibration.fit import CalibrateOptions, calibrate
+from grounder.core.trajectory import Trajectory
+from grounder.diagnosis.benchmark import select_cases
+from grounder.diagnosis.cases import make_case
+from grounder.diagnosis.effects import Transforms, apply_effects
+from grounder.diagnosis.gap import make_windows, predict
+from grounder.diagnosis.pipeline import DiagnoseOptions, diagnose
+from grounder.residual.joint import joint_error, joint_space
+from grounder.residual.simulator import Simulator
+from grounder.residual.train import ResidualOptions, train_residual
+from image2sim_common.rotations import quat_angle_rad
 
 MODELS = ("nominal", "calibrated", "diagnosed", "calibrated + residual")
 

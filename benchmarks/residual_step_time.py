@@ -37,10 +37,10 @@ from mujoco import rollout as mj_rollout
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from grounder._residual_train import ResidualOptions, train_residual  # noqa: E402
-from grounder._simulate import initial_state  # noqa: E402
-from grounder._simulator import Simulator  # noqa: E402
-from grounder._trajectory import Trajectory  # noqa: E402
+from grounder.core.trajectory import Trajectory  # noqa: E402
+from grounder.residual.simulator import Simulator  # noqa: E402
+from grounder.residual.train import ResidualOptions, train_residual  # noqa: E402
+from grounder.sim.rollout import initial_state  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data" / "cube_toss"
 NOMINAL_XML = REPO / "samples" / "cube_toss" / "cube.xml"
@@ -48,7 +48,7 @@ NOMINAL_XML = REPO / "samples" / "cube_toss" / "cube.xml"
 
 def _tosses() -> list[Trajectory]:
     if DATA.is_dir():
-        from grounder._import import load_dair_pll_cube
+        from grounder.core.importers import load_dair_pll_cube
 
         return load_dair_pll_cube(DATA)
     raise SystemExit(f"{DATA} is absent; this benchmark needs the real cube tosses")
@@ -85,7 +85,7 @@ def _visited(sim: Simulator, starts: list[tuple[np.ndarray, np.ndarray]], period
 
 def _open_gate_share(sim: Simulator, states: list[tuple[np.ndarray, np.ndarray]]) -> float:
     """Share of states whose gate (times the output gain) is not exactly 0: where the network runs."""
-    from grounder._residual import body_features
+    from grounder.residual.model import body_features
 
     assert sim.residual is not None
     feats, _ = body_features(np.stack([s[0] for s in states]), np.stack([s[1] for s in states]), sim.residual.bodies)
@@ -174,9 +174,9 @@ def _time_mujoco_rollout(sim: Simulator, starts: list[tuple[np.ndarray, np.ndarr
 
 def arm(rounds: int) -> None:
     """The joint-space residual on the withheld-effect arm (weak motors): one period from each recorded state."""
-    from grounder._cases import make_case
-    from grounder._diagnose_bench import select_cases
-    from grounder._residual_joint import NumpyJointResidual, joint_features
+    from grounder.diagnosis.benchmark import select_cases
+    from grounder.diagnosis.cases import make_case
+    from grounder.residual.joint import NumpyJointResidual, joint_features
 
     case = make_case(select_cases(["arm/actuator_gain"])[0], 36, seed=0)
     with tempfile.TemporaryDirectory() as tmp:

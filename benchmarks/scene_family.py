@@ -4,8 +4,8 @@ Run: `MUJOCO_GL=osmesa .venv/bin/python benchmarks/scene_family.py [--seed 1000 
 Scenes come from `samples/make_scene_family.py` (seeds 1000 and up are held out: no test or tuning uses them) and
 are cached in `--work` (default `out/scene_family/`). Each is grounded by the CLI a user runs
 (`image2sim ground SOURCE -o DIR ARGS`, in a subprocess: exit code, stderr and wall time are what a user sees), then
-scored against its truth (`grounder._evaluate.score_scene`), simulated from rest for 2 s (`settle_test`) and, for
-photo sets, compared with COLMAP's defaults on the same folder (`pycolmap.extract_features` + `match_exhaustive` +
+scored against its truth (`grounder.grounding.evaluate.score_scene`), simulated from rest for 2 s (`settle_test`) and,
+for photo sets, compared with COLMAP's defaults on the same folder (`pycolmap.extract_features` + `match_exhaustive` +
 `incremental_mapping`: registered photos).
 
 Targets (issue 60): 0 crashes, 0 tracebacks; >= 95% of objects found; no extra bodies in >= 90% of scenes; per
@@ -60,7 +60,7 @@ def colmap_defaults_registered(photos: Path) -> int:
 
 def score_into(record: dict[str, object], scene: Path, out: Path) -> bool:
     """Scores the grounded scene `out` against `scene`'s truth into `record`; False when it cannot be aligned."""
-    from grounder._evaluate import score_scene
+    from grounder.grounding.evaluate import score_scene
     from scene_export import settle_test
 
     try:

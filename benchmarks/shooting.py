@@ -1,4 +1,4 @@
-"""Contact values by multiple shooting over each object's whole tracked run (`grounder._interaction_shooting`),
+"""Contact values by multiple shooting over each object's whole tracked run (`grounder.interaction.shooting`),
 against the rendered values and the windowed calibration of the same run.
 
     .venv/bin/python benchmarks/shooting.py --run OUT --clip CLIP [--bodies object_0,object_2] [--grid]
@@ -30,11 +30,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from track import contact_values, truth_offsets  # noqa: E402
 
-from grounder._calibrate_params import Parameter, collision_geoms, resolve_parameters  # noqa: E402
-from grounder._interaction import InteractionOptions, camera_poses_of, single_body_scene, view_point_of  # noqa: E402
-from grounder._interaction_shooting import ShootingOptions, contact_profile, fit_contact, moving_runs  # noqa: E402
-from grounder._restitution import body_restitution, simulated_restitution  # noqa: E402
-from grounder._track import load_object_trajectories  # noqa: E402
+from grounder.calibration.parameters import Parameter, collision_geoms, resolve_parameters  # noqa: E402
+from grounder.interaction.pipeline import InteractionOptions, camera_poses_of, single_body_scene, view_point_of  # noqa: E402
+from grounder.interaction.shooting import ShootingOptions, contact_profile, fit_contact, moving_runs  # noqa: E402
+from grounder.sim.restitution import body_restitution, simulated_restitution  # noqa: E402
+from grounder.tracking.pipeline import load_object_trajectories  # noqa: E402
 
 FIELDS = ("friction.sliding", "solref.dampratio")
 JOINT_FIELDS = (*FIELDS, "solref.timeconst")
@@ -94,7 +94,7 @@ def main() -> None:
     settings = {"node_frames": args.node_frames, "cross_fit_points": args.cross_fit}
     options = ShootingOptions(**{k: v for k, v in settings.items() if v is not None})
     counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}  # within 20%, wrong, unresolved
-    # Friction and restitution (the bounce the contact produces, `grounder._restitution`), the issue's two values.
+    # Friction and restitution (the bounce the contact produces, `grounder.sim.restitution`), the issue's two values.
     bounce_counts = {"shooting": [0, 0, 0], "windows": [0, 0, 0]}
     saved: dict[str, object] = {}
     # The windows' written contacts: calibrated values, or the prior where one is kept.

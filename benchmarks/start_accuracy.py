@@ -32,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from track import contact_values, true_motion_in_grounded_frames, truth_offsets  # noqa: E402
 
-from grounder._interaction import (  # noqa: E402
+from grounder.core.trajectory import Trajectory  # noqa: E402
+from grounder.interaction.pipeline import (  # noqa: E402
     InteractionOptions,
     _single_body_trajectory,
     calibrate_constrained,
@@ -41,8 +42,7 @@ from grounder._interaction import (  # noqa: E402
     single_body_scene,
     view_point_of,
 )
-from grounder._track import load_object_trajectories  # noqa: E402
-from grounder._trajectory import Trajectory  # noqa: E402
+from grounder.tracking.pipeline import load_object_trajectories  # noqa: E402
 
 FIELDS = ("friction.sliding", "solref.dampratio")  # the target's values; the time constant is fitted beside them
 

@@ -16,8 +16,8 @@ the tracked frames, the RMS position error along the camera ray over the frames 
 coordinate tracking measures worst, where calibration reads it), plus the velocity errors of the written
 trajectories. `--lk-window-px` and `--max-iterations` set the tracker's `TrackOptions` of the same names.
 
-With `--calibrate`, runs part 2 instead: `grounder._interaction.ground_with_interaction` (reusing the cached grounded
-scene), and prints per object and parameter (sliding friction; contact damping ratio, `solref[1]`, MuJoCo's
+With `--calibrate`, runs part 2 instead: `grounder.interaction.pipeline.ground_with_interaction` (reusing the cached
+grounded scene), and prints per object and parameter (sliding friction; contact damping ratio, `solref[1]`, MuJoCo's
 restitution knob: the ratio the clip was rendered with, lower bounces more; contact time constant, `solref[0]`) the
 rendered value, the calibrated value, its interval, whether the clip constrains it, and the relative error (target:
 within 20%), then how well the scene matches the clip before and after. With `--truth`, the same screen +
@@ -30,7 +30,7 @@ each object-table contact uses exactly the object's friction and solref (`object
 clip is rendered with the physics settings of every exported scene (timestep, integrator, cone); calibration also
 gives the calibrated geoms priority. Restitution is printed both as MuJoCo's damping ratio (what the clip was
 rendered with) and as the coefficient of restitution e the contact produces, time constant and damping ratio
-together, for a 1 m/s normal impact (`grounder._restitution`); the counts are given both for friction and damping
+together, for a 1 m/s normal impact (`grounder.sim.restitution`); the counts are given both for friction and damping
 ratio and for friction and restitution (the issue's two values; restitution counted as resolved where the damping
 ratio is).
 
@@ -57,9 +57,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from grounder._simulate import quat_angle_rad  # noqa: E402
-from grounder._track import TrackOptions, track  # noqa: E402
-from grounder._track_smooth import matrix_from_quat, quat_from_matrix  # noqa: E402
+from grounder.tracking.pipeline import TrackOptions, track  # noqa: E402
+from image2sim_common.rotations import (  # noqa: E402
+    matrix_from_quat,
+    quat_angle_rad,
+    quat_from_matrix,
+)
 
 
 def pose(pos: list[float] | np.ndarray, quat_wxyz: list[float] | np.ndarray) -> np.ndarray:
@@ -359,7 +362,7 @@ def track_option_fields(args: argparse.Namespace, clip_dir: Path) -> dict[str, A
         return {**fields, "scene_markers": False}
     fields["marker_use"] = args.marker_use
     if args.place_from_clip:
-        from grounder._track_markers import load_object_markers
+        from grounder.tracking.markers import load_object_markers
 
         fields["scene_markers"] = False
         fields["object_markers"] = load_object_markers(clip_dir / "truth/markers_unplaced.json")
@@ -367,7 +370,7 @@ def track_option_fields(args: argparse.Namespace, clip_dir: Path) -> dict[str, A
 
 
 def calibrate_benchmark(clip_dir: Path, scene: Path, out: Path, args: argparse.Namespace) -> None:
-    from grounder._interaction import ground_with_interaction
+    from grounder.interaction.pipeline import ground_with_interaction
 
     offsets = truth_offsets(scene)
     tick = time.perf_counter()
@@ -443,13 +446,13 @@ def print_window_match(calibration: dict) -> None:
 
 def print_start_errors(scene: Path, clip_dir: Path, track_json: Path, options: Any) -> None:
     """Per object, the windows its calibration is cut into (each object's own tracked runs, window starts as
-    `grounder._interaction.calibrate_per_body` chooses them) and how far each tracked start velocity is from the
+    `grounder.interaction.pipeline.calibrate_per_body` chooses them) and how far each tracked start velocity is from the
     truth: the slide after a landing is as long as the start speed squared over the friction, so these errors show
     up in the calibrated values (README, #8)."""
     import mujoco
 
-    from grounder._interaction import _single_body_trajectory, reliable_starts, windows
-    from grounder._track import load_object_trajectories
+    from grounder.interaction.pipeline import _single_body_trajectory, reliable_starts, windows
+    from grounder.tracking.pipeline import load_object_trajectories
 
     fps = float(json.loads(track_json.read_text())["fps"])
     model = mujoco.MjModel.from_xml_path(str(scene / "scene.xml"))
@@ -498,11 +501,11 @@ def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, dict[str, float
 def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, str]) -> None:
     """Per parameter: rendered value, calibrated value, whether the clip constrains it, its resolution range, the
     relative error (restitution also as e), and its best values with the windows' start speeds off by a typical
-    tracking error (`grounder._interaction.start_error_ranges`)."""
+    tracking error (`grounder.interaction.pipeline.start_error_ranges`)."""
     import mujoco
 
-    from grounder._calibrate_params import collision_geoms
-    from grounder._restitution import body_restitution, simulated_restitution
+    from grounder.calibration.parameters import collision_geoms
+    from grounder.sim.restitution import body_restitution, simulated_restitution
 
     truth_xml = clip_dir / "truth/scene.xml"
     if not truth_xml.exists():  # samples/toss_occluded: the same simulated toss, re-rendered with a card in front
@@ -527,7 +530,7 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
         as_e = "-"
         timeconst = params.get(f"{body}.solref.timeconst")
         if field == "solref.dampratio" and timeconst is not None:
-            # The bounce the contact produces (`grounder._restitution`): the calibrated time constant and damping
+            # The bounce the contact produces (`grounder.sim.restitution`): the calibrated time constant and damping
             # ratio together, in the truth scene's physics settings (those of every exported scene).
             solimp = truth.geom_solimp[collision_geoms(truth, truth.body(true_name).id)[0]]
             e_true = body_restitution(truth, true_name)
@@ -562,8 +565,8 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:
     """Screen + calibrate the grounded scene on saved tracks (e.g. `OUT/interaction/tracks` of a `--calibrate` run),
     per object as `ground --interaction` does."""
-    from grounder._interaction import calibrate_per_body, default_params, saved_tracks
-    from grounder._track_smooth import SmoothingOptions
+    from grounder.interaction.pipeline import calibrate_per_body, default_params, saved_tracks
+    from grounder.tracking.smooth import SmoothingOptions
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
     offsets = truth_offsets(scene)
@@ -591,7 +594,7 @@ def true_motion_in_grounded_frames(scene: Path, clip_dir: Path) -> Any:
     """The clip's true trajectory expressed in the grounded scene's bodies and joint order: each grounded body's pose
     is the true pose times its offset (`truth_offsets`), its linear velocity that of the grounded body origin, its
     angular velocity in the grounded body frame."""
-    from grounder._trajectory import Trajectory
+    from grounder.core.trajectory import Trajectory
 
     offsets = truth_offsets(scene)
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
@@ -623,7 +626,7 @@ def true_motion_benchmark(clip_dir: Path, scene: Path, args: argparse.Namespace)
     """Screen + calibrate the grounded scene on the clip's TRUE motion, per object as `ground --interaction` does:
     what the grounded shapes and masses allow when tracking is perfect (tracking's share of the errors is the
     difference to a `--calibrate` run)."""
-    from grounder._interaction import calibrate_per_body, default_params, view_point_of
+    from grounder.interaction.pipeline import calibrate_per_body, default_params, view_point_of
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
     offsets = truth_offsets(scene)
@@ -646,8 +649,8 @@ def true_motion_benchmark(clip_dir: Path, scene: Path, args: argparse.Namespace)
 def _options(args: argparse.Namespace, **fields: Any) -> Any:
     """The benchmark's `InteractionOptions`: the tool's defaults (what `ground --interaction` runs), except the search
     budget and seed, `--start-rounds` and `--along-view-weight` where given."""
-    from grounder._interaction import InteractionOptions
-    from grounder._interaction_impacts import ImpactOptions
+    from grounder.interaction.impacts import ImpactOptions
+    from grounder.interaction.pipeline import InteractionOptions
 
     budget = {"generations": args.generations, "popsize": args.popsize, "seed": args.seed}
     given = {
@@ -695,8 +698,8 @@ def truth_benchmark(clip_dir: Path, args: argparse.Namespace) -> None:
 
     import mujoco
 
-    from grounder._interaction import calibrate_per_body, default_params
-    from grounder._trajectory import Trajectory
+    from grounder.core.trajectory import Trajectory
+    from grounder.interaction.pipeline import calibrate_per_body, default_params
 
     truth = np.load(clip_dir / "truth/trajectory.npz", allow_pickle=False)
     traj = Trajectory(time_s=truth["time"], qpos=truth["qpos"], qvel=truth["qvel"], ctrl=None, name="truth")

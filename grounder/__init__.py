@@ -9,18 +9,16 @@ The later stages are imported on first use (they pull in torch, OpenCV renderers
 stays cheap.
 """
 
-import os as _os
-
-# Headless machines have no display for MuJoCo's default GLFW backend: render on the CPU with OSMesa unless the
-# user chose a backend (MUJOCO_GL=egl for a GPU). Must happen before mujoco is imported.
-if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
-    _os.environ["MUJOCO_GL"] = "osmesa"
-    _os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
-
-
 from typing import TYPE_CHECKING
 
-from grounder._trajectory import (
+from image2sim_common.headless_gl import choose_headless_gl
+from image2sim_common.outdir import register_record_files
+
+choose_headless_gl()  # before mujoco is imported
+
+import reconstruction  # noqa: E402, F401  (light: its names load on first use; it registers its records)
+import scene_export  # noqa: E402, F401  (likewise)
+from grounder.core.trajectory import (  # noqa: E402
     Trajectory,
     load_trajectories,
     load_trajectory,
@@ -28,33 +26,45 @@ from grounder._trajectory import (
     save_trajectory,
     validate_against_model,
 )
-from grounder.errors import GrounderError, TrajectoryError
+from grounder.errors import GrounderError, TrajectoryError  # noqa: E402
+
+# The records grounder's commands write at the top of their output folders (`reconstruction` and `scene_export`
+# register theirs when imported, above): a folder holding one is an image2sim output (`image2sim_common.outdir`).
+register_record_files(
+    "diagnosis.json",
+    "calibration.json",
+    "residual.json",
+    "track.json",
+    "variants.json",
+    "property_net.json",
+    "rollout.json",
+)
 
 # name -> module that defines it; resolved on first attribute access (PEP 562). `ground` is among them: it pulls in
 # COLMAP, Open3D and trimesh, and the command line starts (`image2sim --help`, a refused option) without them.
 _LAZY = {
-    "GroundOptions": "grounder._ground",
-    "GroundResult": "grounder._ground",
-    "ground": "grounder._ground",
-    "CalibrateOptions": "grounder._calibrate",
-    "CalibrationResult": "grounder._calibrate",
-    "calibrate": "grounder._calibrate",
-    "DiagnoseOptions": "grounder._diagnose",
-    "Diagnosis": "grounder._diagnose",
-    "diagnose": "grounder._diagnose",
-    "diagnose_files": "grounder._diagnose",
-    "TrackOptions": "grounder._track",
-    "TrackResult": "grounder._track",
-    "track": "grounder._track",
-    "InteractionOptions": "grounder._interaction",
-    "InteractionResult": "grounder._interaction",
-    "ground_with_interaction": "grounder._interaction",
-    "Simulator": "grounder._simulator",
-    "has_residual": "grounder._simulator",
-    "ResidualOptions": "grounder._residual_train",
-    "train_residual": "grounder._residual_train",
-    "load_dair_pll_cube": "grounder._import",
-    "simulate": "grounder._simulate",
+    "GroundOptions": "grounder.grounding.pipeline",
+    "GroundResult": "grounder.grounding.pipeline",
+    "ground": "grounder.grounding.pipeline",
+    "CalibrateOptions": "grounder.calibration.fit",
+    "CalibrationResult": "grounder.calibration.fit",
+    "calibrate": "grounder.calibration.fit",
+    "DiagnoseOptions": "grounder.diagnosis.pipeline",
+    "Diagnosis": "grounder.diagnosis.pipeline",
+    "diagnose": "grounder.diagnosis.pipeline",
+    "diagnose_files": "grounder.diagnosis.pipeline",
+    "TrackOptions": "grounder.tracking.pipeline",
+    "TrackResult": "grounder.tracking.pipeline",
+    "track": "grounder.tracking.pipeline",
+    "InteractionOptions": "grounder.interaction.pipeline",
+    "InteractionResult": "grounder.interaction.pipeline",
+    "ground_with_interaction": "grounder.interaction.pipeline",
+    "Simulator": "grounder.residual.simulator",
+    "has_residual": "grounder.residual.simulator",
+    "ResidualOptions": "grounder.residual.train",
+    "train_residual": "grounder.residual.train",
+    "load_dair_pll_cube": "grounder.core.importers",
+    "simulate": "grounder.sim.rollout",
 }
 
 
@@ -67,15 +77,15 @@ def __getattr__(name: str) -> object:
 
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
-    from grounder._calibrate import CalibrateOptions, CalibrationResult, calibrate
-    from grounder._diagnose import DiagnoseOptions, Diagnosis, diagnose, diagnose_files
-    from grounder._ground import GroundOptions, GroundResult, ground
-    from grounder._import import load_dair_pll_cube
-    from grounder._interaction import InteractionOptions, InteractionResult, ground_with_interaction
-    from grounder._residual_train import ResidualOptions, train_residual
-    from grounder._simulate import simulate
-    from grounder._simulator import Simulator, has_residual
-    from grounder._track import TrackOptions, TrackResult, track
+    from grounder.calibration.fit import CalibrateOptions, CalibrationResult, calibrate
+    from grounder.core.importers import load_dair_pll_cube
+    from grounder.diagnosis.pipeline import DiagnoseOptions, Diagnosis, diagnose, diagnose_files
+    from grounder.grounding.pipeline import GroundOptions, GroundResult, ground
+    from grounder.interaction.pipeline import InteractionOptions, InteractionResult, ground_with_interaction
+    from grounder.residual.simulator import Simulator, has_residual
+    from grounder.residual.train import ResidualOptions, train_residual
+    from grounder.sim.rollout import simulate
+    from grounder.tracking.pipeline import TrackOptions, TrackResult, track
 
 __all__ = [  # spelled out (not built from _LAZY) so that linters and type checkers read it
     "CalibrateOptions",

@@ -10,8 +10,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from reconstruction._outdir import write_image
+from image2sim_common.outdir import write_image
 from reconstruction._types import ReconstructionResult
+from reconstruction.errors import InputError
 
 PANEL_PX = 480
 
@@ -56,4 +57,4 @@ def write_preview(path: Path, result: ReconstructionResult) -> None:
     unit = "m" if str(result.world.scale_source) != "unknown" else "(scale unknown)"
     top = _panel(points, colours, cams, looks, (0, 1), f"top view (x, y) {unit}; red dots = cameras")
     side = _panel(points, colours, cams, looks, (0, 2), f"side view (x, z); table top z = 0; {len(cams)} cameras")
-    write_image(path, np.hstack([top, side]))
+    write_image(path, np.hstack([top, side]), error=InputError)

@@ -11,10 +11,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pycolmap
 
+from image2sim_common.outdir import staged_output_dir, write_image
+from image2sim_common.progress import ProgressFn
 from reconstruction import _frames, _sfm, _world
-from reconstruction._outdir import staged_output_dir, write_image
+from reconstruction._colmap import pycolmap
 from reconstruction._preview import write_preview
 from reconstruction._types import (
     CameraIntrinsics,
@@ -34,7 +35,7 @@ SIZE_RANGE_M = (0.005, 5.0)
 """A marker's side or an object's extent as a user gives it, metres: millimetres typed as metres fall outside."""
 OPENGL_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
-ProgressFn = Callable[[str, int, int], None]  # (stage, done, total)
+ProgressFn = ProgressFn  # (stage, done, total)
 
 
 def _validate(options: ReconstructOptions) -> None:
@@ -121,7 +122,7 @@ def reconstruct(
     _sfm._quiet_colmap()
     _frames.check_source(source)
 
-    with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,)) as stage_dir:
+    with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,), error=InputError) as stage_dir:
         tick = time.perf_counter()
         report("reading frames", 0, 1)
         frames, num_source_frames = _frames.read_frames_counted(
@@ -134,7 +135,7 @@ def reconstruct(
         names = []
         for frame in selection.kept:
             name = f"frame_{frame.index:05d}.jpg"
-            write_image(image_dir / name, frame.image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            write_image(image_dir / name, frame.image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95], error=InputError)
             names.append(name)
         index_of = {n: f.index for n, f in zip(names, selection.kept, strict=True)}
         # Find the marker before the expensive work, so a missing marker fails in seconds.

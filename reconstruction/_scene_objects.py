@@ -3,20 +3,18 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from image2sim_common.progress import ProgressFn
 from reconstruction import _dense, _objects, _silhouette, _world
 from reconstruction._types import CameraIntrinsics, ObjectInstance, ReconstructionResult, TexturedMesh
 from reconstruction.errors import ReconstructionError
 
 log = logging.getLogger(__name__)
-
-ProgressFn = Callable[[str, int, int], None]
 
 
 @dataclass(frozen=True, kw_only=True)

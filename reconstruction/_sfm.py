@@ -22,13 +22,13 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
-import pycolmap
 
+from image2sim_common.outdir import require_free_space
+from reconstruction._colmap import pycolmap
 from reconstruction._frames import image_size
-from reconstruction._outdir import require_free_space
 from reconstruction._parallel import run_jobs_reporting, usable_cores
 from reconstruction._types import SfmOptions
-from reconstruction.errors import ReconstructionError, RegistrationError
+from reconstruction.errors import InputError, ReconstructionError, RegistrationError
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +70,10 @@ def extract_features(
     # Each image's features (a 128-byte descriptor and a 24-byte keypoint each) are written twice: the shares' and
     # the merged database.
     require_free_space(
-        database_path.parent, 2 * len(image_names) * options.max_num_features * 152 + 2**20, "SIFT feature extraction"
+        database_path.parent,
+        2 * len(image_names) * options.max_num_features * 152 + 2**20,
+        "SIFT feature extraction",
+        error=InputError,
     )
     first_octave = sift_first_octave(image_dir, image_names, options)
     workers = options.extraction_workers if options.extraction_workers > 0 else usable_cores()
@@ -293,7 +296,9 @@ def match_features(
     # Each worker matches in a copy of the database, and the matches (about as large as the features, measured on
     # the tabletop sample) are merged back: refused before COLMAP can abort on a full disk.
     workers = options.matching_workers if options.matching_workers > 0 else usable_cores()
-    require_free_space(database_path.parent, (workers + 2) * database_path.stat().st_size + 2**20, "feature matching")
+    require_free_space(
+        database_path.parent, (workers + 2) * database_path.stat().st_size + 2**20, "feature matching", error=InputError
+    )
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = options.num_threads
     verification = pycolmap.TwoViewGeometryOptions()
@@ -496,7 +501,9 @@ def map_incremental(
     pipeline.ba_global_frames_ratio = 1.3
     pipeline.ba_global_points_ratio = 1.3
     # The mapper works in a copy of the database and writes its models beside it.
-    require_free_space(database_path.parent, 2 * database_path.stat().st_size + 2**22, "incremental mapping")
+    require_free_space(
+        database_path.parent, 2 * database_path.stat().st_size + 2**22, "incremental mapping", error=InputError
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     models = pycolmap.incremental_mapping(
         database_path, image_dir, out_dir, options=pipeline, next_image_callback=on_image or (lambda: None)

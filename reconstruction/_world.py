@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import pycolmap
 from scipy.optimize import least_squares
 
+from reconstruction._colmap import pycolmap
 from reconstruction._types import ScaleSource, WorldFrame
 from reconstruction.errors import WorldFrameError
 

@@ -21,6 +21,8 @@ import mujoco
 import numpy as np
 import trimesh
 
+from image2sim_common.rotations import look_at_world_from_cam
+
 TABLE_HALF_EXTENTS_M = (0.7, 0.5)
 TABLE_THICKNESS_M = 0.04
 MARKER_SIZE_M = 0.12  # side of the black square
@@ -410,12 +412,8 @@ def add_floor_and_table(world: mujoco.MjsBody, *, top_material: str, marker: boo
 
 def look_at_quat_wxyz(eye_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
     """Quaternion of a MuJoCo camera (looks along its -z, y up) at eye_m looking at target_m, world z up."""
-    forward = target_m - eye_m
-    forward /= np.linalg.norm(forward)
-    x_axis = np.cross(forward, [0.0, 0.0, 1.0])
-    x_axis /= np.linalg.norm(x_axis)
-    y_axis = np.cross(x_axis, forward)
-    world_from_cam = np.stack([x_axis, y_axis, -forward], axis=1)
+    opencv_axes = look_at_world_from_cam(eye_m, target_m)[:3, :3]  # x right, y down, z forward
+    world_from_cam = opencv_axes * np.array([1.0, -1.0, -1.0])  # MuJoCo's: y up, looking along -z
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, world_from_cam.flatten())
     return quat

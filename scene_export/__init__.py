@@ -9,36 +9,10 @@ scene = export_scene([SceneObjectSpec(name="bowl", visual=mesh, collision=collis
 ```
 """
 
-import os as _os
+from typing import TYPE_CHECKING
 
-# Headless machines have no display for MuJoCo's default GLFW backend: render on the CPU with OSMesa unless the
-# user chose a backend (MUJOCO_GL=egl for a GPU). Must happen before mujoco is imported.
-if "MUJOCO_GL" not in _os.environ and not _os.environ.get("DISPLAY"):
-    _os.environ["MUJOCO_GL"] = "osmesa"
-    _os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
-
-
-from scene_export._collision import (
-    CoacdOptions,
-    CollisionGeometry,
-    CollisionOptions,
-    convex_decomposition,
-    default_cache_dir,
-    single_hull,
-)
-from scene_export._mjcf import (
-    CameraSpec,
-    ExportedScene,
-    ExportOptions,
-    SceneObjectSpec,
-    SettleMotion,
-    TableSpec,
-    export_scene,
-    mjcf_name,
-    render_view,
-    settle_test,
-    write_preview,
-)
+from image2sim_common.headless_gl import choose_headless_gl
+from image2sim_common.outdir import register_record_files
 from scene_export.errors import (
     CompileError,
     DecompositionError,
@@ -48,6 +22,63 @@ from scene_export.errors import (
     OutputExistsError,
     SceneExportError,
 )
+
+choose_headless_gl()  # before mujoco is imported
+register_record_files("scene.json")
+
+# name -> module that defines it; resolved on first attribute access (PEP 562), so that importing `scene_export`
+# (its errors, say) loads neither MuJoCo, trimesh nor CoACD.
+_LAZY = {
+    "CoacdOptions": "scene_export._collision",
+    "CollisionGeometry": "scene_export._collision",
+    "CollisionOptions": "scene_export._collision",
+    "convex_decomposition": "scene_export._collision",
+    "default_cache_dir": "scene_export._collision",
+    "single_hull": "scene_export._collision",
+    "CameraSpec": "scene_export._mjcf",
+    "ExportedScene": "scene_export._mjcf",
+    "ExportOptions": "scene_export._mjcf",
+    "SceneObjectSpec": "scene_export._mjcf",
+    "SettleMotion": "scene_export._mjcf",
+    "TableSpec": "scene_export._mjcf",
+    "export_scene": "scene_export._mjcf",
+    "mjcf_name": "scene_export._mjcf",
+    "render_view": "scene_export._mjcf",
+    "settle_test": "scene_export._mjcf",
+    "write_preview": "scene_export._mjcf",
+}
+
+
+def __getattr__(name: str) -> object:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'scene_export' has no attribute {name!r}")
+
+
+if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
+    from scene_export._collision import (
+        CoacdOptions,
+        CollisionGeometry,
+        CollisionOptions,
+        convex_decomposition,
+        default_cache_dir,
+        single_hull,
+    )
+    from scene_export._mjcf import (
+        CameraSpec,
+        ExportedScene,
+        ExportOptions,
+        SceneObjectSpec,
+        SettleMotion,
+        TableSpec,
+        export_scene,
+        mjcf_name,
+        render_view,
+        settle_test,
+        write_preview,
+    )
 
 __all__ = [
     "CameraSpec",

@@ -20,7 +20,7 @@ import numpy as np
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
-from reconstruction._outdir import atomic_file
+from image2sim_common.outdir import atomic_file
 from scene_export._mesh import as_mesh_arrays, mesh_sha256, solid_trimesh
 from scene_export.errors import DecompositionError, InvalidSceneSpecError
 

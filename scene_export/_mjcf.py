@@ -25,8 +25,8 @@ from typing import Any, NamedTuple
 import mujoco
 import numpy as np
 
-from reconstruction._outdir import staged_output_dir, write_image
-from reconstruction._types import CameraIntrinsics, TexturedMesh
+from image2sim_common.outdir import staged_output_dir, write_image
+from reconstruction import CameraIntrinsics, TexturedMesh
 from scene_export._collision import CollisionGeometry
 from scene_export._mesh import as_mesh_arrays, solid_trimesh
 from scene_export.errors import (

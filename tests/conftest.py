@@ -104,8 +104,8 @@ def claim_held_by_another_process(out_dir: Path) -> Iterator[subprocess.Popen[st
     """A second process holding `out_dir`'s output claim, as a run writing there does; killed with SIGKILL after
     (so its claim is left stale, as a killed run's is)."""
     code = (
-        "import sys; from reconstruction._outdir import claim_output; "
-        "claim_output(sys.argv[1]); print('claimed', flush=True); sys.stdin.read()"
+        "import sys; from image2sim_common.outdir import claim_output; "
+        "claim_output(sys.argv[1], error=ValueError); print('claimed', flush=True); sys.stdin.read()"
     )
     proc = subprocess.Popen(
         [sys.executable, "-c", code, str(out_dir)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=REPO
@@ -123,7 +123,7 @@ def _release_output_claims() -> object:
     """In-process runs (the `cli` fixture, library calls) release the output folders they claimed, as a process's
     end does: a test that checked an output and then failed leaves no lock beside it for the next test."""
     yield
-    from reconstruction._outdir import release_output_claims
+    from image2sim_common.outdir import release_output_claims
 
     release_output_claims()
 

@@ -19,9 +19,9 @@ import numpy as np
 import pytest
 from conftest import claim_held_by_another_process
 
-from grounder import _simulate as sim
-from grounder._batch import load_jobs, ray_init_kwargs, read_result, run_batch
-from grounder._trajectory import Trajectory, save_trajectories
+import grounder.sim.rollout as sim
+from grounder.calibration.batch import load_jobs, ray_init_kwargs, read_result, run_batch
+from grounder.core.trajectory import Trajectory, save_trajectories
 from grounder.errors import GrounderError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -381,8 +381,8 @@ def test_a_job_whose_inputs_changed_runs_again(
     show the old result beside the new inputs. An unchanged job is still skipped."""
     import shutil
 
-    from grounder._batch import write_table
-    from grounder._trajectory import load_trajectory, save_trajectory
+    from grounder.calibration.batch import write_table
+    from grounder.core.trajectory import load_trajectory, save_trajectory
 
     scene = tmp_path / "scene" / "cube.xml"
     scene.parent.mkdir()
@@ -403,7 +403,7 @@ def test_a_job_whose_inputs_changed_runs_again(
 
     def run(seed_a: int = 0) -> tuple[tuple[str, ...], list[str]]:
         caplog.clear()
-        with caplog.at_level("WARNING", logger="grounder._batch"):
+        with caplog.at_level("WARNING", logger="grounder.calibration.batch"):
             summary = run_batch(jobs(seed_a), out, inline=True)
         assert set(summary.ran) | set(summary.skipped) == {"a", "b"} and not summary.failed
         return summary.ran, _reran(caplog)
@@ -447,7 +447,7 @@ def test_a_job_whose_inputs_changed_runs_again(
 def test_scene_fingerprint_covers_the_files_it_names(tmp_path: Path) -> None:
     """A scene is its MJCF and what it loads (a mesh here), and for a scene folder also its manifest; a batch output
     written inside a trajectory folder is not one of the folder's trajectories."""
-    from grounder._batch import scene_sha256, trajectories_sha256
+    from grounder.calibration.batch import scene_sha256, trajectories_sha256
 
     folder = tmp_path / "scene"
     (folder / "assets").mkdir(parents=True)
@@ -645,7 +645,7 @@ def test_corrupt_result_record_is_run_again(tmp_path: Path, traj_dir: Path, capl
     record_file = out / "results" / "job.json"
     record = json.loads(record_file.read_text())
     record_file.write_text(json.dumps({**record, "seconds": "abc"}))
-    with caplog.at_level("WARNING", logger="grounder._batch"):
+    with caplog.at_level("WARNING", logger="grounder.calibration.batch"):
         again = run_batch(jobs, out, inline=True)
     assert again.skipped == () and again.ran == ("job",) and again.failed == ()
     assert any("job.json" in r.getMessage() and "'seconds'" in r.getMessage() for r in caplog.records)
@@ -743,7 +743,7 @@ def test_deeply_nested_marker_or_record_is_not_trusted(
     (out / "batch.json").write_text(json.dumps({"format": "image2sim-batch/1"}))
     (out / "results" / "job.json").write_text(deep)
     assert read_result(out, "job") is None
-    with caplog.at_level("WARNING", logger="grounder._batch"):
+    with caplog.at_level("WARNING", logger="grounder.calibration.batch"):
         summary = run_batch(jobs, out, inline=True)
     assert summary.skipped == () and summary.ran == ("job",) and summary.failed == ()
     assert any("job.json" in r.getMessage() and "nested too deeply" in r.getMessage() for r in caplog.records)

@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from grounder import _simulate as sim
-from grounder._calibrate import CalibrateOptions, calibrate, split_names
-from grounder._calibrate_params import apply_to_model, apply_to_spec, resolve_parameters
-from grounder._repeats import split_keeping_together
-from grounder._trajectory import Trajectory, load_trajectories, save_trajectories
+import grounder.sim.rollout as sim
+from grounder.calibration.fit import CalibrateOptions, calibrate, split_names
+from grounder.calibration.parameters import apply_to_model, apply_to_spec, resolve_parameters
+from grounder.core.repeats import split_keeping_together
+from grounder.core.trajectory import Trajectory, load_trajectories, save_trajectories
 from grounder.errors import GrounderError
+from reconstruction.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
@@ -232,7 +233,7 @@ def test_a_copy_of_a_toss_is_named_and_kept_with_it(
     copy = Trajectory(time_s=src.time_s, qpos=qpos, qvel=qvel, name="toss_copy")
     options = CalibrateOptions(params=("cube.friction.sliding",), generations=0, local_iterations=0, nthread=1)
     out = tmp_path / "calibrated"
-    with caplog.at_level(logging.WARNING, logger="grounder._calibrate"):
+    with caplog.at_level(logging.WARNING, logger="grounder.calibration.fit"):
         result = calibrate(CUBE_XML, [*trajs, copy], options=options, out=out)
     lines = [r.getMessage() for r in caplog.records if "record the same motion" in r.getMessage()]
     assert len(lines) == 1 and "toss0=toss_copy" in lines[0], lines
@@ -251,8 +252,8 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def test_joint_defaults_recover_a_small_damping(tmp_path: Path) -> None:
     """A 0.5 kg, 30 cm pendulum with damping 0.01 N m s/rad: 1% of the old fixed [0, 1] range, which the default
     search never reached (it settled on friction loss 0.046 instead, 20 x the true model's loss)."""
-    from grounder._cases import make_case
-    from grounder._diagnose_bench import select_cases
+    from grounder.diagnosis.benchmark import select_cases
+    from grounder.diagnosis.cases import make_case
 
     case = make_case(select_cases(["pendulum/joint_damping"])[0], 16, seed=0)
     scene = tmp_path / "pendulum.xml"
@@ -280,7 +281,7 @@ def test_output_folder_filled_while_calibrating_keeps_the_result(
 ) -> None:
     """A second run, or the user, writing into the output folder while calibrate works: that was an OSError
     traceback at the end. Now one error naming where the complete result is; the other writer's file is kept."""
-    import grounder._calibrate_report as report
+    import grounder.calibration.report as report
 
     trajs, _ = synthetic
     out = tmp_path / "out"
@@ -362,7 +363,7 @@ def test_embedding_mode_needs_an_embedding(synthetic) -> None:
 def test_embedding_mode_malformed_scene_json_is_one_error(objects: object, needle: str, tmp_path: Path) -> None:
     """scene.json comes with the scene: each of these was a traceback (TypeError, AttributeError, ValueError) or an
     error naming neither the file nor the way out."""
-    from grounder._calibrate_embedding import embedding_space
+    from grounder.calibration.embedding import embedding_space
 
     def decoder(z: np.ndarray) -> dict:  # a property model of embedding size 2
         if z.shape != (2,):
@@ -379,7 +380,7 @@ def test_embedding_mode_malformed_scene_json_is_one_error(objects: object, needl
 
 def test_embedding_mode_recovers_a_known_embedding(synthetic, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """With a stand-in decoder (z -> friction, timeconst), the posterior embedding explains the synthetic tosses."""
-    import grounder._calibrate_embedding as emb
+    import grounder.calibration.embedding as emb
 
     def decoder(z: np.ndarray) -> dict:
         return {
@@ -565,7 +566,7 @@ def test_cli_rollout_refuses_a_state_beyond_what_mujoco_simulates(traj_dir: Path
 def test_cli_rollout_uses_the_residual_when_the_scene_has_one(
     traj_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import grounder._simulator as simulator
+    import grounder.residual.simulator as simulator
 
     calls: list[str] = []
 
@@ -791,7 +792,7 @@ def test_cli_overwrite_of_a_folder_inside_the_scene_is_refused(
     # An earlier output of the tool inside the input folder may be replaced.
     (scene / "calibrated").mkdir()
     (scene / "calibrated" / "calibration.json").write_text("{}")
-    check_output_dir(scene / "calibrated", overwrite=True, inputs=(scene,))
+    check_output_dir(scene / "calibrated", overwrite=True, inputs=(scene,), error=InputError)
 
 
 # ----------------------------------------------------------------------------------------------- options, scene.json
@@ -844,7 +845,7 @@ def test_cli_overwrite_of_a_folder_inside_the_scene_is_refused(
 def test_options_are_checked(settings: dict, needle: str) -> None:
     """Each field of `CalibrateOptions` is checked for type and range: one line naming it, the value and what is
     expected, whether it came from Python or a batch file's settings."""
-    from grounder._batch import options_from_settings
+    from grounder.calibration.batch import options_from_settings
 
     with pytest.raises(GrounderError) as caught:
         CalibrateOptions(**settings)
@@ -893,7 +894,7 @@ def test_cli_nan_rotation_weight_is_refused(traj_dir: Path, tmp_path: Path) -> N
 def test_note_replaces_a_linked_scene_json(tmp_path: Path) -> None:
     """The calibration note replaces the output's scene.json; it used to be written through a copied link, into the
     file the link points at (the user's own, outside the output folder)."""
-    from grounder._calibrate import _note_in_manifest
+    from grounder.calibration.fit import _note_in_manifest
 
     outside = tmp_path / "victim.json"
     outside.write_text('{"objects": {}, "note": "the user\'s own file"}')
@@ -950,7 +951,7 @@ def test_scene_json_linking_out_of_the_folder_is_refused_before_the_work(synthet
 def test_deeply_nested_scene_json_is_refused_before_the_work(synthetic, tmp_path: Path) -> None:
     """A scene.json nested deeper than Python's JSON parser allows raised RecursionError (a traceback), and only
     once the whole calibration had run; now one error before the first step, in raw and embedding mode."""
-    from grounder._calibrate_embedding import embedding_space
+    from grounder.calibration.embedding import embedding_space
 
     trajs, _ = synthetic
     scene = tmp_path / "scene"

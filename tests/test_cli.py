@@ -38,7 +38,7 @@ def test_help(args: list[str], cli: Callable[..., CliRun]) -> None:
 
 def test_log_messages_go_to_stderr_and_leave_stdout_to_the_results() -> None:
     code = (
-        "import logging; from grounder.cli import _setup_logging; _setup_logging(False); "
+        "import logging; from grounder.cli.common import setup_logging; setup_logging(False); "
         "logging.getLogger('grounder.x').warning('SCALE UNKNOWN: pass --aruco-size'); print('MJCF: out/scene.xml')"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
@@ -70,12 +70,12 @@ def test_the_command_line_starts_without_the_grounding_pipeline() -> None:
     torch; each public name still resolves to what it names, and `__all__` lists every lazy name."""
     code = (
         "import sys, grounder; print(sorted(m for m in ('pycolmap', 'open3d', 'trimesh', 'torch', "
-        "'grounder._ground') if m in sys.modules))"
+        "'grounder.grounding.pipeline') if m in sys.modules))"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0 and proc.stdout.strip() == "[]", (proc.stdout, proc.stderr[-2000:])
     import grounder
-    from grounder._ground import ground
+    from grounder.grounding.pipeline import ground
 
     assert set(grounder._LAZY) <= set(grounder.__all__)
     assert grounder.ground is ground and all(getattr(grounder, name) is not None for name in grounder.__all__)
@@ -342,12 +342,12 @@ def test_a_refused_read_or_write_is_one_line(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, cli: Callable[..., CliRun]
 ) -> None:
     """An OSError no command foresaw (permissions, a full disk) still ends as one line naming the path, exit 2."""
-    import grounder._import
+    import grounder.core.importers
 
     def refused(fmt: str, src_dir: Path) -> list[object]:
         raise PermissionError(13, "Permission denied", str(src_dir / "0.pt"))
 
-    monkeypatch.setattr(grounder._import, "import_trajectories", refused)
+    monkeypatch.setattr(grounder.core.importers, "import_trajectories", refused)
     src, out = tmp_path / "tosses", tmp_path / "out"
     src.mkdir()
     proc = cli("import-trajectories", str(src), "-o", str(out), "--format", "dair-pll-cube")
@@ -358,7 +358,7 @@ def test_a_refused_read_or_write_is_one_line(
 def test_fail_joins_a_message_over_several_lines(capsys: pytest.CaptureFixture[str]) -> None:
     import typer
 
-    from grounder.cli import fail
+    from grounder.cli.common import fail
 
     with pytest.raises(typer.Exit) as caught:
         fail("what was wrong\n  (a library's own text over lines)\nwhat to do")
@@ -369,7 +369,7 @@ def test_fail_joins_a_message_over_several_lines(capsys: pytest.CaptureFixture[s
 def test_value_checks_name_each_value_that_is_wrong(capsys: pytest.CaptureFixture[str]) -> None:
     import typer
 
-    from grounder.cli import require
+    from grounder.cli.common import require
 
     require(("--density", 600.0, True, "> 0"))  # all fine: nothing printed, no exit
     with pytest.raises(typer.Exit):

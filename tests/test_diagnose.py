@@ -16,10 +16,10 @@ from conftest import CliRun, assert_one_line_error
 from mujoco import rollout as mj_rollout
 
 from grounder import Trajectory, save_trajectories
-from grounder._cases import BENCHMARK, SCENES, CaseSpec, make_case
-from grounder._diagnose import DiagnoseOptions, _holdout_split, detect_phases, diagnose
-from grounder._effects import EFFECT_NAMES, LIBRARY, AppliedEffect, Transforms, apply_effects
-from grounder._gap import coordinate_groups, group_errors_sq, make_windows, predict
+from grounder.diagnosis.cases import BENCHMARK, SCENES, CaseSpec, make_case
+from grounder.diagnosis.effects import EFFECT_NAMES, LIBRARY, AppliedEffect, Transforms, apply_effects
+from grounder.diagnosis.gap import coordinate_groups, group_errors_sq, make_windows, predict
+from grounder.diagnosis.pipeline import DiagnoseOptions, _holdout_split, detect_phases, diagnose
 
 REQUIRED_EFFECTS = (
     "air_drag",
@@ -548,7 +548,7 @@ def test_benchmark_trajectories_that_cannot_finish_are_refused(
 
 
 def test_benchmark_library_refuses_trajectory_counts_before_the_first_case() -> None:
-    from grounder._diagnose_bench import MAX_TRAJECTORIES, run_benchmark, run_case
+    from grounder.diagnosis.benchmark import MAX_TRAJECTORIES, run_benchmark, run_case
     from grounder.errors import GrounderError
 
     for n in (16.0, 10**20, MAX_TRAJECTORIES + 1, 7):  # 16.0 first: without the check it fails at once

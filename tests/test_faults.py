@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from conftest import REPO, CliRun, assert_one_line_error, claim_held_by_another_process
 
-from reconstruction._outdir import (
+from image2sim_common.outdir import (
     check_output_dir,
     claim_output,
     release_output_claims,
@@ -48,15 +48,15 @@ def test_a_second_run_on_the_same_output_is_refused_and_a_killed_runs_leftovers_
     out = tmp_path / "scene"
     with claim_held_by_another_process(out) as other:
         with pytest.raises(InputError, match=rf"another image2sim run \(process {other.pid}\) is writing to .*scene"):
-            check_output_dir(out)
-        with pytest.raises(InputError, match="another image2sim run"), staged_output_dir(out):
+            check_output_dir(out, error=InputError)
+        with pytest.raises(InputError, match="another image2sim run"), staged_output_dir(out, error=InputError):
             pytest.fail("the block ran although another process holds the output")
         # what a run killed mid-way leaves: its staging folder, with part of a result in it
         leftover = next(iter(tmp_path.glob(".i2s-*.lock"))).with_suffix("").name + "-0123abcd.partial"
         (tmp_path / leftover).mkdir()
         (tmp_path / leftover / "half.bin").write_bytes(b"x" * 100)
     # the holder is dead now (SIGKILL): its claim is stale, and so is its staging
-    with staged_output_dir(out) as stage:
+    with staged_output_dir(out, error=InputError) as stage:
         assert not (tmp_path / leftover).exists()  # cleaned when the claim was taken over
         (stage / "scene.json").write_text("{}")
     assert (out / "scene.json").read_text() == "{}"
@@ -68,7 +68,7 @@ def test_a_folder_that_appears_at_the_output_mid_run_is_never_deleted(tmp_path: 
     final move). Now it is left as it is, and the finished result is kept beside it under a name of its own."""
     out = tmp_path / "scene"
     with pytest.raises(InputError, match=r"appeared while this run worked; it was left as it is.*kept, complete, in"):
-        with staged_output_dir(out) as stage:
+        with staged_output_dir(out, error=InputError) as stage:
             (stage / "scene.json").write_text("{}")
             out.mkdir()
             (out / "notes.txt").write_text("data")
@@ -82,14 +82,14 @@ def test_a_folder_that_appears_at_the_output_mid_run_is_never_deleted(tmp_path: 
     previous.mkdir()
     (previous / "scene.json").write_text("old")
     with pytest.raises(InputError, match="no longer an image2sim output; it was left as it is"):
-        with staged_output_dir(previous, overwrite=True) as stage:
+        with staged_output_dir(previous, overwrite=True, error=InputError) as stage:
             (stage / "scene.json").write_text("new")
             (previous / "scene.json").unlink()
             (previous / "thesis.tex").write_text("mine")
     assert _tree(previous) == {"thesis.tex": b"mine"}
     # An empty folder that appeared is simply filled.
     empty = tmp_path / "empty"
-    with staged_output_dir(empty) as stage:
+    with staged_output_dir(empty, error=InputError) as stage:
         (stage / "scene.json").write_text("{}")
         empty.mkdir()
     assert _tree(empty) == {"scene.json": b"{}"}
@@ -101,12 +101,12 @@ def test_an_output_moved_aside_by_a_killed_run_is_put_back(tmp_path: Path) -> No
     out = tmp_path / "scene"
     out.mkdir()
     (out / "scene.json").write_text("previous")
-    claim_output(out)  # to learn the names beside it
+    claim_output(out, error=InputError)  # to learn the names beside it
     key = next(iter(tmp_path.glob(".i2s-*.lock"))).with_suffix("").name
     release_output_claims()
     out.rename(tmp_path / f"{key}-89abcdef.old")
     with pytest.raises(InputError, match="already exists and is not empty"):
-        check_output_dir(out)  # put back first, so it is refused as the existing output it is
+        check_output_dir(out, error=InputError)  # put back first, so it is refused as the existing output it is
     assert _tree(out) == {"scene.json": b"previous"}
     assert _hidden(tmp_path) == []
 
@@ -114,12 +114,12 @@ def test_an_output_moved_aside_by_a_killed_run_is_put_back(tmp_path: Path) -> No
 def test_names_the_file_system_allows_are_taken(tmp_path: Path) -> None:
     """A valid 250-character `-o` was refused as too long (the staging name added 18 characters to it)."""
     out = tmp_path / ("n" * 250)
-    with staged_output_dir(out) as stage:
+    with staged_output_dir(out, error=InputError) as stage:
         (stage / "scene.json").write_text("{}")
     assert (out / "scene.json").is_file() and _hidden(tmp_path) == []
     # a folder that appears at such a name mid-run: the result is kept under a name that fits too
     long = tmp_path / ("m" * 255)
-    with pytest.raises(InputError, match="kept, complete"), staged_output_dir(long) as stage:
+    with pytest.raises(InputError, match="kept, complete"), staged_output_dir(long, error=InputError) as stage:
         (stage / "scene.json").write_text("{}")
         long.mkdir()
         (long / "x").write_text("x")
@@ -224,12 +224,12 @@ def test_an_enospc_anywhere_is_one_line_naming_the_folder(
     cli: Callable[..., CliRun], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Any write that finds the disk full, where no check foresaw it, ends as one line with what to free, exit 2."""
-    import grounder.cli
+    import grounder.cli.app
 
     def full(*args: object, **kwargs: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device", "/data/out/.i2s-0123456789ab-00000000.partial/x.npz")
 
-    monkeypatch.setattr(grounder.cli, "app", full)
+    monkeypatch.setattr(grounder.cli.app, "app", full)
     proc = cli("rollout", "a", "b", "-o", "c")
     assert_one_line_error(proc, "no space left on the disk that holds /", "df -h")
     assert ".i2s-" not in proc.stderr  # the staging folder is no name the user knows
@@ -240,8 +240,8 @@ def test_ground_never_leaves_its_warm_up_thread_running(tmp_path: Path, monkeypa
     """SIGINT or SIGTERM early in `ground`, or input refused after mapping began ("no object found on the table"),
     printed its line and then crashed (SIGSEGV, exit 139): the warm-up thread (open3d, torch, MuJoCo), a daemon,
     was still in C++ when the interpreter tore down. `ground` now stops it and waits for it on every way out."""
-    import grounder._ground as ground_module
-    import grounder._properties as properties_module
+    import grounder.grounding.pipeline as ground_module
+    import grounder.properties.prior as properties_module
     from grounder import ground
     from reconstruction.errors import RegistrationError
 
@@ -272,14 +272,15 @@ def test_an_internal_failure_is_one_line_naming_the_stage_and_debug_prints_the_t
 ) -> None:
     """An exception no check foresaw (a bug) was a bare traceback. It is now one line naming the command, the stage
     it was in and the error, exit 1; `--debug`, anywhere on the line, prints the traceback as well."""
-    import grounder.cli
+    import grounder.cli.app
+    import grounder.cli.common
 
     def broken(*args: object, **kwargs: object) -> None:
-        with grounder.cli.stage_progress() as report:
+        with grounder.cli.common.stage_progress() as report:
             report("meshing objects", 1, 4)
             raise ValueError("Surface level must be within volume data range.")
 
-    monkeypatch.setattr(grounder.cli, "app", broken)
+    monkeypatch.setattr(grounder.cli.app, "app", broken)
     proc = cli("ground", "video.mp4", "-o", "scene")
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("image2sim: internal error in ground (meshing objects): ValueError: Surface level"), last
@@ -342,7 +343,7 @@ def test_one_object_that_cannot_be_meshed_does_not_lose_the_scene(
         return real_mesh_object(*args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(objects_module, "mesh_object", fails_on_the_second)
-    import grounder._ground as ground_module
+    import grounder.grounding.pipeline as ground_module
 
     real_decomposition, real_bake = ground_module.convex_decomposition, ground_module.bake_texture_report
     decompositions, bakes = [], []
@@ -419,12 +420,12 @@ def test_a_native_librarys_full_disk_error_is_the_full_disk_line(
 ) -> None:
     """faiss (COLMAP's loop-detection index) reports a full disk as a RuntimeError, which read as an internal error,
     exit 1 (found by `benchmarks/faults.py`, the disk filled while matching). It is the full-disk line, exit 2."""
-    import grounder.cli
+    import grounder.cli.app
 
     def full(*args: object, **kwargs: object) -> None:
         raise RuntimeError("Error in void faiss::write_index: write error in : 3998 != 16384 (No space left on device)")
 
-    monkeypatch.setattr(grounder.cli, "app", full)
+    monkeypatch.setattr(grounder.cli.app, "app", full)
     proc = cli("ground", "video.mp4", "-o", "/data/scene")
     assert_one_line_error(proc, "no space left on the disk that holds /", "df -h")
     assert "internal error" not in proc.stderr

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from conftest import PROGRESS_LINE, assert_one_line_error
 
-from grounder._evaluate import ObjectError, compare_to_truth
+from grounder.grounding.evaluate import ObjectError, compare_to_truth
 from reconstruction import ReconstructionResult
 from scene_export import settle_test
 
@@ -205,7 +205,7 @@ def test_a_failed_background_decomposition_falls_back_to_one_hull() -> None:
     the `DecompositionError` it is (the CLI's one line, exit 2)."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from grounder._ground import GroundOptions, _object_specs
+    from grounder.grounding.pipeline import GroundOptions, _object_specs
     from reconstruction._types import ObjectInstance, TexturedMesh
     from scene_export import CollisionGeometry
     from scene_export.errors import DecompositionError
@@ -245,7 +245,7 @@ def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_fai
     import threading
 
     from grounder import _properties, _restitution
-    from grounder._ground import GroundOptions, _start_warm_up
+    from grounder.grounding.pipeline import GroundOptions, _start_warm_up
 
     asked: list[tuple[object, ...]] = []
 
@@ -280,8 +280,8 @@ def test_scan_frames_for_the_feature_models_read_back_with_their_cameras(scene_d
     """`track --scan-features` reads the scene folder's scan frames back (`load_scan`): each frame's camera pose,
     converted from transforms.json's OpenGL axes, agrees with the true camera of that video frame (within 5 mm and
     0.5 deg), and each object's scan pose is the one scene.json gives."""
-    from grounder._track import TrackOptions, load_scan
-    from grounder._track_smooth import rotation_angle_deg
+    from grounder.tracking.pipeline import TrackOptions, load_scan
+    from image2sim_common.rotations import rotation_angle_deg
 
     names = list(json.loads((scene_dir / "scene.json").read_text())["objects"])
     loaded = load_scan(
@@ -308,8 +308,8 @@ def test_scan_frames_for_the_feature_models_read_back_with_their_cameras(scene_d
 def test_ground_options_refuse_values_that_cannot_work(field: str, value: object) -> None:
     """From Python, GroundOptions(default_density_kg_m3=inf) used to run a minute of reconstruction and then fail
     naming another value; the options now refuse it when built."""
-    from grounder._ground import GroundOptions
     from grounder.errors import GrounderError
+    from grounder.grounding.pipeline import GroundOptions
 
     with pytest.raises(GrounderError, match=field):
         GroundOptions(**{field: value})
@@ -321,7 +321,7 @@ def test_known_extent_goes_to_the_longest_object_not_the_bulkiest() -> None:
     estimate and the option's help both mean the object with the longest extent."""
     from types import SimpleNamespace
 
-    from grounder._ground import _extent_factor
+    from grounder.grounding.pipeline import _extent_factor
 
     scene = SimpleNamespace(objects=(_box("bowl", (0.16, 0.16, 0.06)), _box("plate", (0.19, 0.19, 0.02))))
     factor, largest = _extent_factor(scene, 0.198)
@@ -346,7 +346,7 @@ def test_known_extent_keeps_the_sparse_scale_when_the_longest_mesh_cannot_be_mea
     large ones from a mesh that can be measured (held-out 1029: x 1.38, right), stand."""
     from types import SimpleNamespace
 
-    from grounder._ground import _extent_step
+    from grounder.grounding.pipeline import _extent_step
 
     def step(*objects: object, known: float) -> tuple[float, str, str | None]:
         return _extent_step(SimpleNamespace(objects=objects), known)
@@ -383,7 +383,7 @@ def test_known_extent_refinement_judges_the_total_against_the_sparse_scale() -> 
     (no sparse point on any object) whatever the meshes say is taken, and the warning names the final object."""
     from types import SimpleNamespace
 
-    from grounder._ground import _refine_known_extent
+    from grounder.grounding.pipeline import _refine_known_extent
 
     calls: list[float] = []
 
@@ -435,7 +435,7 @@ def test_known_extent_counts_a_visual_hull_by_its_height() -> None:
     A hull may join objects side by side, not make them taller, so it counts by its height."""
     from types import SimpleNamespace
 
-    from grounder._ground import _extent_factor
+    from grounder.grounding.pipeline import _extent_factor
 
     bottle, wide_hull = _box("bottle", (0.06, 0.06, 0.222)), _box("hull", (0.23, 0.14, 0.07), "silhouette")
     assert _extent_factor(SimpleNamespace(objects=(bottle, wide_hull)), 0.224)[1] == "bottle"
@@ -455,7 +455,7 @@ def test_known_extent_is_measured_along_the_footprint_not_the_world_axes() -> No
     span given the carton's known 10.8 cm scaled the scene x 0.84. The footprint's own sides are measured."""
     from types import SimpleNamespace
 
-    from grounder._ground import _extent_factor
+    from grounder.grounding.pipeline import _extent_factor
 
     box = _box("carton", (0.108, 0.088, 0.051))
     turn = np.deg2rad(40.0)

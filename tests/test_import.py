@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from grounder._import import load_dair_pll_cube
-from grounder._trajectory import load_trajectories
+from grounder.core.importers import load_dair_pll_cube
+from grounder.core.trajectory import load_trajectories
 from grounder.errors import GrounderError
 
 REPO = Path(__file__).resolve().parents[1]

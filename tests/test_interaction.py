@@ -1,4 +1,4 @@
-"""Identifiability screen and constrained calibration of `grounder._interaction` on a small synthetic scene.
+"""Identifiability screen and constrained calibration of `grounder.interaction.pipeline` on a small synthetic scene.
 
 A box is thrown along a table and slides to rest (its friction shows); a second box sits still the whole time (its
 friction leaves no trace). The recorded motion is simulated with known values, so the answers are known.
@@ -13,8 +13,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from grounder._interaction import InteractionOptions, calibrate_constrained, screen_parameters
-from grounder._trajectory import Trajectory
+from grounder.core.trajectory import Trajectory
+from grounder.interaction.pipeline import InteractionOptions, calibrate_constrained, screen_parameters
 
 SCENE = """
 <mujoco>
@@ -106,7 +106,7 @@ def test_a_value_the_screen_passed_but_unresolved_where_the_fit_lands_keeps_the_
     """The screen looks at its grid best; the fit may land where the clip says nothing. With a screen that passes
     everything, the still box's friction is fitted (any value matches a box that never moves), then found unresolved
     at the fitted value: it keeps the prior, the slider is fitted again alone, and the written scene holds the prior."""
-    import grounder._interaction as interaction
+    import grounder.interaction.pipeline as interaction
 
     real_screen = interaction.screen_parameters
 
@@ -139,7 +139,7 @@ def test_nothing_constrained_calibrates_nothing(tmp_path: Path) -> None:
 def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scene(tmp_path: Path) -> None:
     """The two boxes never touch: each is calibrated in a scene of its own on windows of its own motion; the values
     found are written into the whole scene (its calibration.json says so) and no helper file is left behind."""
-    from grounder._interaction import calibrate_per_body, separable_bodies
+    from grounder.interaction.pipeline import calibrate_per_body, separable_bodies
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -179,7 +179,7 @@ def test_per_object_calibration_writes_nothing_into_the_scene_folder(
     calibrations of one scene at once delete each other's (seen: `ParseXML: Error opening file .calibrate_...xml`)."""
     import trimesh
 
-    import grounder._interaction as interaction
+    import grounder.interaction.pipeline as interaction
 
     folder = tmp_path / "prior"
     (folder / "assets").mkdir(parents=True)
@@ -213,7 +213,7 @@ def test_per_object_calibration_writes_nothing_into_the_scene_folder(
 def test_per_object_values_are_written_without_any_segment(tmp_path: Path) -> None:
     """No frame has both boxes tracked (no segment): each box's own runs still calibrate it, and the values are
     written into the whole scene (`write_values`), said to be unevaluated on it."""
-    from grounder._interaction import _single_body_trajectory, calibrate_per_body
+    from grounder.interaction.pipeline import _single_body_trajectory, calibrate_per_body
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -238,7 +238,7 @@ def test_per_object_values_are_written_without_any_segment(tmp_path: Path) -> No
 
 
 def test_touching_objects_are_not_separable(tmp_path: Path) -> None:
-    from grounder._interaction import separable_bodies
+    from grounder.interaction.pipeline import separable_bodies
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -252,7 +252,7 @@ def test_reliable_starts_skip_the_frames_next_to_an_impact() -> None:
     flight are good starts (their velocity comes from the ballistic fit) except the last before the landing
     (impacts are resolved to a frame: it may already be past it); the first sample after the landing is not (it may
     still be mid-impact); the rest of the slide is, to the end of the trajectory."""
-    from grounder._interaction import reliable_starts
+    from grounder.interaction.pipeline import reliable_starts
 
     dt, g = 1 / 30, 9.81
     time_s = np.arange(24) * dt
@@ -282,7 +282,7 @@ def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
     """`CalibrateOptions.separate_bodies` searches each body's parameters on its own (here the slider's friction is
     found from a prior of 0.8 while the still box's stays put); `initial` with no search budget returns exactly
     the given values, evaluated; a non-body parameter is refused."""
-    from grounder._calibrate import CalibrateOptions, calibrate
+    from grounder.calibration.fit import CalibrateOptions, calibrate
     from grounder.errors import GrounderError
 
     traj = _recorded(tmp_path)
@@ -305,7 +305,7 @@ def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
 def test_reliable_starts_skip_the_frame_after_a_bounce() -> None:
     """A ball dropped from 20 cm bounces (restitution 0.6) between two frames at 30 fps and flies again: both
     flights are good starts except the two samples around the bounce."""
-    from grounder._interaction import reliable_starts
+    from grounder.interaction.pipeline import reliable_starts
 
     dt, g = 1 / 30, 9.81
     time_s = np.arange(20) * dt
@@ -358,7 +358,7 @@ def _corrupted(traj: Trajectory, dx_m: float, dv_m_s: float) -> Trajectory:
 def test_start_refit_recovers_the_true_start_from_the_motion_after_it(tmp_path: Path) -> None:
     """A start 4 mm and 0.15 m/s off (a fresh detection's error): the refit brings it back from the motion after
     it, to within the roughness the landing gives the cost (about a millimetre and 3 cm/s here)."""
-    from grounder._interaction_starts import refine_window_starts
+    from grounder.interaction.starts import refine_window_starts
 
     scene, traj = _ball(tmp_path, TRUE_FRICTION)
     bad = _corrupted(traj, 0.004, 0.15)
@@ -383,9 +383,9 @@ def test_start_refits_leave_a_clean_recording_at_its_true_start_and_friction(tmp
 
 
 def test_along_view_weight_scales_only_the_error_along_the_camera_ray(tmp_path: Path) -> None:
-    from grounder._calibrate import Evaluator
-    from grounder._calibrate_params import resolve_parameters
-    from grounder._simulate import along_view_weighted
+    from grounder.calibration.fit import Evaluator
+    from grounder.calibration.parameters import resolve_parameters
+    from grounder.sim.rollout import along_view_weighted
 
     view_m = np.array([0.0, -0.5, 0.5])
     seen_m = np.array([0.0, 0.0, 0.0])
@@ -415,7 +415,7 @@ def test_along_view_weight_scales_only_the_error_along_the_camera_ray(tmp_path: 
 
 
 def test_view_point_is_the_mean_camera_centre_where_the_camera_is_known() -> None:
-    from grounder._interaction import view_point_of
+    from grounder.interaction.pipeline import view_point_of
 
     poses = np.tile(np.eye(4), (3, 1, 1))
     poses[0, :3, 3] = [0.0, -0.5, 0.5]
@@ -448,8 +448,8 @@ def test_the_time_constant_is_calibrated_with_the_damping_ratio(
     at MuJoCo's time step: with the time constant held at the prior the damping ratio comes out biased; calibrated
     together (`default_params`), both come out right, and the time constant stays fitted with its damping ratio even
     where a step of it alone does not show at the fit."""
-    import grounder._interaction as interaction
-    from grounder._interaction import CONTACT_FIELDS, default_params
+    import grounder.interaction.pipeline as interaction
+    from grounder.interaction.pipeline import CONTACT_FIELDS, default_params
 
     assert "solref.timeconst" in CONTACT_FIELDS and "ball.solref.timeconst" in default_params(["ball"])
     true_xml = tmp_path / "truth.xml"
@@ -477,7 +477,7 @@ def test_the_time_constant_is_calibrated_with_the_damping_ratio(
 def test_a_time_constant_is_fitted_wherever_its_damping_ratio_is() -> None:
     """The screen moves one parameter at a time by 20%; a time constant whose prior is off by a factor of 2 shows
     little that way, yet held there it biases the damping ratio. It is fitted whenever its body's damping ratio is."""
-    from grounder._interaction import ParameterScreen, _paired
+    from grounder.interaction.pipeline import ParameterScreen, _paired
 
     def screen(name: str, constrained: bool) -> ParameterScreen:
         return ParameterScreen(
@@ -505,9 +505,9 @@ def test_robust_scale_keeps_one_badly_measured_trajectory_from_deciding(tmp_path
     """Five pushes of the box at 0.8-1.6 m/s sliding to rest at friction 0.4; one recording's start velocity is 2 m/s
     too fast (as a tracked start next to an impact can be). The mean loss lets that one pull friction far up to
     stop it in time; with `robust_scale` it weighs like a few trajectories, and the other four decide."""
-    from grounder._calibrate import CalibrateOptions, calibrate
-    from grounder._interaction import CALIBRATE_SETTINGS
+    from grounder.calibration.fit import CalibrateOptions, calibrate
     from grounder.errors import GrounderError
+    from grounder.interaction.pipeline import CALIBRATE_SETTINGS
 
     model = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
     pushes = [_simulated(model, {0: v_m_s}, 15, f"push_{i}") for i, v_m_s in enumerate((0.8, 1.0, 1.2, 1.4, 1.6))]
@@ -533,8 +533,8 @@ def test_start_error_ranges_follow_the_slide_length_a_start_speed_error_implies(
     """The slider is thrown at 1.5 m/s and slides to rest: its slide length v^2 / (2 mu g) trades friction against
     the start speed. With the start 10% too fast (slow), the friction that fits best is about 1.1^2 (0.9^2) times the
     true one; the report's range must span that, and no range is computed when the error is 0."""
-    from grounder._interaction import start_error_ranges
     from grounder.errors import GrounderError
+    from grounder.interaction.pipeline import start_error_ranges
 
     traj = _recorded(tmp_path)
     base = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
@@ -557,10 +557,10 @@ def test_start_error_ranges_also_move_the_whole_start_where_a_landing_turns_on_i
     cannot move it; but a start 5 mm too low (what a tracked depth can be) puts the best damping ratio 35% low. The
     default profile also draws whole-state start errors of tracking's size (`InteractionOptions.start_state_draws`):
     its range must reach past the screen's -20% step, so the value is flagged as resting on the starts."""
-    from grounder._calibrate import Evaluator
-    from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction import start_error_ranges
+    from grounder.calibration.fit import Evaluator
+    from grounder.calibration.parameters import resolve_parameters
     from grounder.errors import GrounderError
+    from grounder.interaction.pipeline import start_error_ranges
 
     true_xml = tmp_path / "truth.xml"
     true_xml.write_text(DROPPED_BALL.format(timeconst=0.02, dampratio=0.2))
@@ -589,7 +589,7 @@ def test_start_error_ranges_also_move_the_whole_start_where_a_landing_turns_on_i
 def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -> None:
     """A value flagged as resting on the start states' accuracy gets the advice to film faster, with the clip's own
     frame rate; without such a value the advice is not given."""
-    from grounder._interaction import _markdown
+    from grounder.interaction.pipeline import _markdown
 
     record = {"nominal": 0.45, "value": 0.25, "interval": [0.23, 0.27], "start_error_range": [0.2, 0.3]}
     payload = {
@@ -611,7 +611,7 @@ def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -
 
 
 def test_a_slow_interaction_clip_gets_the_advice_to_film_faster() -> None:
-    from grounder._interaction import frame_rate_advice
+    from grounder.interaction.pipeline import frame_rate_advice
 
     advice = frame_rate_advice(30.0)
     assert advice is not None and "30 frames per second" in advice and "60 fps" in advice
@@ -621,7 +621,7 @@ def test_a_slow_interaction_clip_gets_the_advice_to_film_faster() -> None:
 def test_videos_are_checked_before_any_work_and_only_those_read(tmp_path: Path) -> None:
     """An unreadable clip fails at once, before the grounding; the scan is checked only when it will be read (not
     when a grounded scene is reused)."""
-    from grounder._interaction import ground_with_interaction
+    from grounder.interaction.pipeline import ground_with_interaction
     from reconstruction.errors import InputError
 
     clip = tmp_path / "toss.mp4"
@@ -638,8 +638,8 @@ def test_videos_are_checked_before_any_work_and_only_those_read(tmp_path: Path) 
 def test_a_missing_marker_size_fails_before_the_grounding(tmp_path: Path) -> None:
     """Tracking needs the table marker's size; without it `ground --interaction` failed only after grounding the
     scan (about 3 minutes). Now it fails at once, saying which option to pass, and writes nothing."""
-    from grounder._interaction import ground_with_interaction
     from grounder.errors import GrounderError
+    from grounder.interaction.pipeline import ground_with_interaction
 
     samples = Path(__file__).resolve().parents[1] / "samples"
     with pytest.raises(GrounderError, match=r"pass --aruco-size M \(--known-extent cannot stand in for it\)"):

@@ -1,4 +1,4 @@
-"""Contact values from impacts between free flights (`grounder._interaction_impacts`): a box thrown onto a table
+"""Contact values from impacts between free flights (`grounder.interaction.impacts`): a box thrown onto a table
 with known friction and restitution, tracked with noise, must give those values back where an impact shows them,
 and leave a value unresolved where it does not."""
 
@@ -11,8 +11,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from grounder._calibrate_params import resolve_parameters
-from grounder._interaction_impacts import (
+from grounder.calibration.parameters import resolve_parameters
+from grounder.core.trajectory import Trajectory
+from grounder.errors import GrounderError
+from grounder.interaction.impacts import (
     ImpactOptions,
     find_flights,
     find_impacts,
@@ -20,11 +22,8 @@ from grounder._interaction_impacts import (
     impacts_figure,
     spin_at_end,
 )
-from grounder._residual import quat_to_mat, rotvec_to_quat
-from grounder._restitution import contact_solref, simulated_restitution
-from grounder._track_smooth import quat_mul
-from grounder._trajectory import Trajectory
-from grounder.errors import GrounderError
+from grounder.sim.restitution import contact_solref, simulated_restitution
+from image2sim_common.rotations import quat_mul, quat_to_mat, rotvec_to_quat
 
 CONTACT = ("box.friction.sliding", "box.solref.timeconst", "box.solref.dampratio")
 
@@ -163,7 +162,7 @@ def test_the_spin_before_a_landing_follows_a_tumbling_body() -> None:
     # The constant-spin guess it starts from: the mean rate over the frames.
     first = int(flight.rows[0])
     rel = quat_mul(traj.qpos[last, 3:7], np.array([1.0, -1.0, -1.0, -1.0]) * traj.qpos[first, 3:7])
-    from grounder._residual import quat_to_rotvec
+    from image2sim_common.rotations import quat_to_rotvec
 
     constant = quat_to_rotvec(rel) / (flight.time_s[-1] - flight.time_s[0])
     assert np.linalg.norm(constant - true_spin) > max(0.5, 5.0 * fitted_error)
@@ -175,7 +174,7 @@ def test_ground_interaction_calibrates_from_impacts(tmp_path: Path) -> None:
     seed, the best restitution is -17%; with seeds 1 and 2 it is exact, and compared with the next flight alone it
     is within 10%, above) are calibrated, the time constant is set with the bounce, and the report names the impacts
     and the restitution."""
-    from grounder._interaction import InteractionOptions, calibrate_per_body, default_params
+    from grounder.interaction.pipeline import InteractionOptions, calibrate_per_body, default_params
 
     truth = _scene(0.3, 0.6).compile()
     traj, _ = _throw(truth, (1.5, 0.3, -0.8), (1.0, -3.0, 0.5))
@@ -200,7 +199,7 @@ def test_ground_interaction_calibrates_from_impacts(tmp_path: Path) -> None:
     bounce = entry["per_object"]["box"]["restitution"]
     assert bounce["resolved"] and bounce["value"] == pytest.approx(0.6, rel=0.2)
     # The stability copies that confirmed the friction are in the report, and in its words.
-    from grounder._interaction import _copies_text
+    from grounder.interaction.pipeline import _copies_text
 
     hits = entry["per_object"]["box"]["impacts"]
     copies = hits["stability_copies"]
@@ -302,8 +301,8 @@ def test_a_value_stays_resolved_only_where_copies_of_the_tracks_agree(monkeypatc
     a chaotic landing) disagree, and the values they do not confirm lose their resolved flag. Each copy draws its
     own start states (another seed): the copies shared the first fit's draws, so a call resting on one draw of them
     (the can of `samples/toss`, start seeds 0-3: +29%, +29%, unresolved, +5%) passed the check."""
-    import grounder._interaction_impacts as impacts_module
-    from grounder._interaction_impacts import stable_fit
+    import grounder.interaction.impacts as impacts_module
+    from grounder.interaction.impacts import stable_fit
 
     seeds: list[int] = []
     real_fit = impacts_module.fit_impacts
@@ -341,7 +340,7 @@ def test_start_draws_are_the_cholesky_factors_and_keep_a_singular_covariance() -
     whose vectors' signs depend on the CPU's LAPACK: one seed gave other draws, and a restitution of 0.525 instead of
     0.6, on an AMD EPYC. A drift's squared-exponential covariance is singular (plain Cholesky fails on it); the draws
     still have its covariance, and a matrix a rounding error below semi-definite is drawn from too."""
-    from grounder._interaction_impacts import _gaussian_draws
+    from grounder.interaction.impacts import _gaussian_draws
 
     time_s = np.arange(12) / 30.0
     cov = 0.004**2 * np.exp(-0.5 * ((time_s[:, None] - time_s[None, :]) / 0.3) ** 2)

@@ -1,4 +1,4 @@
-"""Multiple shooting over a whole run (`grounder._interaction_shooting`): the node states are fitted, so velocities
+"""Multiple shooting over a whole run (`grounder.interaction.shooting`): the node states are fitted, so velocities
 as far off as a tracked one at a landing do not move the contact values."""
 
 from __future__ import annotations
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from test_interaction import DROPPED_BALL
 
-from grounder._interaction_shooting import ShootingOptions, ShootingProblem, contact_profile, moving_runs
-from grounder._trajectory import Trajectory
+from grounder.core.trajectory import Trajectory
 from grounder.errors import GrounderError
+from grounder.interaction.shooting import ShootingOptions, ShootingProblem, contact_profile, moving_runs
 
 TRUE = (0.4, 0.2)  # friction, damping ratio: DROPPED_BALL's friction and the damping ratio written below
 
@@ -68,7 +68,7 @@ def test_shooting_finds_the_contact_values_from_tracked_velocities_far_off() -> 
 def test_the_jacobian_from_two_batched_rollouts_is_the_dense_one() -> None:
     """Nodes two apart share no residual row, so moving every second node at once (24 perturbed node sets in one
     batched rollout) gives the same finite-difference Jacobian as moving one variable at a time."""
-    from grounder._interaction_shooting import _STEP
+    from grounder.interaction.shooting import _STEP
 
     model, truth = _thrown()
     problem = ShootingProblem(model, [truth], QUICK)
@@ -158,7 +158,7 @@ def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_pr
     (`test_sampling_sweeps_get_below_where_least_squares_stops`)."""
     from test_interaction import PARAMS, TRUE_FRICTION, _recorded, _scene
 
-    from grounder._interaction import InteractionOptions, _markdown, calibrate_per_body
+    from grounder.interaction.pipeline import InteractionOptions, _markdown, calibrate_per_body
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -186,7 +186,7 @@ def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_pr
 
 
 def test_an_unknown_calibration_method_is_refused() -> None:
-    from grounder._interaction import InteractionOptions
+    from grounder.interaction.pipeline import InteractionOptions
 
     with pytest.raises(GrounderError, match="calibration='grid'"):
         InteractionOptions(calibration="grid")
@@ -216,8 +216,8 @@ def test_the_search_judges_its_last_centre_even_when_a_check_moved_it(monkeypatc
     """A cost whose minimum lies far above the start: with one move per step and no restart, a 20% check is lower
     and becomes the centre as the search ends; that centre's own checks are then evaluated (a KeyError before) and
     the value, still falling, is reported unresolved."""
-    from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction_shooting import fit_contact
+    from grounder.calibration.parameters import resolve_parameters
+    from grounder.interaction.shooting import fit_contact
 
     model, truth = _thrown()
     (friction,) = resolve_parameters(model, ["ball.friction.sliding"])
@@ -243,8 +243,8 @@ def test_a_resolved_bounce_sets_both_solref_values_where_one_alone_is_not(
     the search over time constant and damping ratio (from 0.02 s, 0.4) finds the bounce of the truth (0.02 s, 0.2)
     within 20% and calls it resolved, and both solref values are reported calibrated, one of them with the bounce
     where it is not resolved by itself, so the scene bounces as the fit did."""
-    from grounder._interaction import shoot_body
-    from grounder._restitution import body_restitution
+    from grounder.interaction.pipeline import shoot_body
+    from grounder.sim.restitution import body_restitution
 
     _, truth = _thrown()
     e_true = body_restitution(
@@ -276,9 +276,9 @@ def test_the_search_keeps_to_contacts_whose_bounce_the_time_step_resolves(monkey
     step the impact falls), the search first softens the start and never evaluates a contact whose bounce varies by
     more than `max_bounce_spread`; it still finds the bounce of the truth (0.02 s, 0.3) within 20%. A node fit could
     give each landing of such a contact its own bounce by moving a node a fraction of a step."""
-    from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction_shooting import fit_contact
-    from grounder._restitution import body_restitution, body_restitution_over_phases, bounce_spread
+    from grounder.calibration.parameters import resolve_parameters
+    from grounder.interaction.shooting import fit_contact
+    from grounder.sim.restitution import body_restitution, body_restitution_over_phases, bounce_spread
 
     _, truth = _thrown()
     e_true = body_restitution(
@@ -311,8 +311,8 @@ def test_cross_fits_keep_a_lucky_fit_from_resolving_a_wrong_friction() -> None:
     (`cross_fit_points`) every cost shared with that search is as low or lower, the best is no worse, and the
     costs from 0.46 to 0.8 lie within 1 of each other: the run does not pin the friction, and no wrong value is
     called resolved."""
-    from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction_shooting import fit_contact
+    from grounder.calibration.parameters import resolve_parameters
+    from grounder.interaction.shooting import fit_contact
 
     def search(cross_fit_points: int) -> tuple[object, dict[float, float]]:
         model, truth = _thrown()

@@ -21,16 +21,16 @@ import pytest
 from conftest import CliRun, assert_one_line_error, run_cli
 
 import grounder
-from grounder._evaluate import compare_to_truth
-from grounder._properties import (
+from grounder.grounding.evaluate import compare_to_truth
+from grounder.properties.materials import MATERIALS, PhysicalProperties
+from grounder.properties.prior import (
     WEIGHTS_DIR,
     decode_embedding,
     load_property_model,
     sample_scene_variants,
     sample_variant_specs,
 )
-from grounder._properties_data import crop_square, shape_features
-from grounder._properties_materials import MATERIALS, PhysicalProperties
+from grounder.properties.training_data import crop_square, shape_features
 
 MEAN_KEYS = {"density_kg_m3", "friction", "solref", "restitution"}
 
@@ -39,7 +39,7 @@ MEAN_KEYS = {"density_kg_m3", "friction", "solref", "restitution"}
 
 
 def test_material_table_ranges_are_cited_and_ordered() -> None:
-    from grounder import _properties_materials as table
+    import grounder.properties.materials as table
 
     for m in MATERIALS:
         for low, high in (m.density_kg_m3, m.sliding, m.contact_radius_m, m.rolling_m, m.restitution, m.timeconst_s):
@@ -53,7 +53,7 @@ def test_material_table_ranges_are_cited_and_ordered() -> None:
 def test_the_written_solref_bounces_at_the_predicted_restitution() -> None:
     # The drop test of an exported scene's contact, not a formula: what `ground` writes for a predicted restitution
     # must bounce at it (the textbook spring-damper mapping bounced 8-14% higher on samples/tabletop's objects).
-    from grounder._restitution import MIN_TIMECONST_STEPS, bounce_spread, restitution_over_phases
+    from grounder.sim.restitution import MIN_TIMECONST_STEPS, bounce_spread, restitution_over_phases
     from scene_export._mjcf import ExportOptions, SceneObjectSpec
 
     spec = mujoco.MjSpec()
@@ -117,7 +117,7 @@ def test_shipped_weights_are_small_and_carry_their_recipe() -> None:
     # `image2sim properties train` with its defaults is the recipe that made the shipped weights.
     from dataclasses import asdict
 
-    from grounder._properties_model import TrainOptions
+    from grounder.properties.network import TrainOptions
 
     assert meta["recipe"]["options"] == asdict(TrainOptions())
 
@@ -180,7 +180,7 @@ def test_cli_bad_input_exits_2(tmp_path: Path, cli: Callable[..., CliRun]) -> No
 
 def test_a_missing_model_folder_says_how_to_make_one_there(tmp_path: Path) -> None:
     """Not plain `image2sim properties train`, which would regenerate the package's own weights instead."""
-    from grounder._properties import load_property_model
+    from grounder.properties.prior import load_property_model
 
     with pytest.raises(grounder.GrounderError) as info:
         load_property_model(tmp_path / "mine")
@@ -192,7 +192,7 @@ def test_properties_help(cli: Callable[..., CliRun]) -> None:
     assert proc.returncode == 0, proc.stderr
     for command in ("train", "evaluate", "sample"):
         assert command in proc.stdout
-    from grounder._properties_model import TrainOptions
+    from grounder.properties.network import TrainOptions
 
     proc = cli("properties", "train", "--help", timeout=60)
     assert proc.returncode == 0, proc.stderr
@@ -423,7 +423,7 @@ def test_sample_refuses_a_scene_folder_it_cannot_copy_whole(tmp_path: Path, cli:
 
 def _copied_weights(folder: Path, **changes: object) -> Path:
     """The shipped weights in `folder` with top-level or `normalisation` metadata fields replaced."""
-    from grounder._properties_model import META_FILE, WEIGHTS_FILE
+    from grounder.properties.network import META_FILE, WEIGHTS_FILE
 
     folder.mkdir()
     (folder / WEIGHTS_FILE).write_bytes((WEIGHTS_DIR / WEIGHTS_FILE).read_bytes())
@@ -441,7 +441,7 @@ def test_weights_metadata_is_checked_against_the_tensors_before_building(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from grounder import _properties_model
-    from grounder._properties import PropertyModelError
+    from grounder.properties.model_files import PropertyModelError
 
     built: list[int] = []
     real_net = _properties_model.PropertyNet
@@ -472,8 +472,8 @@ def test_weights_that_are_not_plain_real_tensors_are_refused(tmp_path: Path, kin
     numbers, with only a warning."""
     import torch
 
-    from grounder._properties import PropertyModelError
-    from grounder._properties_model import WEIGHTS_FILE, load
+    from grounder.properties.model_files import PropertyModelError
+    from grounder.properties.network import WEIGHTS_FILE, load
 
     weights = _copied_weights(tmp_path / "w")
     state = torch.load(weights / WEIGHTS_FILE, weights_only=True)
@@ -493,7 +493,7 @@ def test_weights_that_are_not_plain_real_tensors_are_refused(tmp_path: Path, kin
 
 
 def test_non_finite_normalisation_is_refused_by_evaluate(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
-    from grounder._properties_model import load
+    from grounder.properties.network import load
 
     weights = _copied_weights(tmp_path / "nan", target_std=[math.nan] * 6)
     with pytest.raises(grounder.GrounderError, match=r"property_net\.json: normalisation\.target_std"):
@@ -537,8 +537,8 @@ def test_counts_too_large_to_finish_are_refused_before_any_work(
 
 def test_train_options_and_dataset_refuse_sizes_that_cannot_finish() -> None:
     """The library checks what the CLI checks: Python callers get one GrounderError, before any allocation."""
-    from grounder._properties_data import MAX_SAMPLES, generate_dataset
-    from grounder._properties_model import MAX_EPOCHS, MAX_NUM_TRAIN, TrainOptions, evaluate
+    from grounder.properties.network import MAX_EPOCHS, MAX_NUM_TRAIN, TrainOptions, evaluate
+    from grounder.properties.training_data import MAX_SAMPLES, generate_dataset
 
     for kwargs in (
         {"num_train": 10**20},
@@ -567,7 +567,7 @@ def test_saving_weights_that_fails_midway_keeps_the_old_pair(tmp_path: Path, mon
     """`save` replaced the weights, then the metadata: a failure between them left new weights beside old metadata.
     Both are now written in full first; a failure writing the metadata leaves the old pair and no temporary file."""
     from grounder import _properties_model
-    from grounder._properties_model import META_FILE, WEIGHTS_FILE, PropertyNet
+    from grounder.properties.network import META_FILE, WEIGHTS_FILE, PropertyNet
 
     folder = _copied_weights(tmp_path / "weights")
     before = {name: (folder / name).read_bytes() for name in (WEIGHTS_FILE, META_FILE)}

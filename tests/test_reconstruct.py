@@ -453,18 +453,18 @@ def test_staged_output_dir_edge_paths(tmp_path: Path, monkeypatch: pytest.Monkey
 
     (tmp_path / "here").mkdir()
     monkeypatch.chdir(tmp_path / "here")
-    with staged_output_dir(Path(".")) as stage:
+    with staged_output_dir(Path("."), error=InputError) as stage:
         (stage / "result.txt").write_text("done")
     assert (tmp_path / "here" / "result.txt").read_text() == "done"
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE((tmp_path / "here").stat().st_mode) == 0o777 & ~umask
-    with pytest.raises(RuntimeError), staged_output_dir(tmp_path / "new" / "a" / "out"):
+    with pytest.raises(RuntimeError), staged_output_dir(tmp_path / "new" / "a" / "out", error=InputError):
         raise RuntimeError("the work failed")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["here"]
     (tmp_path / "file").write_text("")
     with pytest.raises(InputError, match=r"cannot create the output folder .*: .*file is a file, not a folder"):
-        with staged_output_dir(tmp_path / "file" / "o"):
+        with staged_output_dir(tmp_path / "file" / "o", error=InputError):
             pass
 
 
@@ -484,7 +484,7 @@ def test_an_output_folder_that_cannot_move_is_refused_early_or_keeps_the_result(
     real_ismount = os.path.ismount
     monkeypatch.setattr(os.path, "ismount", lambda p: Path(p) == volume or real_ismount(p))
     with pytest.raises(InputError, match=f"is a mount point.*-o {volume / 'out'}"):
-        check_output_dir(volume)
+        check_output_dir(volume, error=InputError)
     monkeypatch.setattr(os.path, "ismount", real_ismount)
 
     users = tmp_path / "users"
@@ -500,7 +500,7 @@ def test_an_output_folder_that_cannot_move_is_refused_early_or_keeps_the_result(
 
     monkeypatch.setattr(Path, "rename", busy_rename)
     with pytest.raises(InputError, match=r"cannot move the result into .*Device or resource busy.*kept, complete, in"):
-        with staged_output_dir(users, overwrite=True) as stage:
+        with staged_output_dir(users, overwrite=True, error=InputError) as stage:
             (stage / "result.txt").write_text("done")
     assert (users / "notes.txt").read_text() == "mine"  # the user's folder is as it was
     assert (users / "reconstruct.json").read_text() == "{}"
@@ -612,14 +612,14 @@ def test_dense_stereo_on_several_threads_fuses_what_one_thread_fuses(
 def test_an_image_that_cannot_be_written_is_one_error(tmp_path: Path) -> None:
     """cv2.imwrite returns False on a full disk or a missing folder; ignored, reconstruct went on and failed inside
     COLMAP with "No registered database factory succeeded". Now the write itself fails, naming the file."""
-    from reconstruction._outdir import write_image
+    from image2sim_common.outdir import write_image
     from reconstruction.errors import InputError
 
     image = np.zeros((8, 8, 3), np.uint8)
-    write_image(tmp_path / "ok.png", image)
+    write_image(tmp_path / "ok.png", image, error=InputError)
     assert (tmp_path / "ok.png").stat().st_size > 0
     with pytest.raises(InputError, match=r"could not write .*gone[/\\]frame\.jpg \(disk full"):
-        write_image(tmp_path / "gone" / "frame.jpg", image)
+        write_image(tmp_path / "gone" / "frame.jpg", image, error=InputError)
 
 
 def test_sift_doubles_only_frames_too_small_for_enough_features(tmp_path: Path) -> None:
@@ -678,7 +678,7 @@ def test_importing_reconstruction_keeps_opencv_png_writing_alive(tmp_path: Path)
 def test_atomic_file_is_whole_or_absent(tmp_path: Path) -> None:
     """The one temporary-file-then-rename writer every atomic file write uses (reports, trajectories, batch
     records, the CoACD cache): an error inside leaves the old file as it was and no temporary file behind."""
-    from reconstruction._outdir import atomic_file
+    from image2sim_common.outdir import atomic_file
 
     path = tmp_path / "record.json"
     with atomic_file(path, "w") as handle:

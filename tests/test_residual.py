@@ -15,7 +15,9 @@ import pytest
 from _gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 from typer.testing import CliRunner
 
-from grounder._residual import (
+from grounder.core.trajectory import Trajectory, save_trajectories
+from grounder.errors import GrounderError
+from grounder.residual.model import (
     FEATURE_NAMES,
     META_FILE,
     ONNX_FILE,
@@ -28,11 +30,10 @@ from grounder._residual import (
     quat_to_rotvec,
     rotvec_to_quat,
 )
-from grounder._residual_train import ResidualOptions, _selection_split, train_residual
-from grounder._simulate import quat_angle_rad, simulate
-from grounder._simulator import Simulator, has_residual
-from grounder._trajectory import Trajectory, save_trajectories
-from grounder.errors import GrounderError
+from grounder.residual.simulator import Simulator, has_residual
+from grounder.residual.train import ResidualOptions, _selection_split, train_residual
+from grounder.sim.rollout import simulate
+from image2sim_common.rotations import quat_angle_rad
 
 HALF_M = 0.05
 RATE_HZ = 100.0
@@ -238,7 +239,7 @@ def _gate_of_every_form(
     """
     import torch
 
-    from grounder._residual_torch import residual_model
+    from grounder.residual.torch_model import residual_model
 
     feats, rots = body_features(qpos0, qvel0, residual.bodies)
     raw = residual.raw(feats)[:, 0]
@@ -367,7 +368,7 @@ def test_numpy_torch_onnx_agree(trained: Path) -> None:
     import torch
     from onnx.reference import ReferenceEvaluator
 
-    from grounder._residual_torch import residual_model
+    from grounder.residual.torch_model import residual_model
 
     residual = Simulator(trained).residual
     assert residual is not None
@@ -525,8 +526,8 @@ def test_fast_single_state_path_equals_reference(trained: Path) -> None:
 
 def test_rollout_errors_known_answer(nominal_scene: Path) -> None:
     """A prediction 6 mm and 30 deg off the recording all along: 6% of the 0.1 m cube and 30 deg, score 0.36."""
-    from grounder._residual_report import rollout_errors
-    from grounder._residual_train import rollout_score
+    from grounder.residual.report import rollout_errors
+    from grounder.residual.train import rollout_score
 
     model = mujoco.MjModel.from_xml_path(str(nominal_scene / "scene.xml"))
     real = _tosses(2, seed=7, fluid_density=0.0, num_samples=15)
@@ -553,7 +554,7 @@ def test_report_shows_the_gain_check_and_the_gate(trained: Path) -> None:
     import html
     import re
 
-    from grounder._residual_train import REPORT_FILE
+    from grounder.residual.train import REPORT_FILE
 
     text = (trained / REPORT_FILE).read_text()
     assert "http://" not in text and "https://" not in text and 'src="data:image/png;base64,' in text
@@ -595,7 +596,7 @@ def test_compiled_path_works_where_no_cache_folder_is_writable(monkeypatch: pyte
     import numba
     from numba.core import caching
 
-    from grounder._residual_kernel import _jit
+    from grounder.residual.kernel import _jit
 
     def half(x: float) -> float:
         return 0.5 * x

@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 from _gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 
-from grounder._cases import make_case
-from grounder._diagnose_bench import select_cases
-from grounder._residual import META_FILE, ONNX_FILE, WEIGHTS_FILE
-from grounder._residual_joint import NumpyJointResidual, joint_features, joint_space, joint_targets
-from grounder._residual_train import ResidualOptions, rollout_score, train_residual
-from grounder._simulator import Simulator
-from grounder._trajectory import Trajectory
+from grounder.core.trajectory import Trajectory
+from grounder.diagnosis.benchmark import select_cases
+from grounder.diagnosis.cases import make_case
 from grounder.errors import GrounderError
+from grounder.residual.joint import NumpyJointResidual, joint_features, joint_space, joint_targets
+from grounder.residual.model import META_FILE, ONNX_FILE, WEIGHTS_FILE
+from grounder.residual.simulator import Simulator
+from grounder.residual.train import ResidualOptions, rollout_score, train_residual
 
 SMALL = ResidualOptions(steps=800, hidden=32, seed=0)
 
@@ -59,7 +59,7 @@ def test_targets_invert_apply_across_the_angle_wrap() -> None:
     v_true = v_sim + rng.normal(scale=0.1, size=(50, 2))
     target = joint_targets(q_sim, v_sim, q_true, v_true, space)
     assert np.abs(target[:, 0, :2]).max() < 0.3
-    from grounder._residual_joint import apply_joint_correction
+    from grounder.residual.joint import apply_joint_correction
 
     q, v = apply_joint_correction(q_sim, v_sim, target, space)
     np.testing.assert_allclose(np.angle(np.exp(1j * (q - q_true))), 0.0, atol=1e-12)
@@ -128,7 +128,7 @@ def _gate_of_every_form(
     """
     import torch
 
-    from grounder._residual_torch import residual_model
+    from grounder.residual.torch_model import residual_model
 
     space = residual.space
     feats = joint_features(qpos0, qvel0, None, space)
@@ -252,7 +252,7 @@ def test_numpy_torch_onnx_agree(pendulum: tuple[Path, Path]) -> None:
     import torch
     from onnx.reference import ReferenceEvaluator
 
-    from grounder._residual_torch import residual_model
+    from grounder.residual.torch_model import residual_model
 
     _, trained = pendulum
     residual = Simulator(trained).residual
@@ -346,8 +346,8 @@ def test_errors(pendulum: tuple[Path, Path], tmp_path: Path) -> None:
 def test_cli_trains_and_rolls_out_a_jointed_scene(pendulum: tuple[Path, Path], tmp_path: Path) -> None:
     from typer.testing import CliRunner
 
-    from grounder._trajectory import save_trajectories
     from grounder.cli import app
+    from grounder.core.trajectory import save_trajectories
 
     nominal, _ = pendulum
     _, trajs = _case("pendulum/joint_damping", 6, seed=4)

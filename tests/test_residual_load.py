@@ -23,7 +23,10 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from grounder._residual import (
+from grounder.cli import app
+from grounder.core.trajectory import Trajectory, save_trajectories
+from grounder.errors import GrounderError
+from grounder.residual.model import (
     META_FILE,
     WEIGHTS_FILE,
     GateOptions,
@@ -33,13 +36,10 @@ from grounder._residual import (
     free_bodies,
     scene_files_sha256,
 )
-from grounder._residual_torch import residual_model
-from grounder._residual_train import ResidualOptions, train_residual
-from grounder._simulate import simulate
-from grounder._simulator import Simulator
-from grounder._trajectory import Trajectory, save_trajectories
-from grounder.cli import app
-from grounder.errors import GrounderError
+from grounder.residual.simulator import Simulator
+from grounder.residual.torch_model import residual_model
+from grounder.residual.train import ResidualOptions, train_residual
+from grounder.sim.rollout import simulate
 
 RATE_HZ = 100.0
 PERIOD_STEPS = 4
@@ -308,9 +308,10 @@ def test_pickle_protocol_file_prints_no_torch_warning(valid: Path, tmp_path: Pat
 
 def test_property_weights_that_do_not_load_are_one_line(tmp_path: Path) -> None:
     """The property model's weights: torch's text (over lines, recommending weights_only=False) is not passed on."""
-    from grounder._properties import WEIGHTS_DIR, PropertyModelError, load_property_model
-    from grounder._properties_model import META_FILE as PROPERTY_META
-    from grounder._properties_model import WEIGHTS_FILE as PROPERTY_WEIGHTS
+    from grounder.properties.model_files import WEIGHTS_DIR, PropertyModelError
+    from grounder.properties.network import META_FILE as PROPERTY_META
+    from grounder.properties.network import WEIGHTS_FILE as PROPERTY_WEIGHTS
+    from grounder.properties.prior import load_property_model
 
     for content in (PICKLE_PROTOCOL_4, b"not a weights file"):
         weights = tmp_path / f"weights_{len(content)}"

@@ -1,4 +1,4 @@
-"""The restitution a MuJoCo contact produces (`grounder._restitution`), against closed forms."""
+"""The restitution a MuJoCo contact produces (`grounder.sim.restitution`), against closed forms."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from grounder._restitution import body_restitution, simulated_restitution
 from grounder.errors import GrounderError
+from grounder.sim.restitution import body_restitution, simulated_restitution
 
 SOLIMP = (0.9, 0.95, 0.001, 0.5, 2.0)
 
@@ -90,8 +90,8 @@ def test_the_shooting_search_resolves_the_bounce_where_the_solref_pair_trades() 
     """Points of a (time constant x damping ratio) lattice whose cost is that of their bounce's error (a clip that
     shows bounces): many pairs tie, so the damping ratio is spread past 20%, but the restitution is resolved and
     its range lies within 20% of the truth's; with only the near points evaluated it is not resolved."""
-    from grounder._calibrate_params import resolve_parameters
-    from grounder._interaction_shooting import ShootingOptions, _restitution_fit
+    from grounder.calibration.parameters import resolve_parameters
+    from grounder.interaction.shooting import ShootingOptions, _restitution_fit
 
     model = mujoco.MjModel.from_xml_string(BALL_XML)
     contact = resolve_parameters(model, ["ball.solref.timeconst", "ball.solref.dampratio"])

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from conftest import PROGRESS_LINE, assert_one_line_error
 
-from grounder._evaluate import ObjectScore, SceneScore, score_scene
+from grounder.grounding.evaluate import ObjectScore, SceneScore, score_scene
 from scene_export import settle_test
 
 REPO = Path(__file__).resolve().parents[1]
@@ -182,7 +182,7 @@ def test_scoring_frame_leaves_out_misregistered_cameras() -> None:
     import numpy as np
     from scipy.spatial.transform import Rotation
 
-    from grounder._evaluate import robust_rigid_fit
+    from grounder.grounding.evaluate import robust_rigid_fit
 
     rng = np.random.default_rng(5)
     angles = rng.uniform(0, 2 * np.pi, 29)

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from grounder import Trajectory
-from grounder._simulate import free_body_errors, quat_angle_rad, simulate, step_indices
 from grounder.errors import GrounderError
+from grounder.sim.rollout import free_body_errors, simulate, step_indices
+from image2sim_common.rotations import quat_angle_rad
 
 FALLING_CUBE = """
 <mujoco><option timestep="0.0005"/>
@@ -130,7 +131,7 @@ def test_scene_files_refuses_what_mujoco_would_read_outside_the_folder(tmp_path:
     """Three ways an MJCF made MuJoCo read a file outside its folder past the check: an XML that expat cannot parse
     but MuJoCo's parser accepts (an undefined entity) skipped the check of its <include>s; a <model> asset (attached
     with <attach>) and a <flexcomp> mesh are read as MuJoCo parses, and were not checked at all."""
-    from grounder._simulate import scene_files
+    from grounder.sim.rollout import scene_files
 
     xml = _escaping_scene(tmp_path, how, "../outside")
     mujoco.MjSpec.from_file(str(xml)).compile()  # MuJoCo reads the outside file without a word
@@ -147,7 +148,7 @@ def test_scene_folder_links_that_lead_out_of_the_copy_are_refused(tmp_path: Path
     then written through it into the user's file. A relative link within the folder stays a link in the copy."""
     import os
 
-    from grounder._simulate import copy_scene_files
+    from grounder.sim.rollout import copy_scene_files
 
     scene = tmp_path / "scene"
     scene.mkdir()

@@ -17,16 +17,16 @@ import pytest
 from typer.testing import CliRunner
 
 from grounder import load_trajectories
-from grounder._simulate import quat_angle_rad
-from grounder._track import TrackError, TrackOptions, read_clip, track, tracked_segments
-from grounder._track_render import PinholeCamera, PoseRenderer, backproject
-from grounder._track_smooth import (
+from grounder.tracking.pipeline import TrackError, TrackOptions, read_clip, track, tracked_segments
+from grounder.tracking.render import PinholeCamera, PoseRenderer, backproject
+from grounder.tracking.smooth import (
     SmoothingOptions,
     free_body_velocities,
     matrix_from_quat,
     quat_from_matrix,
     quat_mul,
 )
+from image2sim_common.rotations import quat_angle_rad
 
 REPO = Path(__file__).resolve().parents[1]
 TOSS = REPO / "samples" / "toss"
@@ -202,7 +202,7 @@ def test_track_first_frames_of_toss(tmp_path: Path, toss_truth: dict[str, np.nda
     assert meta["object_names"] == ["box", "can", "bowl"]
     assert all(all(o["valid"]) for o in meta["objects"].values())
     # Each object's own run, read back from track.json, holds the tracked poses (all 8 frames tracked forward here).
-    from grounder._track import load_object_trajectories
+    from grounder.tracking.pipeline import load_object_trajectories
 
     runs = load_object_trajectories(out / "track.json")
     assert [len(runs[name]) for name in meta["object_names"]] == [1, 1, 1]
@@ -241,7 +241,7 @@ def test_hidden_object_is_flagged_and_excluded_from_trajectories(tmp_path: Path)
     # same share of its width as the box's lost frames, the can's and the bowl's rows not at all.
     import cv2
 
-    from grounder._track_overview import STATUS_COLOURS_BGR
+    from grounder.tracking.overview import STATUS_COLOURS_BGR
 
     image = cv2.imread(str(out / "overview.png"))
     assert image is not None and image.shape[1] == 4 * 320
@@ -296,7 +296,7 @@ def test_an_implausible_refined_pose_is_lost(
     backwards alike; the frames around it stay tracked."""
     import cv2
 
-    import grounder._track as track_module
+    import grounder.tracking.pipeline as track_module
 
     first, target = 12, 16
     frames, _ = read_clip(TOSS / "video.mp4", 2, target)  # (a clip is at least 2 frames)
@@ -324,7 +324,7 @@ def test_an_implausible_refined_pose_is_lost(
 def test_static_geometry_depth_of_a_box_on_the_table() -> None:
     """The toss box (12 x 8 x 6 cm) resting on the table is 0 deep in the static geometry (table and floor); lowered
     by 3 cm, 3 cm deep; tilted 30 deg with its lowest corner 1 cm into the table, 1 cm deep."""
-    from grounder._track_support import StaticGeometry
+    from grounder.tracking.support import StaticGeometry
 
     model = mujoco.MjModel.from_xml_path(str(TOSS / "truth" / "scene.xml"))
     static = StaticGeometry(model)
@@ -412,7 +412,7 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
 def test_a_scene_with_unreadable_intrinsics_is_one_error(content: str, tmp_path: Path) -> None:
     """The scene's reconstruct.json comes with the scene (maybe someone else's): a missing or malformed value was a
     KeyError / TypeError traceback; now a TrackError naming the file and what to do."""
-    from grounder._track import scene_intrinsics
+    from grounder.tracking.pipeline import scene_intrinsics
 
     (tmp_path / "reconstruction").mkdir()
     (tmp_path / "reconstruction" / "reconstruct.json").write_text(content)
@@ -423,7 +423,7 @@ def test_a_scene_with_unreadable_intrinsics_is_one_error(content: str, tmp_path:
 def test_a_distortion_that_folds_the_image_is_refused(tmp_path: Path) -> None:
     """k1, k2 come from the scene's reconstruct.json: a radial model that folds over inside the image (two directions
     on one pixel) was accepted and undistorted into garbage; a real lens's values still load."""
-    from grounder._track import distortion_folds, scene_intrinsics
+    from grounder.tracking.pipeline import distortion_folds, scene_intrinsics
 
     (tmp_path / "reconstruction").mkdir()
     base = {"width_px": 640, "height_px": 480, "fx_px": 500, "fy_px": 500, "cx_px": 320, "cy_px": 240}
@@ -450,7 +450,7 @@ def test_scan_frames_outside_the_scene_are_not_read(tmp_path: Path) -> None:
     (the scan frames are then left out, as when they are missing)."""
     import cv2
 
-    from grounder._track import load_scan
+    from grounder.tracking.pipeline import load_scan
 
     cv2.imwrite(str(tmp_path / "private.png"), np.zeros((48, 64, 3), np.uint8))
     rec = tmp_path / "scene" / "reconstruction"
@@ -531,8 +531,8 @@ def test_each_object_keeps_its_own_tracked_runs() -> None:
     """Object a is tracked throughout, b is hidden in frames 10-19: the segments (every object tracked) cut both, but
     each object's own runs keep a whole (one run of 30 frames) and b in two; each run is a single-body trajectory
     whose velocity is the smoothing fit of its own poses (a ballistic throw: exact)."""
-    from grounder._track import object_trajectories
-    from grounder._track_smooth import SmoothingOptions
+    from grounder.tracking.pipeline import object_trajectories
+    from grounder.tracking.smooth import SmoothingOptions
 
     time_s = np.arange(30) / 30.0
     valid = np.ones((30, 2), bool)
@@ -559,7 +559,7 @@ def test_each_object_keeps_its_own_tracked_runs() -> None:
 
 def test_windows_cut_tracked_segments_and_drop_still_ones() -> None:
     from grounder import Trajectory
-    from grounder._interaction import windows
+    from grounder.interaction.pipeline import windows
 
     time_s = np.arange(60) / 30.0
     qpos = np.zeros((60, 7))
@@ -580,11 +580,11 @@ def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(
     the output holds the tracks, a calibrated scene and a report naming what was calibrated. Calibration is given
     the tracks as written to `interaction/tracks` (rounded there), not as tracking held them, so that calibrating
     the saved tracks again gives the same scene."""
-    import grounder._interaction as interaction
-    from grounder._interaction import InteractionOptions, calibration_available, ground_with_interaction
+    import grounder.interaction.pipeline as interaction
+    from grounder.interaction.pipeline import InteractionOptions, calibration_available, ground_with_interaction
 
     if not calibration_available():
-        pytest.skip("grounder._calibrate is not installed")
+        pytest.skip("grounder.calibration.fit is not installed")
     given: list[dict[str, Any]] = []
     calibrate_per_body = interaction.calibrate_per_body
 
@@ -618,7 +618,7 @@ def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(
     assert "can" in report["match_after"]
     calibrated = mujoco.MjModel.from_xml_path(str(out / "scene.xml"))
     # The bounce each contact produces, before (the truth scene stands in for the grounded one) and after.
-    from grounder._restitution import body_restitution
+    from grounder.sim.restitution import body_restitution
 
     truth = mujoco.MjModel.from_xml_path(str(TOSS / "truth" / "scene.xml"))
     bounce = report["restitution"]["objects"]
@@ -653,8 +653,8 @@ def test_marker_camera_pose_static_and_per_frame(toss_truth: dict[str, np.ndarra
     one static pose and per frame (the moving-camera path)."""
     import cv2
 
-    from grounder._track import marker_camera_poses, read_clip
-    from grounder._track_smooth import rotation_angle_deg
+    from grounder.tracking.pipeline import marker_camera_poses, read_clip
+    from image2sim_common.rotations import rotation_angle_deg
 
     intr, world_from_cam = _truth_camera()
     camera = PinholeCamera.from_colmap(640, 480, intr["fx"], intr["fy"], intr["cx"], intr["cy"])
@@ -675,7 +675,7 @@ def test_velocity_fit_is_cut_at_impacts_and_reads_the_throw_speed() -> None:
     """A ball thrown down onto the table and bouncing (30 fps, 0.5 mm noise): the fit cuts at the bounce, calls
     the bounce a free flight, and reads the throw's velocity to within 10 cm/s; one Savitzky-Golay fit across the
     bounce (the old way) is off by more than 30 cm/s at the start (measured: 7 and 105 cm/s)."""
-    from grounder._track_smooth import impact_pieces
+    from grounder.tracking.smooth import impact_pieces
 
     dt, g = 1 / 30, 9.81
     time_s = np.arange(16) * dt
@@ -703,7 +703,7 @@ def test_support_depth_scale_puts_a_resting_object_on_the_table() -> None:
     """A 4 cm cube at rest, tracked 1.2% too close to the camera along its ray (a mesh 1.2% too small does that):
     the fitted factor moves it back so its lowest corner is on the table, the image position unchanged. An object
     resting 3 cm up (on another) is left alone."""
-    from grounder._track_support import apply_support_scale, fit_support_scale
+    from grounder.tracking.support import apply_support_scale, fit_support_scale
 
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * 0.02
     cam = np.eye(4)
@@ -730,7 +730,7 @@ def test_rest_snap_puts_each_still_frame_on_the_table_and_leaves_motion_alone() 
     gives on `samples/toss`). Before the snap the velocity fit reads 0.05+ m/s where the cube lies still; after it,
     every still frame touches the table (image position kept: same ray) and the fit reads under 1 cm/s. The slide
     (1 cm/s and faster) is left as tracked; so is a cube hopping 2 cm."""
-    from grounder._track_support import snap_resting_depth, still_on_table_frames
+    from grounder.tracking.support import snap_resting_depth, still_on_table_frames
 
     fps, dt_s = 60.0, 1 / 60.0
     corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * 0.02
@@ -778,7 +778,7 @@ def test_resting_frames_tolerate_a_symmetric_objects_jitter_but_not_flight() -> 
     """A can at rest, tracked with 1.2 deg of alternating jitter about its axis and 1.5 mm along the camera ray (what
     `samples/toss` gives a grounded can), rests in every frame; the same can falling (30 fps) in none; one that
     turns 3 deg a frame on the spot neither."""
-    from grounder._track_support import resting_frames
+    from grounder.tracking.support import resting_frames
 
     def about_z(deg: float) -> np.ndarray:
         a = np.radians(deg)
@@ -808,8 +808,8 @@ def test_scan_frames_give_the_feature_models_many_more_right_matches() -> None:
     least 40 of each object's land within 3 px of where the true pose puts them, and on the box and the bowl at least
     twice as many as from the rendered model (measured 144 vs 34 and 179 vs 81; even with the true textures here.
     The can's true texture renders well, 98 vs 160; with a grounded scene's baked textures all three gain)."""
-    from grounder._track import _Tracker
-    from grounder._track_render import ScanFrame, build_feature_models, scan_feature_models
+    from grounder.tracking.pipeline import _Tracker
+    from grounder.tracking.render import ScanFrame, build_feature_models, scan_feature_models
 
     scan_dir = REPO / "samples" / "tabletop"
     if not (scan_dir / "video.mp4").exists() or not (TOSS / "video.mp4").exists():
@@ -856,7 +856,7 @@ def test_a_clip_without_any_segment_still_gives_each_objects_runs(tmp_path: Path
     calibration uses) and the can lost throughout."""
     import cv2
 
-    from grounder._track import load_object_trajectories
+    from grounder.tracking.pipeline import load_object_trajectories
 
     intr, world_from_cam = _truth_camera()
     camera = PinholeCamera.from_colmap(intr["width"], intr["height"], intr["fx"], intr["fy"], intr["cx"], intr["cy"])
@@ -909,7 +909,7 @@ def test_moving_camera_is_placed_per_frame_and_the_objects_tracked_in_the_world(
 def test_saved_camera_poses_keep_the_frames_without_a_camera_unknown() -> None:
     """A moving camera's `track.json` has a null row where the marker was not seen: those frames are unknown (NaN),
     and the view point calibration weighs depth by is the mean centre of the known ones."""
-    from grounder._interaction import camera_poses_of, view_point_of
+    from grounder.interaction.pipeline import camera_poses_of, view_point_of
 
     known = [np.eye(4), np.eye(4)]
     known[0][:3, 3], known[1][:3, 3] = (0.0, -0.6, 0.4), (0.2, -0.6, 0.6)

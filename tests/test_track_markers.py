@@ -16,10 +16,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from grounder._scan_markers import find_scan_markers
-from grounder._simulate import quat_angle_rad
-from grounder._track import TrackOptions, read_clip, track
-from grounder._track_markers import (
+from grounder.errors import GrounderError
+from grounder.grounding.scan_markers import find_scan_markers
+from grounder.tracking.markers import (
     MarkerPoses,
     MarkerViews,
     ObjectMarker,
@@ -29,8 +28,8 @@ from grounder._track_markers import (
     marker_agreement,
     place_markers,
 )
-from grounder._track_smooth import matrix_from_quat, quat_from_matrix, rotation_angle_deg
-from grounder.errors import GrounderError
+from grounder.tracking.pipeline import TrackOptions, read_clip, track
+from image2sim_common.rotations import matrix_from_quat, quat_angle_rad, quat_from_matrix, rotation_angle_deg
 from reconstruction._texture import TextureView
 from reconstruction._types import CameraIntrinsics
 
@@ -231,7 +230,7 @@ def test_marker_layout_errors_are_one_actionable_line(tmp_path: Path) -> None:
     )
     assert [(m.marker_id, m.origin) for m in combined_markers((box,), scan)] == [(1, "layout"), (2, "scan")]
     # The scene's own record of its markers comes with the scene: a number there was "'int' object is not iterable".
-    from grounder._track_markers import scene_markers
+    from grounder.tracking.markers import scene_markers
 
     (tmp_path / "scene.json").write_text('{"object_markers": 5}')
     with pytest.raises(GrounderError, match=r"'object_markers' is int 5, not a list of markers; ground the scene"):

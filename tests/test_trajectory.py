@@ -1,4 +1,4 @@
-"""Tests for the trajectory file format (grounder/_trajectory.py)."""
+"""Tests for the trajectory file format (grounder/core/trajectory.py)."""
 
 from __future__ import annotations
 
@@ -367,7 +367,7 @@ def test_corrupt_or_lying_members_are_one_error_without_allocating(tmp_path: Pat
     with pytest.raises(TrajectoryError, match=r"broken\.npz: 'time' is corrupt \((error|BadZipFile)"):
         load_trajectory(tmp_path / "broken.npz")
 
-    import grounder._trajectory as trajectory
+    import grounder.core.trajectory as trajectory
 
     np.savez(tmp_path / "big.npz", **arrays)
     with pytest.MonkeyPatch.context() as patch:

@@ -11,13 +11,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from grounder._calibrate import split_names
-from grounder._import import load_dair_pll_cube
-from grounder._repeats import repeated_motion_indices, repeated_motions
-from grounder._residual import quat_to_mat
-from grounder._simulate import simulate
-from grounder._track_smooth import quat_from_matrix
-from grounder._trajectory import Trajectory
+from grounder.calibration.fit import split_names
+from grounder.core.importers import load_dair_pll_cube
+from grounder.core.repeats import repeated_motion_indices, repeated_motions
+from grounder.core.trajectory import Trajectory
+from grounder.sim.rollout import simulate
+from image2sim_common.rotations import quat_from_matrix, quat_to_mat
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
@@ -94,7 +93,7 @@ def test_a_turned_relabelled_toss_is_found_to_be_the_same_motion() -> None:
 
 
 def test_repeated_motions_groups_a_turned_copy_and_nothing_else() -> None:
-    """`grounder._repeats` finds the copy by what a turn, a shift and relabelled faces leave alone (heights,
+    """`grounder.core.repeats` finds the copy by what a turn, a shift and relabelled faces leave alone (heights,
     vertical velocity, horizontal speed), and keeps a toss 5 cm/s faster apart: it is another motion."""
     model = _cube_model()
     quat0 = np.array([0.9, 0.3, -0.2, 0.25])

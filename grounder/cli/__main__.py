@@ -1,0 +1,5 @@
+"""`python -m grounder.cli`: the `image2sim` command line."""
+
+from grounder.cli.app import main
+
+main()

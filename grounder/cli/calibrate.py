@@ -1,0 +1,299 @@
+"""CLI commands ``calibrate``, ``rollout``, ``import-trajectories`` and ``batch`` (registered by ``grounder.cli``)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+
+def _split_params(params: list[str] | None) -> tuple[str, ...]:
+    out: list[str] = []
+    for item in params or []:
+        out += [p.strip() for p in item.split(",") if p.strip()]
+    return tuple(out)
+
+
+def _check_new_dir(path: Path, *, inputs: tuple[Path, ...] = ()) -> None:
+    """For the commands without --overwrite: `path` must be a new or empty folder, outside the inputs."""
+    from grounder.errors import GrounderError
+    from reconstruction import check_output_dir
+
+    check_output_dir(path, error=GrounderError, inputs=inputs, offers_overwrite=False)
+
+
+_FLAG_OF_OPTION = {
+    "validation_fraction": "--validation-fraction",
+    "split_seed": "--split-seed",
+    "max_train_trajectories": "--max-train",
+    "generations": "--generations",
+    "popsize": "--popsize",
+    "local_iterations": "--local-iterations",
+    "rotation_weight": "--rotation-weight",
+    "seed": "--seed",
+    "params": "--params",
+}
+
+
+def _as_flag(message: str) -> str:
+    """``calibrate option FIELD must be ...`` (CalibrateOptions' wording, for Python and jobs files) as ``--flag``."""
+    for field_name, flag in _FLAG_OF_OPTION.items():
+        prefix = f"calibrate option {field_name} must be "
+        if message.startswith(prefix):
+            return f"{flag} must be {message[len(prefix) :].replace(' or null', '')}"
+    return message
+
+
+def register(app: typer.Typer) -> None:
+    """Adds the calibration commands to the ``image2sim`` app."""
+    from grounder.cli.common import fail, require, setup_logging, stage_progress, user_errors_exit_2
+
+    @app.command()
+    def calibrate(
+        scene: Annotated[Path, typer.Argument(help="An MJCF file or a scene folder (with scene.xml).")],
+        traj_dir: Annotated[Path, typer.Argument(help="Folder of recorded trajectories (.npz, the project format).")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Calibrated scene folder to write (new or empty).")],
+        params: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--params",
+                help="Parameter NAME or NAME=LOW:HIGH (repeat or comma-separate), e.g. cube.friction.sliding, "
+                "cube.solref.timeconst=0.002:0.05, opt.gravity_scale. Default: the scene kind's defaults.",
+            ),
+        ] = None,
+        mode: Annotated[
+            str, typer.Option(help="raw (parameters within bounds) or embedding (property embedding).")
+        ] = "raw",
+        validation_fraction: Annotated[float, typer.Option(help="Share of trajectories held out.")] = 0.3,
+        split_seed: Annotated[int, typer.Option(help="Seed of the train/validation shuffle.")] = 0,
+        max_train: Annotated[
+            int | None, typer.Option(help="Fit on at most this many training trajectories (seeded subset).")
+        ] = None,
+        generations: Annotated[
+            int, typer.Option(help="Differential-evolution generations (0: no global search).")
+        ] = 20,
+        popsize: Annotated[int, typer.Option(help="Differential-evolution population per parameter.")] = 8,
+        local_iterations: Annotated[int, typer.Option(help="mujoco.minimize least-squares iterations.")] = 10,
+        rotation_weight: Annotated[float, typer.Option(help="Loss weight: percent of size per degree.")] = 0.0,
+        seed: Annotated[int, typer.Option(help="Seed of the global search.")] = 0,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Fit a scene's physical parameters to recorded trajectories: scene.xml, calibration.json, report.html."""
+        setup_logging(verbose)
+        with user_errors_exit_2():
+            from grounder.calibration.fit import CalibrateOptions, load_scene
+            from grounder.calibration.fit import calibrate as run_calibrate
+            from grounder.core.trajectory import load_trajectories
+            from grounder.errors import GrounderError
+
+            if mode not in ("raw", "embedding"):
+                fail(f"--mode must be raw or embedding, got {mode!r}")
+            _check_new_dir(out, inputs=(scene, traj_dir))
+            try:
+                options = CalibrateOptions(
+                    params=_split_params(params),
+                    mode=mode,  # type: ignore[arg-type]
+                    validation_fraction=validation_fraction,
+                    split_seed=split_seed,
+                    max_train_trajectories=max_train,
+                    generations=generations,
+                    popsize=popsize,
+                    local_iterations=local_iterations,
+                    rotation_weight=rotation_weight,
+                    seed=seed,
+                )
+            except GrounderError as exc:  # named by the option's field: say the flag the user typed
+                fail(_as_flag(str(exc)))
+            _, model = load_scene(scene)
+            trajs = load_trajectories(traj_dir, model)
+            from grounder.calibration.parameters import resolve_parameters
+
+            resolve_parameters(model, options.params)  # unknown names fail before any work
+            with stage_progress() as progress:
+                result = run_calibrate(scene, trajs, options=options, out=out, progress=progress)
+        for p in result.parameters:
+            interval = f"[{p.interval_low:.4g}, {p.interval_high:.4g}]"
+            typer.echo(f"{p.name:32s} {p.nominal:10.4g} -> {p.value:10.4g}  {interval} {p.unit}")
+        for split, after in result.after.items():
+            before = result.before[split]
+            typer.echo(
+                f"{split}: position {before.position_pct.mean():.1f}% -> {after.position_pct.mean():.1f}% of size, "
+                f"rotation {before.rotation_deg.mean():.1f} -> {after.rotation_deg.mean():.1f} deg "
+                f"({len(after.names)} trajectories)"
+            )
+        typer.echo(f"wrote {out}")
+
+    @app.command()
+    def rollout(
+        scene: Annotated[Path, typer.Argument(help="An MJCF file or a scene folder (with scene.xml).")],
+        traj_dir: Annotated[Path, typer.Argument(help="Folder of recorded trajectories (.npz).")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Folder for the predicted trajectories.")],
+        no_residual: Annotated[
+            bool, typer.Option("--no-residual", help="Plain MuJoCo even when the scene folder has a residual.")
+        ] = False,
+        overwrite: Annotated[
+            bool,
+            typer.Option(help="Replace a non-empty output folder (its files are removed) once the rollouts are done."),
+        ] = False,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Simulate every trajectory from its first state with its controls; same file names in the output."""
+        setup_logging(verbose)
+        with user_errors_exit_2():
+            preds, used_residual = run_rollout(scene, traj_dir, out, use_residual=not no_residual, overwrite=overwrite)
+        what = "MuJoCo + residual" if used_residual else "MuJoCo"
+        typer.echo(f"simulated {len(preds)} trajectories with {what}; wrote {out}")
+
+    @app.command("import-trajectories")
+    def import_trajectories_cmd(
+        src: Annotated[Path, typer.Argument(help="The recorded data (for dair-pll-cube: the folder with tosses/).")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Trajectory folder to write (new or empty).")],
+        fmt: Annotated[str, typer.Option("--format", help="Input format: dair-pll-cube.")] = "dair-pll-cube",
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Convert recorded motion into the project's trajectory format."""
+        setup_logging(verbose)
+        with user_errors_exit_2():
+            from grounder.core.importers import import_trajectories
+            from grounder.core.trajectory import save_trajectories
+
+            _check_new_dir(out, inputs=(src,))
+            trajs = import_trajectories(fmt, src)
+            if out.is_dir():
+                out.rmdir()  # empty: let save_trajectories build it atomically
+            save_trajectories(trajs, out)
+        steps = sum(t.num_steps for t in trajs)
+        typer.echo(f"imported {len(trajs)} trajectories ({steps} samples) from {src}; wrote {out}")
+
+    @app.command()
+    def batch(
+        jobs_file: Annotated[Path, typer.Argument(help="JOBS.yaml: scenes x datasets x settings.")],
+        out: Annotated[
+            Path | None,
+            typer.Option(
+                "-o",
+                "--out",
+                help="Output folder: new, empty, or an earlier batch output to resume (default: JOBS_results next "
+                "to the file).",
+            ),
+        ] = None,
+        address: Annotated[
+            str | None,
+            typer.Option(
+                help="Ray cluster: the head node's host:port (e.g. head:6379), auto, or ray://host:10001 (needs "
+                "ray[client]); default: a local Ray."
+            ),
+        ] = None,
+        num_cpus: Annotated[int | None, typer.Option(help="CPUs of the local Ray (jobs at a time).")] = None,
+        inline: Annotated[bool, typer.Option(help="Run the jobs one by one in this process, without Ray.")] = False,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Run many calibrations on Ray; re-running skips finished jobs. Results in results.csv / results.json.
+
+        Exit code 1 when some job failed (the others still ran), 2 for a bad jobs file or output folder, 130 after
+        Ctrl-C and 143 after SIGTERM (the table is true of what finished; re-running resumes).
+        """
+        import signal
+        import threading
+
+        class Terminated(BaseException):
+            """SIGTERM during the run: a BaseException, so that no ``except Exception`` on the way swallows it."""
+
+        def terminated(signum: int, frame: object) -> None:
+            raise Terminated
+
+        setup_logging(verbose)
+        require(("--num-cpus", num_cpus, num_cpus is None or 1 <= num_cpus <= 256, "between 1 and 256"))
+        out_dir: Path | None = None
+        # SIGTERM as this command's own exception while it runs, not grounder.cli's `_Terminated`: under
+        # `python -m grounder.cli` the handler main() installs raises the __main__ module's copy of that class.
+        on_main = threading.current_thread() is threading.main_thread()
+        before = signal.signal(signal.SIGTERM, terminated) if on_main else None
+        try:
+            with user_errors_exit_2():
+                from grounder.calibration.batch import check_batch_output, load_jobs, read_table, run_batch
+
+                jobs = load_jobs(jobs_file)
+                out_dir = out if out is not None else jobs_file.with_name(f"{jobs_file.stem}_results")
+                check_batch_output(out_dir)  # run_batch checks again; this fails before the progress bar appears
+                from grounder.errors import GrounderError
+                from image2sim_common.outdir import claim_output
+
+                claim_output(out_dir, error=GrounderError)  # a second batch on this folder is refused while this runs
+                with stage_progress() as progress:
+                    summary = run_batch(
+                        jobs, out_dir, address=address, num_cpus=num_cpus, inline=inline, progress=progress
+                    )
+        except (KeyboardInterrupt, Terminated) as exc:  # run_batch has rewritten the table on its way out
+            signum = signal.SIGINT if isinstance(exc, KeyboardInterrupt) else signal.SIGTERM
+            rows = read_table(out_dir) if out_dir is not None else None
+            if out_dir is None or rows is None:
+                where = "before any job ran"
+            else:
+                finished = sum(row.get("status") == "ok" for row in rows)
+                where = f"with {finished} of {len(rows)} jobs finished (table: {out_dir / 'results.csv'})"
+            typer.echo(
+                f"image2sim: batch stopped ({signum.name}) {where}; run the same command again to resume", err=True
+            )
+            # sys.exit, not typer.Exit: typer returns 130 for an Exit as it does for a Ctrl-C it caught itself, and
+            # main() prints the stopped line for that one; this stop has said its own.
+            sys.exit(128 + signum)
+        finally:
+            if on_main:
+                signal.signal(signal.SIGTERM, before)
+        for row in summary.rows:
+            if row["status"] == "failed":
+                typer.echo(f"job {row['id']} failed: {row['error']}", err=True)
+        typer.echo(
+            f"{summary.total} jobs: {len(summary.skipped)} already finished, {len(summary.ran)} run now, "
+            f"{len(summary.failed)} failed; table: {out_dir / 'results.csv'}"
+        )
+        if summary.failed:
+            raise typer.Exit(1)  # the other jobs finished; re-running retries only the failed ones
+
+
+def run_rollout(
+    scene: Path, traj_dir: Path, out: Path, *, use_residual: bool = True, overwrite: bool = False
+) -> tuple[list, bool]:
+    """The ``rollout`` command's library side: returns (predicted trajectories, whether the residual was used).
+
+    Uses ``grounder.residual.simulator.Simulator`` when that module exists, the scene folder has a residual and
+    ``use_residual``; plain :func:`grounder.sim.rollout.simulate` otherwise. Writes the predictions (same file names as
+    the recordings) and ``rollout.json`` (what was rolled out, with or without the residual).
+    """
+    import importlib
+    import importlib.util
+    import json
+
+    from grounder.calibration.fit import load_scene
+    from grounder.core.trajectory import load_trajectories, save_trajectories
+    from grounder.errors import GrounderError
+    from grounder.sim.rollout import simulate
+    from reconstruction import check_output_dir, staged_output_dir
+
+    check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))
+    _, model = load_scene(scene)
+    trajs = load_trajectories(traj_dir, model)
+    used = False
+    scene_dir = scene if scene.is_dir() else scene.parent
+    if use_residual and importlib.util.find_spec("grounder.residual.simulator") is not None:
+        module = importlib.import_module("grounder.residual.simulator")
+        module.check_residual_pair(scene_dir)  # half a residual is an error, not a silent plain-MuJoCo run
+        if module.has_residual(scene_dir):
+            preds = module.Simulator(scene).rollout(trajs, stable=True)
+            used = True
+    if not used:
+        preds = simulate(model, trajs, stable=True)
+    with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir)) as stage:
+        save_trajectories(preds, stage)  # the whole folder replaced at once, as every command does
+        record = {
+            "format": "image2sim.rollout/1",
+            "scene": str(scene),
+            "trajectories": str(traj_dir),
+            "residual": used,
+            "files": sorted(f"{t.name}.npz" for t in preds),
+        }
+        (stage / "rollout.json").write_text(json.dumps(record, indent=1) + "\n")  # marks it as an image2sim output
+    return list(preds), used

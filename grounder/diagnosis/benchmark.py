@@ -1,0 +1,198 @@
+"""The withheld-effect benchmark: generated cases diagnosed blind with one fixed setting, scored against the truth."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import mujoco
+
+from grounder.diagnosis.cases import BENCHMARK, CaseSpec, make_case
+from grounder.diagnosis.pipeline import DiagnoseOptions, diagnose
+from grounder.errors import GrounderError, integer_in
+from image2sim_common.progress import ProgressFn
+
+MEASUREMENT_EFFECTS = ("length_scale", "time_scale", "velocity_lag")
+UNEXPLAINED_THRESHOLD = 0.5
+"""An out-of-library case counts as reported "largely unexplained" when more than this fraction of its held-out gap
+remains."""
+MIN_TRAJECTORIES = 8
+"""Fewest trajectories per case: the diagnosis holds 30% of them out for its check."""
+MAX_TRAJECTORIES = 1000
+"""Most trajectories per case. Each is simulated (1 s at 2 ms steps) and then re-simulated for every candidate effect
+and fitted value: ~0.7 s of diagnosis per trajectory per case on 2 threads, so 1000 take ~12 min a case and ~3 h for
+the 16 cases (the default 16 take seconds)."""
+
+
+def check_num_trajectories(num_trajectories: int) -> None:
+    """Raises GrounderError unless `num_trajectories` is an integer in [MIN_TRAJECTORIES, MAX_TRAJECTORIES]."""
+    if not integer_in(num_trajectories, MIN_TRAJECTORIES, MAX_TRAJECTORIES):
+        raise GrounderError(
+            f"num_trajectories={num_trajectories!r} but expected an integer between {MIN_TRAJECTORIES} and "
+            f"{MAX_TRAJECTORIES} per case"
+        )
+
+
+@dataclass(frozen=True, kw_only=True)
+class BenchResult:
+    """One diagnosed case."""
+
+    case: str
+    hidden: tuple[str, ...]
+    true_values: dict[str, dict[str, float]]
+    in_library: bool
+    top1: str
+    top1_params: dict[str, float]
+    selected: tuple[str, ...]
+    gap_before: float
+    gap_after: float
+    reduction: float
+    unexplained_fraction: float
+    reduction_above_noise: float
+    noise_floor: float
+    seconds: float
+
+    @property
+    def correct(self) -> bool:
+        """In-library: the top-ranked effect is a hidden one. Out-of-library: reported largely unexplained."""
+        if self.in_library:
+            return self.top1 in self.hidden
+        return self.unexplained_fraction > UNEXPLAINED_THRESHOLD
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "case": self.case,
+            "hidden": list(self.hidden),
+            "true_values": self.true_values,
+            "in_library": self.in_library,
+            "top1": self.top1,
+            "top1_params": self.top1_params,
+            "selected": list(self.selected),
+            "heldout_gap_before": self.gap_before,
+            "heldout_gap_after": self.gap_after,
+            "heldout_reduction": self.reduction,
+            "unexplained_fraction": self.unexplained_fraction,
+            "reduction_above_noise": self.reduction_above_noise,
+            "noise_floor": self.noise_floor,
+            "correct": self.correct,
+            "seconds": self.seconds,
+        }
+
+
+def run_case(
+    spec: CaseSpec, num_trajectories: int = 16, nthread: int = 2, seed: int = 0, options: DiagnoseOptions | None = None
+) -> BenchResult:
+    """Generates one case and diagnoses it blind (``options`` default: the one benchmark setting)."""
+    check_num_trajectories(num_trajectories)
+    case = make_case(spec, num_trajectories, seed=seed)
+    model = mujoco.MjModel.from_xml_string(case.scene_xml)
+    t0 = time.perf_counter()
+    diag = diagnose(model, case.trajectories, options or DiagnoseOptions(nthread=nthread))
+    seconds = time.perf_counter() - t0
+    top = diag.effects[0]
+    return BenchResult(
+        case=spec.name,
+        hidden=tuple(h.name for h in spec.hidden),
+        true_values={h.name: h.values for h in spec.hidden},
+        in_library=case.in_library,
+        top1=top.effect,
+        top1_params=top.params,
+        selected=tuple(diag.selected),
+        gap_before=diag.heldout["gap_before"],
+        gap_after=diag.heldout["gap_after"],
+        reduction=diag.heldout["reduction"],
+        unexplained_fraction=diag.unexplained_fraction,
+        reduction_above_noise=diag.heldout["reduction_above_noise"],
+        noise_floor=diag.heldout["noise_floor"],
+        seconds=seconds,
+    )
+
+
+def select_cases(names: Sequence[str] | None) -> list[CaseSpec]:
+    if not names:
+        return list(BENCHMARK)
+    known = {c.name: c for c in BENCHMARK}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise GrounderError(f"unknown case(s) {unknown}; available: {', '.join(known)}")
+    return [known[n] for n in names]
+
+
+def run_benchmark(
+    names: Sequence[str] | None = None,
+    num_trajectories: int = 16,
+    nthread: int = 2,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+) -> list[BenchResult]:
+    """Runs the named cases (all by default) one after another; `progress(stage, done, total)` after each."""
+    check_num_trajectories(num_trajectories)  # before the first case, not after it
+    report = progress or (lambda _s, _d, _t: None)
+    specs = select_cases(names)
+    results = []
+    for k, spec in enumerate(specs):
+        report(f"withheld-effect cases ({spec.name})", k, len(specs))
+        results.append(run_case(spec, num_trajectories, nthread, seed))
+    report("withheld-effect cases", len(specs), len(specs))
+    return results
+
+
+def _fmt_params(values: dict[str, float]) -> str:
+    return ", ".join(f"{k}={v:.3g}" for k, v in values.items())
+
+
+def format_table(results: Sequence[BenchResult]) -> str:
+    """A markdown table per case, the summary figures and the confusion matrix (true effect x selected first)."""
+    lines = [
+        "| case | hidden (true values) | top-1 (fitted) | selected | held-out gap before -> after | reduction "
+        "| above noise | verdict | s |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        hidden = "; ".join(f"{h} ({_fmt_params(r.true_values[h])})" for h in r.hidden)
+        mark = "ok" if r.correct else "WRONG"
+        lines.append(
+            f"| {r.case} | {hidden} | {r.top1} ({_fmt_params(r.top1_params)}) "
+            f"| {', '.join(r.selected) or 'none'} | {r.gap_before:.4f} -> {r.gap_after:.4f} "
+            f"| {r.reduction:.0%} | {r.reduction_above_noise:.0%} | {mark} | {r.seconds:.0f} |"
+        )
+    single = [r for r in results if r.in_library and len(r.hidden) == 1]
+    outside = [r for r in results if not r.in_library]
+    lines.append("")
+    for label, group in (
+        ("in-library single-effect cases", single),
+        ("  of which physical effects", [r for r in single if r.hidden[0] not in MEASUREMENT_EFFECTS]),
+        ("  of which measurement biases", [r for r in single if r.hidden[0] in MEASUREMENT_EFFECTS]),
+        ("multi-effect cases", [r for r in results if r.in_library and len(r.hidden) > 1]),
+    ):
+        if not group:
+            continue
+        n_ok = sum(r.correct for r in group)
+        reds = sorted(r.reduction for r in group)
+        above = sorted(r.reduction_above_noise for r in group)
+        lines.append(
+            f"{label}: top-1 correct {n_ok}/{len(group)} ({n_ok / len(group):.0%}); held-out reduction min "
+            f"{reds[0]:.0%}, median {reds[len(reds) // 2]:.0%}; above the noise floor min {above[0]:.0%}, "
+            f"median {above[len(above) // 2]:.0%}; time per case max {max(r.seconds for r in group):.0f} s"
+        )
+    for r in outside:
+        lines.append(
+            f"out-of-library {r.case}: unexplained fraction {r.unexplained_fraction:.0%} -> "
+            f"{'reported largely unexplained' if r.correct else 'NOT reported as unexplained'}"
+        )
+    # Confusion matrix: true (first hidden effect, or the out-of-library name) x first selected ("none" if none).
+    truths = list(dict.fromkeys("+".join(r.hidden) for r in results))
+    preds = list(dict.fromkeys([*(r.selected[0] if r.selected else "none" for r in results)]))
+    lines.append("")
+    lines.append("confusion matrix (rows: hidden effect(s); columns: first selected effect)")
+    lines.append("| hidden \\ selected | " + " | ".join(preds) + " |")
+    lines.append("|---|" + "---|" * len(preds))
+    for t in truths:
+        counts = [
+            sum(1 for r in results if "+".join(r.hidden) == t and (r.selected[0] if r.selected else "none") == p)
+            for p in preds
+        ]
+        lines.append(f"| {t} | " + " | ".join(str(c) if c else "." for c in counts) + " |")
+    return "\n".join(lines)

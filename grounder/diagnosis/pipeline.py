@@ -1,0 +1,954 @@
+"""Sim-to-real gap diagnosis: where the gap lies, which unmodelled effect causes it, how far it shrinks.
+
+Steps (one fixed setting for every input; see :class:`DiagnoseOptions`):
+
+1. **Split** the trajectories into training and held-out ones (seeded shuffle; copies of one motion,
+   `grounder.core.repeats`, kept on one side).
+2. **Where.** Re-simulate every trajectory with the nominal model, short-horizon (re-started from the recorded
+   state every ``horizon_s``) and open-loop, and break the normalised gap (:data:`grounder.diagnosis.gap.GAP_METRIC`)
+   down by body, coordinate group, phase (free flight, impact, sliding, rolling, resting, actuated, free motion;
+   detected from the recorded motion and the nominal model's contacts at the recorded states) and time.
+3. **Which.** Fit each library effect's few parameters on the training trajectories by a batched shrinking search
+   (every round simulates all candidate models x training windows in one ``mujoco.rollout`` call), score it on the
+   held-out trajectories, bootstrap the held-out reduction over trajectories, and rank by reduction minus a
+   complexity penalty per parameter.
+4. **How far.** Add effects greedily, each re-fitted on top of those already selected, while the held-out gap keeps
+   falling by at least ``min_gain`` (relative, after the penalty) with a bootstrap lower bound above zero.
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import json
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from grounder.core.repeats import describe_repeated_indices, repeated_motion_indices, split_keeping_together
+from grounder.core.trajectory import Trajectory, load_trajectories, validate_against_model
+from grounder.diagnosis.effects import (
+    LIBRARY,
+    AppliedEffect,
+    Effect,
+    apply_effects,
+    resolve_effects,
+)
+from grounder.diagnosis.gap import (
+    GAP_METRIC,
+    GAP_METRIC_PLAIN,
+    Group,
+    Scores,
+    Windows,
+    coordinate_groups,
+    make_windows,
+    predict,
+    rms,
+    score,
+)
+from grounder.diagnosis.noise import add_noise, estimate_noise
+from grounder.errors import GrounderError
+from grounder.sim.rollout import default_nthread, load_scene_model
+from image2sim_common.progress import ProgressFn
+from reconstruction import check_output_dir, staged_output_dir
+
+log = logging.getLogger(__name__)
+
+
+CONTACT_MARGIN_M = 0.004
+"""Distance under which a recorded body counts as touching (tracking noise keeps resting bodies a few mm off)."""
+
+PHASES = ("free_flight", "impact", "sliding", "rolling", "resting", "actuated", "free_motion")
+
+
+@dataclass(frozen=True, kw_only=True)
+class DiagnoseOptions:
+    """The one setting of the diagnosis (used unchanged for every case of the withheld-effect benchmark).
+
+    Attributes:
+        effects: effect names to test; None = every library effect that can act on the model.
+        holdout_fraction: share of trajectories held out for scoring (at least 2 held out, 2 for training).
+        seed: seeds the split and the bootstrap.
+        horizon_s: length of the short-horizon windows (re-started from the recorded state).
+        robust_scale: ``c`` of the gap metric's Cauchy function (None: plain RMS); see :mod:`grounder.diagnosis.gap`.
+        max_effects: at most this many effects are selected.
+        min_gain: an effect is added only if it cuts the current held-out gap by at least this fraction (after
+            the complexity penalty).
+        complexity_penalty: subtracted from a held-out reduction per fitted parameter.
+        search_rounds: refinement rounds of the batched parameter search after the initial grid.
+        n_bootstrap: bootstrap resamples of the held-out trajectories.
+        noise_stop_ratio: no effect is added after the first once the held-out gap is within this factor of the
+            noise floor (the gap a perfect model shows at the recording's estimated noise level).
+        shortlist: effects re-fitted in each greedy step after the first (best of the first ranking).
+        nthread: rollout threads (default: the CPU cores this process may use).
+    """
+
+    effects: tuple[str, ...] | None = None
+    holdout_fraction: float = 0.3
+    seed: int = 0
+    horizon_s: float = 0.25
+    robust_scale: float | None = 1.0
+    max_effects: int = 3
+    min_gain: float = 0.1
+    complexity_penalty: float = 0.02
+    search_rounds: int = 5
+    n_bootstrap: int = 1000
+    noise_stop_ratio: float = 1.3
+    shortlist: int = 5
+    nthread: int | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class EffectResult:
+    """One effect fitted on the training trajectories and scored on the held-out ones."""
+
+    effect: str
+    kind: str  # recalibration | new_effect | measurement
+    params: dict[str, float]
+    nominal_params: dict[str, float]
+    train_gap_after: float
+    heldout_gap_before: float
+    heldout_gap_after: float
+    heldout_reduction: float
+    ci: tuple[float, float]
+    score: float  # reduction minus the complexity penalty
+    per_traj_after: np.ndarray = field(repr=False)
+    heldout_by_phase: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Diagnosis:
+    """The diagnosis; ``to_json()`` is the content of ``diagnosis.json``."""
+
+    gap_metric: str
+    gap: dict[str, Any]
+    effects: list[EffectResult]
+    selected: list[str]
+    steps: list[dict[str, Any]]
+    heldout: dict[str, float]
+    unexplained_fraction: float
+    split: dict[str, list[str]]
+    applied: list[AppliedEffect] = field(repr=False)
+    noise: dict[str, float] = field(default_factory=dict)
+    measurement_check: dict[str, Any] = field(default_factory=dict)
+    figures: dict[str, Any] = field(repr=False, default_factory=dict)
+    seconds: float = 0.0
+
+    def to_json(self) -> dict[str, Any]:
+        best = self.effects[0] if self.effects else None
+        runner_up = self.effects[1] if len(self.effects) > 1 else None
+        return {
+            "gap_metric": self.gap_metric,
+            "gap": self.gap,
+            "effects": [
+                {
+                    "effect": e.effect,
+                    "kind": e.kind,
+                    "meaning": _meaning(e),
+                    "params": e.params,
+                    "nominal_params": e.nominal_params,
+                    "heldout_gap_before": e.heldout_gap_before,
+                    "heldout_gap_after": e.heldout_gap_after,
+                    "heldout_reduction": e.heldout_reduction,
+                    "ci": list(e.ci),
+                    "score": e.score,
+                    "train_gap_after": e.train_gap_after,
+                    "heldout_by_phase": e.heldout_by_phase,
+                }
+                for e in self.effects
+            ],
+            "selected": self.selected,
+            "steps": self.steps,
+            "heldout": self.heldout,
+            "unexplained_fraction": self.unexplained_fraction,
+            "finding": _finding(self),
+            "top_separated_from_runner_up": (
+                None if best is None or runner_up is None else bool(best.ci[0] > runner_up.heldout_reduction)
+            ),
+            "split": self.split,
+            "noise": self.noise,
+            "measurement_check": self.measurement_check,
+            "seconds": self.seconds,
+        }
+
+
+def _meaning(e: EffectResult) -> str:
+    if e.kind == "recalibration":
+        return "miscalibrated existing parameter"
+    if e.kind == "measurement":
+        return "measurement bias of the recording"
+    return "missing effect"
+
+
+def _finding(diag: Diagnosis) -> str:
+    text = _finding_main(diag)
+    check = diag.measurement_check
+    if check.get("selected"):
+        named = ", ".join(
+            f"{e['effect']} ({', '.join(f'{k}={v:.4g}' for k, v in e['params'].items())})" for e in check["selected"]
+        )
+        text += (
+            f"; recording bias suspected: {named}, together {check['heldout_reduction']:.0%} of the held-out gap "
+            f"in free flight and at rest"
+        )
+    return text
+
+
+def _finding_main(diag: Diagnosis) -> str:
+    if not diag.selected:
+        if diag.heldout["gap_before"] <= 1.25 * diag.heldout.get("noise_floor", 0.0):
+            return "the nominal model already matches the recordings to their noise floor"
+        return (
+            "no effect in the library explains the gap on held-out data (largely unexplained: "
+            f"{diag.unexplained_fraction:.0%} remains)"
+        )
+    parts = f"the selected effect(s) {', '.join(diag.selected)}"
+    floor = diag.heldout.get("noise_floor", 0.0)
+    if diag.heldout["gap_after"] <= 1.25 * floor:
+        return (
+            f"{parts} explain {1 - diag.unexplained_fraction:.0%} of the held-out gap; what remains is at the "
+            f"recording's noise floor ({floor:.4g})"
+        )
+    if diag.unexplained_fraction > 0.5:
+        return f"largely unexplained: {parts} explain only {1 - diag.unexplained_fraction:.0%} of the held-out gap"
+    return f"{parts} explain {1 - diag.unexplained_fraction:.0%} of the held-out gap"
+
+
+# ------------------------------------------------------------------------------------------------------- validation
+def check_inputs(model: mujoco.MjModel, trajs: Sequence[Trajectory], options: DiagnoseOptions) -> None:
+    """Fails before any work on input the diagnosis cannot use.
+
+    Raises:
+        GrounderError: dimension mismatch, bad quaternions, unknown effect names, a bad hold-out fraction, or too
+            few trajectories for a held-out split.
+    """
+    for traj in trajs:
+        validate_against_model(traj, model)
+    if not 0.0 < options.holdout_fraction < 1.0:
+        raise GrounderError(f"--holdout must be between 0 and 1 (exclusive), got {options.holdout_fraction}")
+    n_hold = _n_holdout(len(trajs), options.holdout_fraction)
+    if n_hold < 2 or len(trajs) - n_hold < 2:
+        raise GrounderError(
+            f"{len(trajs)} trajectories with --holdout {options.holdout_fraction:g} leave {len(trajs) - n_hold} for "
+            f"training and {n_hold} held out; the diagnosis needs at least 2 of each: record more trajectories "
+            f"(8 or more recommended)"
+        )
+    sample_s = max(float(np.median(np.diff(t.time_s))) for t in trajs)
+    if not (math.isfinite(options.horizon_s) and options.horizon_s >= sample_s):
+        raise GrounderError(
+            f"--horizon {options.horizon_s:g} s is shorter than the recordings' sample interval ({sample_s:.4g} s) "
+            "or not finite: a window needs two samples; pass a horizon of a few samples or more"
+        )
+    resolve_effects(list(options.effects) if options.effects is not None else None, model)
+    if model.nu and any(t.ctrl is None for t in trajs):
+        raise GrounderError("the model has actuators but the trajectories carry no 'ctrl'; record the controls")
+
+
+def _n_holdout(n: int, fraction: float) -> int:
+    return round(n * fraction)
+
+
+def _holdout_split(
+    model: mujoco.MjModel, trajs: Sequence[Trajectory], order: list[int], options: DiagnoseOptions
+) -> tuple[list[int], list[int]]:
+    """(held-out, training) indices: the first ``_n_holdout`` of the shuffled ``order``, copies of one motion
+    (`grounder.core.repeats`) kept on one side, unless that would leave fewer than 2 on a side (then as shuffled)."""
+    n_hold = _n_holdout(len(trajs), options.holdout_fraction)
+    repeats = repeated_motion_indices(trajs, model)
+    held, train = split_keeping_together(order, n_hold, repeats)
+    if repeats:
+        named = describe_repeated_indices(trajs, repeats)
+        if len(held) < 2 or len(train) < 2:
+            log.warning(
+                "%s; too few trajectories to keep each on one side of the held-out split, so held-out scores may "
+                "count copies of training trajectories",
+                named,
+            )
+            return order[:n_hold], order[n_hold:]
+        log.warning("%s; each kept on one side of the held-out split", named)
+    return held, train
+
+
+# ------------------------------------------------------------------------------------------------------------- phases
+def detect_phases(model: mujoco.MjModel, traj: Trajectory) -> np.ndarray:
+    """Phase name per recorded sample (T,), from the recorded motion and the model's contacts at recorded states.
+
+    Free bodies: ``impact`` (contact begins, or approaches the surface faster than 0.3 m/s), ``sliding`` (contact
+    point slips faster than 0.05 m/s), ``rolling`` (in contact, not slipping, turning faster than 1 rad/s),
+    ``resting``, ``free_flight`` (no geom within ``CONTACT_MARGIN_M``). Models without free joints: ``actuated``
+    (any control non-zero), ``free_motion`` (moving), ``resting``. With several free bodies the most eventful phase
+    wins.
+    """
+    free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
+    # MuJoCo reports contacts only within the margin: widen it (on a copy) to see near-contacts of noisy data.
+    model = copy.copy(model)
+    model.geom_margin[:] = np.maximum(model.geom_margin, CONTACT_MARGIN_M)
+    data = mujoco.MjData(model)
+    n = traj.num_steps
+    if not free:
+        out = np.full(n, "resting", dtype=object)
+        moving = np.abs(traj.qvel).max(axis=1) > 0.05
+        out[moving] = "free_motion"
+        if traj.ctrl is not None:
+            out[np.abs(traj.ctrl).max(axis=1) > 1e-9] = "actuated"
+        return out
+    priority = {p: i for i, p in enumerate(("impact", "sliding", "rolling", "free_flight", "resting"))}
+    phase = np.full(n, "resting", dtype=object)
+    in_contact = np.zeros((n, len(free)), bool)
+    info = []
+    for t in range(n):
+        data.qpos[:] = traj.qpos[t]
+        data.qvel[:] = traj.qvel[t]
+        mujoco.mj_forward(model, data)
+        row = []
+        for k, j in enumerate(free):
+            body = int(model.jnt_bodyid[j])
+            dof = int(model.jnt_dofadr[j])
+            v = traj.qvel[t, dof : dof + 3]
+            omega_world = data.xmat[body].reshape(3, 3) @ traj.qvel[t, dof + 3 : dof + 6]
+            slip, approach = 0.0, 0.0
+            for c in data.contact[: data.ncon]:
+                if c.dist > CONTACT_MARGIN_M or body not in (model.geom_bodyid[c.geom1], model.geom_bodyid[c.geom2]):
+                    continue
+                in_contact[t, k] = True
+                normal = c.frame[:3] * (1.0 if model.geom_bodyid[c.geom2] == body else -1.0)
+                vp = v + np.cross(omega_world, c.pos - data.xpos[body])
+                vn = float(vp @ normal)
+                slip = max(slip, float(np.linalg.norm(vp - vn * normal)))
+                approach = max(approach, -vn)
+            row.append((slip, approach, float(np.linalg.norm(omega_world))))
+        info.append(row)
+    for t in range(n):
+        best = "resting"
+        for k in range(len(free)):
+            slip, approach, omega = info[t][k]
+            if not in_contact[t, k]:
+                p = "free_flight"
+            elif (t > 0 and not in_contact[max(0, t - 2) : t, k].all()) or approach > 0.3:
+                p = "impact"
+            elif slip > 0.05:
+                p = "sliding"
+            elif omega > 1.0:
+                p = "rolling"
+            else:
+                p = "resting"
+            if priority[p] < priority[best]:
+                best = p
+        phase[t] = best
+    return phase
+
+
+# ------------------------------------------------------------------------------------------------------- the engine
+class _Engine:
+    """Batched evaluation of candidate models on fixed window sets."""
+
+    def __init__(
+        self, model: mujoco.MjModel, train: list[Trajectory], held: list[Trajectory], options: DiagnoseOptions
+    ):
+        from mujoco import rollout as mj_rollout
+
+        self.model = model
+        self.options = options
+        self.groups: list[Group] = coordinate_groups(model)
+        self.nthread = options.nthread or default_nthread()
+        self.runner = mj_rollout.Rollout(nthread=self.nthread)
+        self.train, self.held = train, held
+        self.train_w = make_windows(model, train, options.horizon_s)
+        self.held_w = make_windows(model, held, options.horizon_s)
+        self.evaluations = 0
+
+    def close(self) -> None:
+        self.runner.close()
+
+    def scores(self, applied_sets: Sequence[list[AppliedEffect]], windows: Windows, n_traj: int) -> Scores:
+        cands = [apply_effects(self.model, a) for a in applied_sets]
+        self.evaluations += len(cands)
+        pred = predict(cands, windows, self.runner, self.nthread)
+        return score(pred, windows, self.groups, n_traj, self.options.robust_scale)
+
+    def per_traj(self, applied_sets: Sequence[list[AppliedEffect]], windows: Windows, n_traj: int) -> np.ndarray:
+        return self.scores(applied_sets, windows, n_traj).per_traj
+
+    def count(self, windows: Windows, n_traj: int) -> np.ndarray:
+        out = np.zeros(n_traj)
+        np.add.at(out, windows.traj_index, windows.mask.sum(axis=1))
+        return out
+
+    def fit(
+        self,
+        base: list[AppliedEffect],
+        effects: list[Effect],
+        init: list[dict[str, float]] | None = None,
+        slot_mask: np.ndarray | None = None,
+    ) -> tuple[list[AppliedEffect], float]:
+        """Fits the parameters of ``effects`` jointly on top of ``base`` (fixed) on the training windows.
+
+        A batched shrinking search in the unit box of the parameters: a grid (or Sobol points) over the whole box
+        with the nominal point, then ``search_rounds`` rounds of points around the best so far, each round one
+        ``mujoco.rollout`` call.
+        """
+        params = [(e, p) for e in effects for p in e.params_of(self.model)]
+        dim = len(params)
+        start = np.array(
+            [p.to_unit((init[effects.index(e)] if init else e.nominal_of(self.model))[p.name]) for e, p in params]
+        )
+        count = self.count(self.train_w, len(self.train))
+
+        def unpack(u: np.ndarray) -> list[AppliedEffect]:
+            out = list(base)
+            k = 0
+            for e in effects:
+                values = {}
+                for p in e.params_of(self.model):
+                    values[p.name] = float(p.from_unit(np.array(u[k])))
+                    k += 1
+                out.append(AppliedEffect(effect=e, values=values))
+            return out
+
+        def losses(points: np.ndarray) -> np.ndarray:
+            if slot_mask is not None:
+                sq = self.scores([unpack(u) for u in points], self.train_w, len(self.train)).sq.mean(axis=-1)
+                return (sq * slot_mask[None]).sum(axis=(1, 2)) / max(int(slot_mask.sum()), 1)
+            per = self.per_traj([unpack(u) for u in points], self.train_w, len(self.train))
+            return per.sum(axis=1) / max(count.sum(), 1)
+
+        rng = np.random.default_rng(self.options.seed)
+        if init is not None:
+            points = np.vstack([start, np.clip(start + rng.uniform(-0.1, 0.1, (4 * dim, dim)), 0, 1)])
+            radii = [0.05, 0.02][: self.options.search_rounds]
+        else:
+            if dim == 1:
+                grid = np.linspace(0.0, 1.0, 9)[:, None]
+            else:
+                from scipy.stats import qmc
+
+                grid = qmc.Sobol(dim, scramble=True, seed=self.options.seed).random_base2(
+                    int(np.ceil(np.log2(8 * dim)))
+                )
+                grid = np.vstack([grid, np.full((1, dim), 0.5)])
+            points = np.vstack([start[None], grid])
+            radii = [0.25 / 2**k for k in range(self.options.search_rounds)]
+            radii = [r * (1.0 if dim == 1 else 1.5) for r in radii]
+        vals = losses(points)
+        best_u, best = points[int(np.argmin(vals))], float(np.min(vals))
+        for r in radii:
+            if dim == 1:
+                offsets = np.array([-1.0, -0.5, 0.5, 1.0])[:, None] * r
+            else:
+                offsets = rng.uniform(-r, r, (4 * dim, dim))
+            pts = np.clip(best_u[None] + offsets, 0.0, 1.0)
+            vals = losses(pts)
+            if float(np.min(vals)) < best:
+                best_u, best = pts[int(np.argmin(vals))], float(np.min(vals))
+        return unpack(best_u), float(np.sqrt(best))
+
+
+def _bootstrap_reduction(
+    before: np.ndarray, after: np.ndarray, rng: np.random.Generator, n_boot: int
+) -> tuple[float, float]:
+    """95% interval of 1 - sqrt(sum after / sum before) over trajectories resampled with replacement."""
+    n = len(before)
+    idx = rng.integers(0, n, (n_boot, n))
+    b = before[idx].sum(axis=1)
+    a = after[idx].sum(axis=1)
+    red = 1.0 - np.sqrt(a / np.maximum(b, 1e-300))
+    return float(np.percentile(red, 2.5)), float(np.percentile(red, 97.5))
+
+
+def _lower_bound(before: np.ndarray, after: np.ndarray, rng: np.random.Generator, n_boot: int) -> float:
+    n = len(before)
+    idx = rng.integers(0, n, (n_boot, n))
+    red = 1.0 - np.sqrt(after[idx].sum(axis=1) / np.maximum(before[idx].sum(axis=1), 1e-300))
+    return float(np.percentile(red, 5.0))
+
+
+# ----------------------------------------------------------------------------------------------------- breakdowns
+def _breakdown(engine: _Engine, trajs: list[Trajectory], applied: list[AppliedEffect]) -> dict[str, Any]:
+    """Gap of a model on trajectories: total, by body, by coordinate group, by phase, over time; both measures."""
+    model = engine.model
+    out: dict[str, Any] = {}
+    phases = [detect_phases(model, t) for t in trajs]
+    for name, horizon in (("short_horizon", engine.options.horizon_s), ("open_loop", None)):
+        windows = make_windows(model, trajs, horizon)
+        cand = apply_effects(model, applied)
+        pred = predict([cand], windows, engine.runner, engine.nthread)
+        sc = score(pred, windows, engine.groups, len(trajs), engine.options.robust_scale)
+        sq = sc.sq[0]  # (W, S, G)
+        mask = windows.mask
+        n = max(int(mask.sum()), 1)
+        entry: dict[str, Any] = {"total": float(np.sqrt(sq.mean(axis=-1)[mask].sum() / n))}
+        by_group = {g.label: float(np.sqrt(sq[..., k][mask].mean())) for k, g in enumerate(engine.groups)}
+        bodies: dict[str, list[int]] = {}
+        for k, g in enumerate(engine.groups):
+            bodies.setdefault(g.body, []).append(k)
+        entry["by_body"] = {b: float(np.sqrt(sq[..., ks].mean(axis=-1)[mask].mean())) for b, ks in bodies.items()}
+        entry["by_coordinate"] = by_group
+        per_sample = sq.mean(axis=-1)
+        labels = np.empty(mask.shape, dtype=object)
+        times = np.zeros(mask.shape)
+        for w in range(len(windows.traj_index)):
+            ti = windows.traj_index[w]
+            labels[w] = phases[ti][windows.sample_index[w]]
+            times[w] = trajs[ti].time_s[windows.sample_index[w]] - trajs[ti].time_s[0]
+        by_phase = {}
+        phase_share = {}
+        for p in PHASES:
+            sel = mask & (labels == p)
+            if sel.any():
+                by_phase[p] = float(np.sqrt(per_sample[sel].mean()))
+                phase_share[p] = float(sel.sum() / n)
+        entry["by_phase"] = by_phase
+        entry["phase_share"] = phase_share
+        t_max = float(times[mask].max()) if mask.any() else 1.0
+        edges = np.linspace(0.0, t_max + 1e-9, 11)
+        by_time = []
+        for lo, hi in itertools.pairwise(edges):
+            sel = mask & (times >= lo) & (times < hi)
+            if sel.any():
+                by_time.append({"t_s": float(0.5 * (lo + hi)), "gap": float(np.sqrt(per_sample[sel].mean()))})
+        entry["by_time"] = by_time
+        out[name] = entry
+    return out
+
+
+# -------------------------------------------------------------------------------------------------------- diagnose
+def diagnose(
+    model: mujoco.MjModel,
+    trajs: Sequence[Trajectory],
+    options: DiagnoseOptions | None = None,
+    progress: ProgressFn | None = None,
+) -> Diagnosis:
+    """Diagnoses the gap between ``model`` and recorded ``trajs`` (see the module docstring).
+
+    Args:
+        model: the nominal model (its timestep must not exceed the sample interval).
+        trajs: recorded trajectories in the model's joint order.
+        options: the setting; defaults to :class:`DiagnoseOptions`.
+        progress: optional callback ``(stage, done, total)``.
+
+    Raises:
+        GrounderError: see :func:`check_inputs`.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    options = options or DiagnoseOptions()
+    trajs = list(trajs)
+    check_inputs(model, trajs, options)
+    effects = resolve_effects(list(options.effects) if options.effects is not None else None, model)
+    report = progress or (lambda stage, done, total: None)
+    rng = np.random.default_rng(options.seed)
+    held_idx, train_idx = _holdout_split(model, trajs, rng.permutation(len(trajs)).tolist(), options)
+    held = [trajs[i] for i in sorted(held_idx)]
+    train = [trajs[i] for i in sorted(train_idx)]
+    engine = _Engine(model, train, held, options)
+    try:
+        held_count = engine.count(engine.held_w, len(held))
+        held_phases = _window_labels(engine.held_w, [detect_phases(model, t) for t in held])
+        base_scores = engine.scores([[]], engine.held_w, len(held))
+        base_held = base_scores.per_traj[0]
+        gap_before = rms(base_held, held_count)
+        # Which: every effect alone on the nominal model.
+        results: list[EffectResult] = []
+        for i, effect in enumerate(effects):
+            report("fitting effects", i, len(effects))
+            fitted, train_gap = engine.fit([], [effect])
+            after_scores = engine.scores([fitted], engine.held_w, len(held))
+            after = after_scores.per_traj[0]
+            result = _result(effect, fitted[-1], model, train_gap, base_held, after, held_count, options, rng)
+            by_phase = _phase_reductions(base_scores, after_scores, engine.held_w, held_phases)
+            results.append(replace(result, heldout_by_phase=by_phase))
+            log.info("%s: held-out %.4f -> %.4f", effect.name, gap_before, results[-1].heldout_gap_after)
+        report("fitting effects", len(effects), len(effects))
+        results.sort(key=lambda r: -r.score)
+        measurement = _measurement_check(engine, effects, held_phases, options, rng)
+        # How far: greedy forward selection.
+        applied: list[AppliedEffect] = []
+        current = base_held
+        noise = estimate_noise(model, trajs)
+        floor_nominal = _noise_floor(engine, held, [], noise, options.seed)
+        steps: list[dict[str, Any]] = []
+        candidates = {r.effect: r for r in results}
+        for step in range(options.max_effects):
+            report("selecting effects", step, options.max_effects)
+            if step > 0 and rms(current, held_count) <= options.noise_stop_ratio * floor_nominal:
+                steps.append(
+                    {"stopped": "the held-out gap is at the recording's noise floor", "noise_floor": floor_nominal}
+                )
+                break
+            if step == 0:
+                best_name = results[0].effect if results else None
+                trial = (
+                    [AppliedEffect(effect=LIBRARY[best_name], values=candidates[best_name].params)] if best_name else []
+                )
+                after = candidates[best_name].per_traj_after if best_name else current
+            else:
+                pool = [r.effect for r in results if r.effect not in {a.effect.name for a in applied}]
+                pool = pool[: options.shortlist]
+                best_name, trial, after = None, [], current
+                best_score = -np.inf
+                for name in pool:
+                    fitted, _ = engine.fit(applied, [LIBRARY[name]])
+                    per = engine.per_traj([fitted], engine.held_w, len(held))[0]
+                    gain = 1.0 - rms(per, held_count) / max(rms(current, held_count), 1e-300)
+                    s = gain - options.complexity_penalty * len(LIBRARY[name].params_of(model))
+                    if s > best_score:
+                        best_score, best_name, trial, after = s, name, fitted, per
+            if best_name is None:
+                break
+            gap_cur, gap_new = rms(current, held_count), rms(after, held_count)
+            gain = 1.0 - gap_new / max(gap_cur, 1e-300)
+            penalty = options.complexity_penalty * len(LIBRARY[best_name].params_of(model))
+            lower = _lower_bound(current, after, rng, options.n_bootstrap)
+            accepted = gain - penalty >= options.min_gain and lower > 0
+            steps.append(
+                {
+                    "effect": best_name,
+                    "params": trial[-1].values if trial else {},
+                    "heldout_gap_before": gap_cur,
+                    "heldout_gap_after": gap_new,
+                    "relative_gain": gain,
+                    "gain_lower_5pct": lower,
+                    "accepted": bool(accepted),
+                }
+            )
+            if not accepted:
+                break
+            applied, current = trial, after
+        report("selecting effects", options.max_effects, options.max_effects)
+        # Joint refinement of everything selected (small local search on the training windows).
+        if len(applied) > 1:
+            refined, _ = engine.fit([], [a.effect for a in applied], init=[a.values for a in applied])
+            per = engine.per_traj([refined], engine.held_w, len(held))[0]
+            if rms(per, held_count) <= rms(current, held_count):
+                applied, current = refined, per
+        gap_after = rms(current, held_count)
+        floor = _noise_floor(engine, held, applied, noise, options.seed)
+        report("breaking the gap down", 0, 2)
+        gap_all = _breakdown(engine, trajs, [])
+        gap_diag = _breakdown(engine, trajs, applied)
+        report("breaking the gap down", 2, 2)
+        figures = _figure_data(engine, held, applied)
+    finally:
+        engine.close()
+    short = gap_all["short_horizon"]
+    gap = {
+        "total": short["total"],
+        "by_body": short["by_body"],
+        "by_phase": short["by_phase"],
+        "by_coordinate": short["by_coordinate"],
+        "by_time": short["by_time"],
+        "phase_share": short["phase_share"],
+        "open_loop": gap_all["open_loop"],
+        "after_selected": gap_diag,
+    }
+    held_ol_before = gap_all["open_loop"]["total"]
+    reduction = 1.0 - gap_after / max(gap_before, 1e-300)
+    return Diagnosis(
+        gap_metric=_metric_text(options),
+        gap=gap,
+        effects=results,
+        selected=[a.effect.name for a in applied],
+        steps=steps,
+        heldout={
+            "gap_before": gap_before,
+            "gap_after": gap_after,
+            "reduction": reduction,
+            "noise_floor": floor,
+            "reduction_above_noise": _above_noise(gap_before, gap_after, floor),
+            "open_loop_all_before": held_ol_before,
+            "open_loop_all_after": gap_diag["open_loop"]["total"],
+        },
+        unexplained_fraction=float(max(0.0, 1.0 - reduction)),
+        split={"train": [t.name for t in train], "heldout": [t.name for t in held]},
+        noise=noise,
+        measurement_check=measurement,
+        applied=applied,
+        figures=figures,
+        seconds=time.perf_counter() - t0,
+    )
+
+
+def _result(
+    effect: Effect,
+    fitted: AppliedEffect,
+    model: mujoco.MjModel,
+    train_gap: float,
+    before: np.ndarray,
+    after: np.ndarray,
+    count: np.ndarray,
+    options: DiagnoseOptions,
+    rng: np.random.Generator,
+) -> EffectResult:
+    g0, g1 = rms(before, count), rms(after, count)
+    reduction = 1.0 - g1 / max(g0, 1e-300)
+    n_params = len(effect.params_of(model))
+    return EffectResult(
+        effect=effect.name,
+        kind=effect.kind_of(model),
+        params=fitted.values,
+        nominal_params=effect.nominal_of(model),
+        train_gap_after=train_gap,
+        heldout_gap_before=g0,
+        heldout_gap_after=g1,
+        heldout_reduction=reduction,
+        ci=_bootstrap_reduction(before, after, rng, options.n_bootstrap),
+        score=reduction - options.complexity_penalty * n_params,
+        per_traj_after=after,
+    )
+
+
+QUIET_PHASES = ("free_flight", "resting")
+"""Phases whose physics the nominal model gets right when its geometry is right (gravity; static contact): the
+measurement check fits the recording biases on these samples only, so contact modelling cannot absorb them."""
+MEASUREMENT_NAMES = ("length_scale", "time_scale", "velocity_lag")
+
+
+def _measurement_check(
+    engine: _Engine,
+    effects: list[Effect],
+    held_phases: np.ndarray,
+    options: DiagnoseOptions,
+    rng: np.random.Generator,
+) -> dict[str, Any]:
+    """Recording biases fitted and scored on quiet stretches only (free flight, resting since the window start)."""
+    candidates = [e for e in effects if e.name in MEASUREMENT_NAMES]
+    if not candidates:
+        return {}
+    model = engine.model
+    train_labels = _window_labels(engine.train_w, [detect_phases(model, t) for t in engine.train])
+    # Only slots whose whole window up to them is quiet: an impact earlier in the window would leak into them.
+    train_mask = engine.train_w.mask & np.logical_and.accumulate(np.isin(train_labels, QUIET_PHASES), axis=1)
+    held_mask = engine.held_w.mask & np.logical_and.accumulate(np.isin(held_phases, QUIET_PHASES), axis=1)
+    if train_mask.sum() < 20 or held_mask.sum() < 20:
+        return {"skipped": "fewer than 20 free-flight or resting samples in the training or held-out set"}
+    n_held = len(engine.held)
+
+    def masked_per_traj(sq: np.ndarray) -> np.ndarray:
+        per = np.zeros(n_held)
+        np.add.at(per, engine.held_w.traj_index, (sq.mean(axis=-1) * held_mask).sum(axis=-1))
+        return per
+
+    count = np.zeros(n_held)
+    np.add.at(count, engine.held_w.traj_index, held_mask.sum(axis=1))
+    before = masked_per_traj(engine.scores([[]], engine.held_w, n_held).sq[0])
+    out: list[dict[str, Any]] = []
+    for effect in candidates:
+        fitted, _ = engine.fit([], [effect], slot_mask=train_mask)
+        after = masked_per_traj(engine.scores([fitted], engine.held_w, n_held).sq[0])
+        g0, g1 = rms(before, count), rms(after, count)
+        lo, hi = _bootstrap_reduction(before, after, rng, options.n_bootstrap)
+        out.append(
+            {
+                "effect": effect.name,
+                "params": fitted[-1].values,
+                "heldout_gap_before": g0,
+                "heldout_gap_after": g1,
+                "heldout_reduction": 1.0 - g1 / max(g0, 1e-300),
+                "ci": [lo, hi],
+                "significant": bool(lo > 0 and 1.0 - g1 / max(g0, 1e-300) >= options.min_gain),
+            }
+        )
+    out.sort(key=lambda e: -float(e["heldout_reduction"]))
+    # Biases confound each other (a velocity lag looks like a gravity or scale error in free flight): add them
+    # greedily, each re-fitted on top of those already accepted.
+    applied: list[AppliedEffect] = []
+    current = before
+    selected = []
+    remaining = list(candidates)
+    while remaining:
+        trials = []
+        for effect in remaining:
+            fitted, _ = engine.fit(applied, [effect], slot_mask=train_mask)
+            after = masked_per_traj(engine.scores([fitted], engine.held_w, n_held).sq[0])
+            trials.append((rms(after, count), effect, fitted, after))
+        gap_new, effect, fitted, after = min(trials, key=lambda t: t[0])
+        gain = 1.0 - gap_new / max(rms(current, count), 1e-300)
+        if gain < options.min_gain or _lower_bound(current, after, rng, options.n_bootstrap) <= 0:
+            break
+        applied, current = fitted, after
+        remaining.remove(effect)
+        selected.append({"effect": effect.name, "params": fitted[-1].values, "heldout_gap_after": gap_new})
+    for item, final in zip(selected, applied, strict=True):
+        item["params"] = final.values
+    return {
+        "phases": list(QUIET_PHASES),
+        "heldout_samples": int(held_mask.sum()),
+        "effects": out,
+        "selected": selected,
+        "heldout_gap_before": rms(before, count),
+        "heldout_gap_after": rms(current, count),
+        "heldout_reduction": 1.0 - rms(current, count) / max(rms(before, count), 1e-300),
+    }
+
+
+def _metric_text(options: DiagnoseOptions) -> str:
+    if options.robust_scale:
+        return GAP_METRIC.format(horizon_s=options.horizon_s, robust=options.robust_scale)
+    return GAP_METRIC_PLAIN.format(horizon_s=options.horizon_s)
+
+
+def _window_labels(windows: Windows, phases: list[np.ndarray]) -> np.ndarray:
+    """Phase name of every window slot (W, S)."""
+    labels = np.empty(windows.mask.shape, dtype=object)
+    for w in range(len(windows.traj_index)):
+        labels[w] = phases[windows.traj_index[w]][windows.sample_index[w]]
+    return labels
+
+
+def _phase_reductions(
+    before: Scores, after: Scores, windows: Windows, labels: np.ndarray
+) -> dict[str, dict[str, float]]:
+    """Held-out gap per phase before and after an effect, and its reduction there."""
+    out = {}
+    e0, e1 = before.sq[0].mean(axis=-1), after.sq[0].mean(axis=-1)
+    for p in PHASES:
+        sel = windows.mask & (labels == p)
+        if sel.any():
+            g0, g1 = float(np.sqrt(e0[sel].mean())), float(np.sqrt(e1[sel].mean()))
+            out[p] = {"before": g0, "after": g1, "reduction": 1.0 - g1 / max(g0, 1e-300)}
+    return out
+
+
+def _above_noise(before: float, after: float, floor: float) -> float:
+    """Reduction of the part of the gap above the noise floor (squared gaps subtract)."""
+    excess_before = max(before**2 - floor**2, 0.0)
+    if excess_before <= 0.0:
+        return 0.0
+    return float(1.0 - np.sqrt(max(after**2 - floor**2, 0.0) / excess_before))
+
+
+def _noise_floor(
+    engine: _Engine, held: list[Trajectory], applied: list[AppliedEffect], noise: dict[str, float], seed: int
+) -> float:
+    """Short-horizon gap of the diagnosed model against its own simulations of the held-out starts, plus noise."""
+    from grounder.diagnosis.effects import Transforms
+    from grounder.sim.rollout import simulate
+
+    floor_model, _ = apply_effects(engine.model, applied)
+    clean = simulate(floor_model, held, nthread=engine.nthread)
+    assert isinstance(clean[0], Trajectory)
+    rng = np.random.default_rng(seed + 1)
+    noisy = [add_noise(engine.model, t, noise, rng) for t in clean if isinstance(t, Trajectory)]
+    windows = make_windows(floor_model, noisy, engine.options.horizon_s)
+    pred = predict([(floor_model, Transforms())], windows, engine.runner, engine.nthread)
+    sc = score(pred, windows, engine.groups, len(noisy), engine.options.robust_scale)
+    return float(sc.gap[0])
+
+
+def _figure_data(engine: _Engine, held: list[Trajectory], applied: list[AppliedEffect]) -> dict[str, Any]:
+    """Open-loop real vs simulated (before, after) for the first two held-out trajectories."""
+    trajs = held[:2]
+    windows = make_windows(engine.model, trajs, None)
+    cands = [apply_effects(engine.model, []), apply_effects(engine.model, applied)]
+    pred = predict(cands, windows, engine.runner, engine.nthread)
+    out = []
+    for w, traj in enumerate(trajs):
+        k = int(windows.mask[w].sum()) + 1
+        out.append(
+            {
+                "name": traj.name,
+                "time_s": traj.time_s[:k] - traj.time_s[0],
+                "real": windows.real_qpos[w, :k],
+                "before": pred[0, w, :k],
+                "after": pred[1, w, :k],
+            }
+        )
+    return {"trajectories": out, "groups": engine.groups}
+
+
+# ------------------------------------------------------------------------------------------------------------ output
+def diagnosed_spec_xml(scene_xml: Path, model: mujoco.MjModel, applied: list[AppliedEffect]) -> str:
+    """The nominal MJCF with the MJCF-expressible selected effects written into it (via MjSpec)."""
+    spec = mujoco.MjSpec.from_file(str(scene_xml))
+    diag, _ = apply_effects(model, [a for a in applied if a.effect.in_mjcf])
+    compiled = spec.compile()
+    if compiled.ngeom != model.ngeom or compiled.nbody != model.nbody:
+        raise GrounderError("the scene XML does not compile to the diagnosed model; cannot write the MJCF")
+    spec.option.density = float(diag.opt.density)
+    spec.option.viscosity = float(diag.opt.viscosity)
+    geoms = {g.id if hasattr(g, "id") else i: g for i, g in enumerate(spec.geoms)}
+    for i in range(model.ngeom):
+        g = geoms.get(i)
+        if g is None:
+            continue
+        g.friction = diag.geom_friction[i].copy()
+        g.solref = diag.geom_solref[i].copy()
+        g.condim = int(diag.geom_condim[i])
+    for j, joint in enumerate(spec.joints):
+        dof = int(model.jnt_dofadr[j])
+        damping = np.atleast_1d(np.array(joint.damping, dtype=float))  # MuJoCo 4: polynomial coefficients
+        damping[0] = float(diag.dof_damping[dof])
+        joint.damping = damping if damping.shape[0] > 1 else float(damping[0])
+        joint.frictionloss = float(diag.dof_frictionloss[dof])
+        joint.armature = float(diag.dof_armature[dof])
+    bodies = list(spec.bodies)
+    for b in range(1, model.nbody):
+        if np.allclose(diag.body_mass[b], model.body_mass[b]) and np.allclose(diag.body_ipos[b], model.body_ipos[b]):
+            continue
+        body = bodies[b]
+        body.explicitinertial = True
+        body.mass = float(diag.body_mass[b])
+        body.ipos = diag.body_ipos[b].copy()
+        body.iquat = diag.body_iquat[b].copy()
+        body.inertia = diag.body_inertia[b].copy()
+        body.fullinertia = np.full(6, np.nan)
+    for a, act in enumerate(spec.actuators):
+        act.gainprm[0] = float(diag.actuator_gainprm[a, 0])
+    return spec.to_xml()
+
+
+def write_outputs(
+    diag: Diagnosis, scene_xml: Path, model: mujoco.MjModel, out_dir: Path, *, overwrite: bool = False
+) -> Path:
+    """Writes ``diagnosis.json``, ``report.html`` and ``diagnosed.xml`` into ``out_dir`` (built aside, then moved)."""
+    from grounder.diagnosis.report import render_report
+
+    out_dir = Path(out_dir)
+    with staged_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml,)) as staging:
+        content = diag.to_json()
+        content["mjcf"] = {
+            "file": "diagnosed.xml",
+            "expressed": [a.effect.name for a in diag.applied if a.effect.in_mjcf],
+            "not_expressible": {a.effect.name: a.values for a in diag.applied if not a.effect.in_mjcf},
+        }
+        (staging / "diagnosis.json").write_text(json.dumps(content, indent=2, default=_json_default))
+        (staging / "diagnosed.xml").write_text(diagnosed_spec_xml(scene_xml, model, diag.applied))
+        (staging / "report.html").write_text(render_report(diag))
+    return out_dir
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if hasattr(obj, "__dataclass_fields__"):
+        return asdict(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def diagnose_files(
+    scene_xml: Path,
+    traj_dir: Path,
+    out_dir: Path,
+    options: DiagnoseOptions | None = None,
+    *,
+    overwrite: bool = False,
+    progress: ProgressFn | None = None,
+) -> Diagnosis:
+    """Loads the scene and trajectories, diagnoses, and writes ``out_dir`` (the CLI's ``diagnose``)."""
+    scene_xml, model = load_scene_model(scene_xml)
+    trajs = load_trajectories(traj_dir, model)
+    options = options or DiagnoseOptions()
+    out_dir = Path(out_dir)
+    check_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml, traj_dir))
+    diag = diagnose(model, trajs, options, progress)
+    write_outputs(diag, scene_xml, model, out_dir, overwrite=overwrite)
+    return diag

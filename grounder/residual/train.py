@@ -1,0 +1,714 @@
+"""Training the residual: one-step targets from recorded motion, then rounds of data aggregation along rollouts.
+
+Round 0 fits the correction that takes MuJoCo's one-period prediction from each recorded state to the next
+recorded state. A model trained on one-step targets only sees recorded states, but in a rollout it is fed its own
+predictions, which drift; so each further round rolls the current hybrid model out from recorded states for
+``dagger_horizon`` periods and adds, for every state it visits, the correction back to the recorded next state
+("data as demonstrator", Venkatraman et al., AAAI 2015; DAgger for dynamics models). States that drifted too far
+(``dagger_max_pos_error_m``, ``dagger_max_rot_error_deg``) are left out: there the recorded next state is no
+longer a learnable target. The gate statistics (ranges, k-means centres) are recomputed on all states seen.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import shutil
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from grounder.core.repeats import describe_repeated_indices, repeated_motion_indices, split_keeping_together
+from grounder.core.trajectory import Trajectory, validate_against_model
+from grounder.errors import GrounderError, integer_in, shown
+from grounder.residual.joint import (
+    JOINT_SPACE,
+    JointSpace,
+    NumpyJointResidual,
+    joint_features,
+    joint_space,
+    joint_targets,
+)
+from grounder.residual.model import (
+    META_FILE,
+    NUM_OUTPUTS,
+    ONNX_FILE,
+    OUTPUT_NAMES,
+    RESIDUAL_FILES,
+    WEIGHTS_FILE,
+    FreeBody,
+    GateOptions,
+    NumpyResidual,
+    ResidualMeta,
+    body_features,
+    correction_targets,
+    file_sha256,
+    free_bodies,
+    scene_files_sha256,
+    smooth_free_bodies,
+)
+from grounder.residual.report import ResidualReport, RolloutErrors, rollout_errors, write_residual_report
+from grounder.residual.simulator import Simulator
+from grounder.sim.rollout import (
+    SCENE_XML,
+    check_links_stay_inside,
+    copy_scene_files,
+    free_joints,
+    quat_angle_rad,
+    scene_xml_path,
+    step_indices,
+)
+from image2sim_common.progress import ProgressFn
+from reconstruction import check_output_dir, staged_output_dir
+
+log = logging.getLogger(__name__)
+
+REPORT_FILE = "report.html"  # the residual's HTML report, beside residual.pt/.json/.onnx
+_FREE_RMS = ("position, m", "rotation, rad", "velocity, m/s", "angular velocity, rad/s")  # one-step RMS groups
+
+
+@dataclass(frozen=True, kw_only=True)
+class ResidualOptions:
+    """How the residual is trained (also the CLI's ``residual train`` options).
+
+    Attributes:
+        hidden: Width of each hidden layer of the per-body MLP.
+        layers: Hidden layers.
+        steps: Optimiser steps per round.
+        batch_size: Samples per optimiser step.
+        learning_rate: Adam's learning rate (cosine-decayed to 5% within each round).
+        weight_decay: AdamW weight decay.
+        dagger_rounds: Rounds of data aggregation along rollouts after the one-step round (default 0: on the
+            real cube tosses two rounds made held-out rollouts worse, 29.8% -> 40.9% of the cube width at gain 1).
+        dagger_horizon: Periods each aggregation rollout runs.
+        dagger_stride: A rollout starts at every this many-th recorded sample.
+        dagger_max_pos_error_m: Rollout states farther than this from the recording are not used as targets.
+        dagger_max_rot_error_deg: Same, for the orientation.
+        dagger_pull: Fraction of a rollout state's drift from the recording that its target takes back in one
+            period; the rest of the target matches the recorded increment (1 is plain data-as-demonstrator, whose
+            one-period jumps back to the recording are not learnable from the state alone).
+        ctrl_history_s: A joint-space residual (scenes of hinge and slide joints with actuators) also sees the
+            controls of the periods within this many seconds before the present one, so that an actuator's delay
+            or lag can be learnt.
+        smooth_window: Train on free-body poses smoothed over this many samples and velocities re-estimated
+            from them (``grounder.residual.model.smooth_free_bodies``); 0 (default) trains on the recording as it is.
+            On the real cube tosses smoothing over 5 samples made rollouts worse (it blurs the impacts).
+        selection_fraction: Share of the trajectories (seeded) held out of fitting to choose the output gain.
+        gains: Candidate output gains; the one whose multi-step rollouts of the held-out trajectories (from
+            their first state) are best is kept. 0 is MuJoCo alone, so a residual that does not help is switched
+            off rather than shipped.
+        bound_quantile: Each output component is capped at this quantile of the absolute training targets.
+        gate: Where the correction is active (see ``GateOptions``).
+        seed: Seeds initialisation, shuffling and k-means.
+        num_threads: torch threads (results are reproducible for a given value; 1 is fastest on a busy machine).
+    """
+
+    hidden: int = 64
+    layers: int = 2
+    steps: int = 2000
+    batch_size: int = 256
+    learning_rate: float = 3e-3
+    weight_decay: float = 1e-4
+    dagger_rounds: int = 0
+    dagger_horizon: int = 30
+    dagger_stride: int = 4
+    dagger_max_pos_error_m: float = 0.03
+    dagger_max_rot_error_deg: float = 30.0
+    dagger_pull: float = 0.2
+    smooth_window: int = 0
+    ctrl_history_s: float = 0.05
+    selection_fraction: float = 0.2
+    gains: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0)
+    bound_quantile: float = 0.995
+    gate: GateOptions = field(default_factory=GateOptions)
+    seed: int = 0
+    num_threads: int = 1
+
+    def __post_init__(self) -> None:
+        for name, (low, high) in COUNT_LIMITS.items():  # high: a network or run that could never finish or fit
+            value = getattr(self, name)
+            if not integer_in(value, low, high):
+                raise GrounderError(f"residual option {name} must be an integer in [{low}, {high}], got {shown(value)}")
+        if not 0.0 <= self.ctrl_history_s <= 1.0:
+            raise GrounderError(f"ctrl_history_s must be in [0, 1] s, got {self.ctrl_history_s}")
+        if self.smooth_window < 0 or (self.smooth_window > 2 and self.smooth_window % 2 == 0):
+            raise GrounderError(f"smooth_window must be 0 or odd, got {self.smooth_window}")
+        if not 0.5 < self.bound_quantile <= 1.0:
+            raise GrounderError(f"bound_quantile must be in (0.5, 1], got {self.bound_quantile}")
+
+
+COUNT_LIMITS = {
+    "hidden": (1, 4096),  # 4096 wide: 16 M weights per layer
+    "layers": (1, 16),
+    "steps": (1, 1_000_000),
+    "batch_size": (1, 65_536),
+    "dagger_rounds": (0, 100),
+    "dagger_horizon": (1, 100_000),
+    "dagger_stride": (1, 100_000),
+    "seed": (0, 2**32 - 1),  # numpy's and torch's seeds
+    "num_threads": (1, 256),
+}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ResidualTrainResult:
+    """What ``train_residual`` wrote and how training went.
+
+    Attributes:
+        out: The residual scene folder.
+        num_trajectories: Trajectories trained on.
+        num_samples: Training samples in the last round (one-step and aggregated).
+        one_step_rms_before: Per output group (pos m, rot rad, vel m/s, omega rad/s), RMS of the one-step error of
+            MuJoCo alone on the recorded transitions.
+        one_step_rms_after: The same with the residual at gain 1 (before the gain is chosen).
+        seconds: Wall time.
+        gain: The output gain chosen on held-out rollouts (0: the residual is switched off).
+        gain_scores: Held-out rollout score per candidate gain (mean over trajectories of the time-averaged
+            position error / body size + time-averaged rotation error / 100 deg; jointed scenes: joint error).
+        space: ``free`` (free bodies) or ``joint`` (hinge and slide joints; the one-step RMS tuples are then
+            (joint position, 0, joint velocity, 0) in rad or m, and rad/s or m/s).
+    """
+
+    out: Path
+    gain: float
+    gain_scores: dict[float, float]
+    num_trajectories: int
+    num_samples: int
+    one_step_rms_before: tuple[float, float, float, float]
+    one_step_rms_after: tuple[float, float, float, float]
+    seconds: float
+    space: str = "free"
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Transitions:
+    feats: np.ndarray  # (N, B, F)
+    targets: np.ndarray  # (N, B, 12)
+    groups: np.ndarray  # (N,) the recorded segment each sample comes from
+
+
+def _period_steps(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> int:
+    gaps = np.concatenate([np.diff(step_indices(t.time_s, model.opt.timestep, t.name)) for t in trajs])
+    values, counts = np.unique(gaps, return_counts=True)
+    return int(values[np.argmax(counts)])
+
+
+def _group_rms(err: np.ndarray, joint: bool = False) -> tuple[float, float, float, float]:
+    """(N, B, 12) -> RMS norm of each 3-vector group; joint corrections (N, 1, 2J) -> (position, 0, velocity, 0)."""
+    if joint:
+        half = err.shape[-1] // 2
+        pos = float(np.sqrt(np.mean(np.sum(err[..., :half] ** 2, axis=-1))))
+        vel = float(np.sqrt(np.mean(np.sum(err[..., half:] ** 2, axis=-1))))
+        return (pos, 0.0, vel, 0.0)
+    groups = err.reshape(*err.shape[:-1], 4, 3)
+    rms = np.sqrt(np.mean(np.sum(groups**2, axis=-1), axis=tuple(range(groups.ndim - 2))))
+    return (float(rms[0]), float(rms[1]), float(rms[2]), float(rms[3]))
+
+
+class _Trainer:
+    def __init__(self, sim: Simulator, trajs: Sequence[Trajectory], options: ResidualOptions):
+        """``sim``: the scene as MuJoCo alone (`Simulator(..., use_residual=False)`), loaded once per training."""
+        self.options = options
+        self.sim = sim
+        self.model = self.sim.model
+        for traj in trajs:
+            validate_against_model(traj, self.model)
+        self.period = _period_steps(self.model, trajs)
+        self.sim.period_steps = self.period
+        # free bodies get the body-frame residual; a scene of hinge and slide joints the joint-space one, which
+        # also sees the controls of the last ctrl_history_s
+        self.space: JointSpace | None = None
+        if not free_joints(self.model):
+            period_s = self.period * float(self.model.opt.timestep)
+            self.space = joint_space(self.model, math.ceil(options.ctrl_history_s / period_s - 1e-9))
+        self.bodies: list[FreeBody] = free_bodies(self.model) if self.space is None else []
+        if self.space is not None and (options.smooth_window or options.dagger_rounds):
+            raise GrounderError(
+                "smoothing and aggregation rounds are for free bodies; train a jointed scene with smooth_window=0 "
+                "and dagger_rounds=0 (--rounds 0)"
+            )
+        nq, nv = self.model.nq, self.model.nv
+        # Recorded segments: per trajectory the runs of samples spaced exactly one period apart.
+        self.qpos: list[np.ndarray] = []
+        self.qvel: list[np.ndarray] = []
+        self.ctrl: list[np.ndarray | None] = []
+        for traj in trajs:
+            steps = step_indices(traj.time_s, self.model.opt.timestep, traj.name)
+            breaks = np.flatnonzero(np.diff(steps) != self.period) + 1
+            for seg in np.split(np.arange(len(steps)), breaks):
+                if len(seg) >= 2:
+                    qpos, qvel = traj.qpos[seg].reshape(-1, nq), traj.qvel[seg].reshape(-1, nv)
+                    if options.smooth_window:
+                        qpos, qvel = smooth_free_bodies(
+                            traj.time_s[seg], qpos, qvel, self.bodies, options.smooth_window
+                        )
+                    self.qpos.append(qpos)
+                    self.qvel.append(qvel)
+                    self.ctrl.append(None if traj.ctrl is None else traj.ctrl[seg])
+        if not self.qpos:
+            raise GrounderError("no two consecutive samples are one period apart; nothing to train on")
+
+    def _controls(self, ctrl_rows: np.ndarray | None) -> np.ndarray | None:
+        if not self.model.nu:
+            return None
+        held = np.zeros((0, self.model.nu)) if ctrl_rows is None else ctrl_rows
+        return np.repeat(held[:, None, :], self.period, axis=1)
+
+    def _one_period(self, qpos: np.ndarray, qvel: np.ndarray, ctrl: np.ndarray | None) -> tuple[np.ndarray, ...]:
+        """MuJoCo only, one period from each state: (qpos, qvel) after it."""
+        states = self.sim._states(qpos, qvel)
+        nctrl = None
+        if self.model.nu:
+            nctrl = self._controls(np.zeros((len(qpos), self.model.nu)) if ctrl is None else ctrl)
+        end = self.sim._physics(states, nctrl, self.period)[:, -1]
+        qa, va = self.sim._qpos_at, self.sim._qvel_at
+        return end[:, qa : qa + self.model.nq], end[:, va : va + self.model.nv]
+
+    def one_step(self) -> _Transitions:
+        q0 = np.concatenate([q[:-1] for q in self.qpos])
+        v0 = np.concatenate([v[:-1] for v in self.qvel])
+        q1 = np.concatenate([q[1:] for q in self.qpos])
+        v1 = np.concatenate([v[1:] for v in self.qvel])
+        ctrl = None
+        if self.model.nu:
+            ctrl = np.concatenate(
+                [
+                    np.zeros((len(q) - 1, self.model.nu)) if c is None else c[:-1]
+                    for q, c in zip(self.qpos, self.ctrl, strict=True)
+                ]
+            )
+        qs, vs = self._one_period(q0, v0, ctrl)
+        groups = np.concatenate([np.full(len(q) - 1, i) for i, q in enumerate(self.qpos)])
+        if self.space is not None:
+            prev = None
+            if self.space.history:  # the controls of the periods before each sample (the first one held)
+                rows = [np.arange(len(q) - 1)[:, None] - np.arange(1, self.space.history + 1)[None] for q in self.qpos]
+                nu = self.model.nu
+                prev = np.concatenate(
+                    [
+                        np.zeros((*r.shape, nu)) if c is None else c[np.maximum(r, 0)]
+                        for r, c in zip(rows, self.ctrl, strict=True)
+                    ]
+                )
+            feats = joint_features(q0, v0, ctrl, self.space, prev)
+            return _Transitions(feats=feats, targets=joint_targets(qs, vs, q1, v1, self.space), groups=groups)
+        feats, rots = body_features(q0, v0, self.bodies)
+        return _Transitions(feats=feats, targets=correction_targets(qs, vs, q1, v1, rots, self.bodies), groups=groups)
+
+    def aggregate(self, residual: NumpyResidual) -> _Transitions:
+        """Rolls the hybrid model out from every ``dagger_stride``-th recorded state; targets back to the recording."""
+        opt = self.options
+        starts = [(s, i) for s, q in enumerate(self.qpos) for i in range(0, len(q) - 1, opt.dagger_stride)]
+        seg = np.array([s for s, _ in starts])
+        idx = np.array([i for _, i in starts])
+        qpos = np.stack([self.qpos[s][i] for s, i in starts])
+        qvel = np.stack([self.qvel[s][i] for s, i in starts])
+        lengths = np.array([len(self.qpos[s]) for s in seg])
+        self.sim._set_residual(residual)
+        feats_out, targets_out, groups_out = [], [], []
+        max_rot = np.radians(opt.dagger_max_rot_error_deg)
+        for k in range(opt.dagger_horizon):
+            alive = idx + k + 1 < lengths
+            if not alive.any():
+                break
+            seg, idx, qpos, qvel, lengths = seg[alive], idx[alive], qpos[alive], qvel[alive], lengths[alive]
+            true_q = np.stack([self.qpos[s][i + k] for s, i in zip(seg, idx, strict=True)])
+            true_v = np.stack([self.qvel[s][i + k] for s, i in zip(seg, idx, strict=True)])
+            true_q1 = np.stack([self.qpos[s][i + k + 1] for s, i in zip(seg, idx, strict=True)])
+            true_v1 = np.stack([self.qvel[s][i + k + 1] for s, i in zip(seg, idx, strict=True)])
+            ctrl = None
+            if self.model.nu:
+                ctrl = np.stack(
+                    [
+                        np.zeros(self.model.nu) if self.ctrl[s] is None else self.ctrl[s][i + k]
+                        for s, i in zip(seg, idx, strict=True)
+                    ]
+                )
+            qs, vs = self._one_period(qpos, qvel, ctrl)
+            feats, rots = body_features(qpos, qvel, self.bodies)
+            if k > 0:  # k == 0 is the recorded state itself, already in the one-step data
+                close = np.ones(len(qpos), dtype=bool)
+                for body in self.bodies:
+                    p = body.qpos_adr
+                    close &= np.linalg.norm(qpos[:, p : p + 3] - true_q[:, p : p + 3], axis=1) <= (
+                        opt.dagger_max_pos_error_m
+                    )
+                    close &= quat_angle_rad(qpos[:, p + 3 : p + 7], true_q[:, p + 3 : p + 7]) <= max_rot
+                targets = correction_targets(qs, vs, true_q1, true_v1, rots, self.bodies)
+                if opt.dagger_pull < 1.0:  # keep part of the drift: match the recorded increment instead
+                    drift = correction_targets(qpos, qvel, true_q, true_v, rots, self.bodies)
+                    targets = targets - (1.0 - opt.dagger_pull) * drift
+                feats_out.append(feats[close])
+                targets_out.append(targets[close])
+                groups_out.append(seg[close])
+            qpos, qvel = residual.correct(qpos, qvel, qs, vs)
+        self.sim._set_residual(None)
+        if not feats_out:
+            return _Transitions(
+                feats=np.zeros((0, len(self.bodies), residual.feat_mean.shape[1])),
+                targets=np.zeros((0, len(self.bodies), NUM_OUTPUTS)),
+                groups=np.zeros(0, dtype=np.int64),
+            )
+        return _Transitions(
+            feats=np.concatenate(feats_out), targets=np.concatenate(targets_out), groups=np.concatenate(groups_out)
+        )
+
+
+def _kmeans(z: np.ndarray, k: int, seed: int) -> np.ndarray:
+    from scipy.cluster.vq import kmeans2
+
+    rng = np.random.default_rng(seed)
+    sample = z[rng.choice(len(z), size=min(len(z), 20000), replace=False)]
+    k_eff = min(k, len(sample))
+    cent, _ = kmeans2(sample, k_eff, seed=np.random.default_rng(seed), minit="++", iter=20)
+    if k_eff < k:  # pad by repeating a centre (the nearest distance is unchanged)
+        cent = np.concatenate([cent, np.repeat(cent[:1], k - k_eff, axis=0)])
+    return cent
+
+
+def _nearest(z: np.ndarray, cent: np.ndarray) -> np.ndarray:
+    d2 = np.sum(z * z, 1)[:, None] - 2 * z @ cent.T + np.sum(cent**2, 1)[None]
+    return np.sqrt(np.maximum(d2.min(axis=1), 0.0))
+
+
+def _coverage_stats(feats: np.ndarray, groups: np.ndarray, gate: GateOptions, seed: int) -> dict[str, np.ndarray]:
+    """Normalisation and coverage statistics of training features (N, B, F), per body.
+
+    The distance scale is calibrated on held-out trajectories: centres fitted on the even-numbered trajectories
+    (``groups``), distances measured from the odd-numbered ones. A new recording of the same kind of motion is
+    then inside the coverage about as often as ``coverage_quantile``, which distances of the training states to
+    centres fitted on themselves would badly overstate in 11 dimensions.
+    """
+    num_b = feats.shape[1]
+    mean = feats.mean(axis=0)
+    std = feats.std(axis=0) + 1e-6
+    lo = np.quantile(feats, 0.001, axis=0)
+    hi = np.quantile(feats, 0.999, axis=0)
+    centres = np.zeros((num_b, gate.coverage_centres, feats.shape[2]))
+    dist = np.ones(num_b)
+    fit_half = groups % 2 == 0
+    for b in range(num_b):
+        z = (feats[:, b] - mean[b]) / std[b]
+        centres[b] = _kmeans(z, gate.coverage_centres, seed + b)
+        if fit_half.any() and (~fit_half).any():
+            nearest = _nearest(z[~fit_half], _kmeans(z[fit_half], gate.coverage_centres, seed + b))
+        else:
+            nearest = _nearest(z, centres[b])
+        dist[b] = max(float(np.quantile(nearest, gate.coverage_quantile)), 1e-3)
+    return {
+        "feat_mean": mean,
+        "feat_std": std,
+        "range_lo": lo,
+        "range_hi": hi,
+        "centres": centres,
+        "coverage_dist": dist,
+    }
+
+
+def _output_stats(targets: np.ndarray, quantile: float) -> dict[str, np.ndarray]:
+    scale = targets.std(axis=0) + 1e-9
+    bound = np.maximum(np.quantile(np.abs(targets), quantile, axis=0), scale)
+    return {"out_scale": scale, "out_bound": bound}
+
+
+def _fit(torch_model: Any, data: _Transitions, options: ResidualOptions, round_index: int) -> None:
+    import torch
+
+    # The gate does not depend on the weights: compute it once.
+    feats = torch.as_tensor(data.feats)
+    targets = torch.as_tensor(data.targets)
+    with torch.no_grad():
+        gate = torch_model.gate(feats).unsqueeze(-1)
+    scale = torch_model.out_scale
+    keep = gate.squeeze(-1).amax(dim=1) > 0  # samples with no active body teach nothing
+    feats, targets, gate = feats[keep], targets[keep], gate[keep]
+    generator = torch.Generator().manual_seed(options.seed * 1000 + round_index)
+    optim = torch.optim.AdamW(
+        torch_model.nets.parameters(), lr=options.learning_rate, weight_decay=options.weight_decay
+    )
+    num = len(feats)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, T_max=options.steps, eta_min=0.05 * options.learning_rate)
+    torch_model.train()
+    order = torch.randperm(num, generator=generator)
+    cursor = 0
+    for _step in range(options.steps):
+        if cursor + options.batch_size > num:
+            order, cursor = torch.randperm(num, generator=generator), 0
+        batch = order[cursor : cursor + options.batch_size]
+        cursor += options.batch_size
+        pred = torch_model.raw(feats[batch]) * gate[batch]
+        loss = torch.nn.functional.huber_loss(pred / scale, targets[batch] * gate[batch] / scale, delta=1.0)
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+        sched.step()
+    torch_model.eval()
+
+
+def _numpy_residual(torch_model: Any, meta: ResidualMeta, trainer: _Trainer) -> NumpyResidual | NumpyJointResidual:
+    state = {k: v.detach().numpy().copy() for k, v in torch_model.state_dict().items()}
+    if trainer.space is not None:
+        return NumpyJointResidual(state, meta, trainer.space)
+    return NumpyResidual(state, meta, trainer.bodies, trainer.model.opt.gravity)
+
+
+def train_residual(
+    scene: Path,
+    trajs: Sequence[Trajectory],
+    out: Path,
+    options: ResidualOptions | None = None,
+    *,
+    overwrite: bool = False,
+    progress: ProgressFn | None = None,
+) -> ResidualTrainResult:
+    """Trains a residual on recorded trajectories and writes a residual scene folder.
+
+    Args:
+        scene: A (calibrated) scene folder with ``scene.xml``, or an MJCF file; the scene's folder is copied.
+        trajs: Recorded trajectories of the scene (the project's trajectory format).
+        out: Output folder, created; it must be new or empty unless ``overwrite``.
+        options: Training options.
+        overwrite: Replace a non-empty ``out`` once the result is ready.
+        progress: Called as ``progress(stage, done, total)``.
+
+    Returns:
+        Where it wrote and one-step errors before and after.
+
+    Raises:
+        GrounderError: bad scene, trajectories that do not fit it, or an output folder in the way.
+    """
+    import torch
+
+    from grounder.residual.torch_model import export_onnx, residual_model
+
+    options = options or ResidualOptions()
+    started = time.perf_counter()
+    out = Path(out)
+    check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene,))
+    if not trajs:
+        raise GrounderError("no trajectories to train on; pass a folder of .npz trajectories")
+    scene_xml = scene_xml_path(Path(scene))
+    check_links_stay_inside(Path(scene), (*RESIDUAL_FILES, SCENE_XML))  # before the training, not at the copy
+    report = progress or (lambda _s, _d, _t: None)
+    prev_threads = torch.get_num_threads()
+    torch.set_num_threads(options.num_threads)
+    try:
+        torch.manual_seed(options.seed)
+        sim = Simulator(scene_xml, use_residual=False)
+        for traj in trajs:
+            validate_against_model(traj, sim.model)
+        fit_trajs, select_trajs = _selection_split(trajs, options, sim.model)
+        if not select_trajs:
+            log.warning(
+                "no trajectory held out to check the residual's output gain (%d trajectories; it takes 5): the "
+                "residual ships at gain 1 unchecked",
+                len(trajs),
+            )
+        trainer = _Trainer(sim, fit_trajs, options)
+        report("residual: one-step targets", 0, 1)
+        base = trainer.one_step()
+        report("residual: one-step targets", 1, 1)
+        meta = ResidualMeta(
+            period_steps=trainer.period,
+            timestep_s=float(trainer.model.opt.timestep),
+            bodies=tuple(b.name for b in trainer.bodies),
+            hidden=options.hidden,
+            layers=options.layers,
+            gate=options.gate,
+            scene_xml_sha256=file_sha256(scene_xml),
+            scene_files_sha256=scene_files_sha256(scene_xml),
+            training={},
+        )
+        space = trainer.space
+        if space is not None:
+            meta = replace(
+                meta,
+                bodies=space.names,
+                space=JOINT_SPACE,
+                feature_names=space.feature_names,
+                output_names=space.output_names,
+            )
+        torch_model = residual_model(meta, space=space, radius_m=np.array([b.radius_m for b in trainer.bodies]))
+        data = base
+        rounds = options.dagger_rounds + 1
+        for r in range(rounds):
+            report("residual: training rounds", r, rounds)
+            stats = _coverage_stats(data.feats, data.groups, options.gate, options.seed) | _output_stats(
+                base.targets, options.bound_quantile
+            )
+            with torch.no_grad():
+                for name, value in stats.items():
+                    getattr(torch_model, name).copy_(torch.as_tensor(value))
+            _fit(torch_model, data, options, r)
+            log.info("round %d: %d samples", r, len(data.feats))
+            if r + 1 < rounds:
+                free_residual = _numpy_residual(torch_model, meta, trainer)
+                assert isinstance(free_residual, NumpyResidual)  # aggregation rounds are refused for joints
+                extra = trainer.aggregate(free_residual)
+                data = _Transitions(
+                    feats=np.concatenate([base.feats, extra.feats]),
+                    targets=np.concatenate([base.targets, extra.targets]),
+                    groups=np.concatenate([base.groups, extra.groups]),
+                )
+        report("residual: training rounds", rounds, rounds)
+        residual = _numpy_residual(torch_model, meta, trainer)
+        before = _group_rms(base.targets, joint=space is not None)
+        after = _group_rms(base.targets - residual(base.feats), joint=space is not None)  # gain 1, before choosing
+        held_rms, held_gate = _held_out_one_step(trainer.sim, select_trajs, options, residual, joint=space is not None)
+        report("residual: gain on held-out rollouts", 0, 1)
+        gain, scores, preds_by_gain, errors_by_gain = _select_gain(trainer.sim, residual, select_trajs, options.gains)
+        report("residual: gain on held-out rollouts", 1, 1)
+        with torch.no_grad():
+            torch_model.out_gain.fill_(gain)
+        residual.out_gain[:] = gain
+        if gain == 0.0:
+            log.warning(
+                "the residual did not improve multi-step rollouts of the held-out trajectories at any gain; "
+                "it is saved with gain 0 (MuJoCo alone)"
+            )
+        seconds = time.perf_counter() - started
+        rms_keys = ("pos_m", "rot_rad", "vel_m_s", "omega_rad_s") if space is None else ("joint_pos", "joint_vel")
+        meta = replace(
+            meta,
+            training={
+                "num_trajectories": len(trajs),
+                "trajectory_names": [t.name for t in trajs],
+                "num_samples_last_round": len(data.feats),
+                "fit_trajectories": [t.name for t in fit_trajs],
+                "gain_selection_trajectories": [t.name for t in select_trajs],
+                "gain_scores": {f"{g:g}": v for g, v in scores.items()},
+                "selected_gain": gain,
+                "one_step_rms_before": dict(zip(rms_keys, before if space is None else before[::2], strict=True)),
+                "one_step_rms_after": dict(zip(rms_keys, after if space is None else after[::2], strict=True)),
+                "options": _options_json(options),
+                "seconds": seconds,
+                "torch_version": torch.__version__,
+                "mujoco_version": mujoco.__version__,
+            },
+        )
+        with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene,)) as staging:
+            # the scene's files without any old residual; the MJCF as scene.xml
+            copy_scene_files(Path(scene), staging, skip=(*RESIDUAL_FILES, SCENE_XML))
+            shutil.copy2(scene_xml, staging / SCENE_XML)
+            torch.save({k: v.detach().clone() for k, v in torch_model.state_dict().items()}, staging / WEIGHTS_FILE)
+            (staging / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
+            export_onnx(torch_model, staging / ONNX_FILE)
+            labels = ("joint position, rad or m", "joint velocity, rad/s or m/s") if space is not None else _FREE_RMS
+            groups = (0, 2) if space is not None else (0, 1, 2, 3)
+            write_residual_report(
+                staging / REPORT_FILE,
+                ResidualReport(
+                    model=trainer.model,
+                    space="free" if space is None else JOINT_SPACE,
+                    num_fit=len(fit_trajs),
+                    held_out=select_trajs,
+                    num_samples=len(data.feats),
+                    seconds=seconds,
+                    period_steps=trainer.period,
+                    gain=gain,
+                    preds_by_gain=preds_by_gain,
+                    errors_by_gain=errors_by_gain,
+                    one_step_rms=[
+                        (label, before[g], after[g], held_rms[0][g], held_rms[1][g])
+                        for label, g in zip(labels, groups, strict=True)
+                    ],
+                    output_names=meta.output_names if space is not None else OUTPUT_NAMES,
+                    output_bound=np.asarray(residual.out_bound),
+                    held_out_gate=held_gate,
+                ),
+            )
+    finally:
+        torch.set_num_threads(prev_threads)
+    return ResidualTrainResult(
+        out=out,
+        gain=gain,
+        gain_scores=scores,
+        num_trajectories=len(trajs),
+        num_samples=len(data.feats),
+        one_step_rms_before=before,
+        one_step_rms_after=after,
+        seconds=seconds,
+        space="free" if space is None else JOINT_SPACE,
+    )
+
+
+def _held_out_one_step(
+    sim: Simulator,
+    trajs: Sequence[Trajectory],
+    options: ResidualOptions,
+    residual: NumpyResidual | NumpyJointResidual,
+    *,
+    joint: bool,
+) -> tuple[tuple[tuple[float, ...], tuple[float, ...]], np.ndarray]:
+    """One-step RMS on the held-out trajectories (MuJoCo alone, with the residual at its present gain) and the gate
+    at their recorded states; NaNs and an empty gate where there are none, or no two samples one period apart."""
+    nan = (float("nan"),) * 4
+    if not trajs:
+        return (nan, nan), np.empty(0)
+    try:
+        held = _Trainer(sim, trajs, options).one_step()  # the same MuJoCo-only simulator, loaded once
+    except GrounderError:
+        return (nan, nan), np.empty(0)
+    before = _group_rms(held.targets, joint=joint)
+    after = _group_rms(held.targets - residual(held.feats), joint=joint)
+    return (before, after), residual.gate(held.feats)
+
+
+def _selection_split(
+    trajs: Sequence[Trajectory], options: ResidualOptions, model: mujoco.MjModel
+) -> tuple[list[Trajectory], list[Trajectory]]:
+    """Seeded split of the trajectories (which fit ``model``) into (fit, gain selection); all fit when there are
+    fewer than 5. Copies of one motion (`grounder.core.repeats`) stay on one side, and a warning names them."""
+    count = round(options.selection_fraction * len(trajs))
+    if len(trajs) < 5 or count < 1 or not options.gains:
+        return list(trajs), []
+    repeats = repeated_motion_indices(trajs, model)
+    if repeats:
+        named = describe_repeated_indices(trajs, repeats)
+        log.warning("%s; each kept on one side of the fit / gain-check split", named)
+    perm = np.random.default_rng(options.seed + 7919).permutation(len(trajs)).tolist()
+    chosen_list, _ = split_keeping_together(perm, count, repeats)
+    chosen = set(chosen_list)
+    return [t for i, t in enumerate(trajs) if i not in chosen], [t for i, t in enumerate(trajs) if i in chosen]
+
+
+def rollout_score(model: mujoco.MjModel, preds: Sequence[Trajectory], real: Sequence[Trajectory]) -> float:
+    """Mean over trajectories and free bodies of time-averaged position error / body size + rotation error / 100 deg.
+
+    Body size: twice the largest distance of a collision point from the body origin, scaled by 1/sqrt(3) (a
+    cube's edge; for the cube tosses exactly the cube width). A scene without free bodies: the mean over
+    trajectories and joints of the time-averaged joint error (rad for hinges, m for slides).
+    """
+    return float(np.mean(rollout_errors(model, preds, real).scores()))
+
+
+def _select_gain(
+    sim: Simulator, residual: NumpyResidual | NumpyJointResidual, trajs: Sequence[Trajectory], gains: Sequence[float]
+) -> tuple[float, dict[float, float], dict[float, list[Trajectory]], dict[float, RolloutErrors]]:
+    """The gain whose held-out rollouts score lowest (ties to the smaller); every gain's score, rollouts and errors."""
+    if not trajs:
+        return 1.0, {}, {}, {}
+    preds: dict[float, list[Trajectory]] = {}
+    errors: dict[float, RolloutErrors] = {}
+    for gain in sorted(set(gains)):
+        residual.out_gain[:] = gain
+        sim._set_residual(residual)
+        preds[gain] = sim.rollout(trajs)
+        errors[gain] = rollout_errors(sim.model, preds[gain], trajs)
+    sim._set_residual(None)
+    scores = {gain: float(np.mean(e.scores())) for gain, e in errors.items()}  # as rollout_score
+    best = min(scores, key=lambda g: (scores[g], g))
+    log.info("held-out rollout score per gain: %s", scores)
+    return best, scores, preds, errors
+
+
+def _options_json(options: ResidualOptions) -> dict[str, Any]:
+    from dataclasses import asdict
+
+    return asdict(options)
