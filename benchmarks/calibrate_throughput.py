@@ -1,6 +1,7 @@
 """Simulation throughput during calibration vs raw `mujoco.rollout` on the same model and initial states.
 
-Calibration evaluates K candidate parameter vectors on B trajectories per call (`grounder.calibration.fit.Evaluator`):
+Calibration evaluates K candidate parameter vectors on B trajectories per call
+(`grounder.calibration.evaluator.Evaluator`):
 building the candidate models, one batched `mujoco.rollout` per length group, and the per-trajectory losses. The
 raw figure is `mujoco.rollout.rollout` alone on the same candidate models, initial states and step counts (one call
 per length group, as calibration makes), with nothing else; for reference also on the nominal model only (cheaper:
@@ -57,7 +58,7 @@ def main() -> None:
     args = parser.parse_args()
 
     import grounder.sim.rollout as sim
-    from grounder.calibration.fit import Evaluator
+    from grounder.calibration.evaluator import Evaluator
     from grounder.calibration.parameters import resolve_parameters
 
     model = mujoco.MjModel.from_xml_path(str(CUBE_XML))

@@ -102,7 +102,8 @@ def main() -> None:
     if not (DATA / "tosses").is_dir():
         sys.exit(f"real cube tosses not found at {DATA}")
 
-    from grounder.calibration.fit import CalibrateOptions, calibrate
+    from grounder.calibration.fit import calibrate
+    from grounder.calibration.options import CalibrateOptions
     from grounder.core.importers import load_dair_pll_cube
 
     trajs = load_dair_pll_cube(DATA)

@@ -84,10 +84,13 @@ def main() -> None:
     import mujoco
 
     from grounder.calibration.parameters import resolve_parameters
-    from grounder.interaction.impacts import _CONTACT_FIELDS, ImpactOptions, _moved, find_impacts, fit_impacts
-    from grounder.interaction.pipeline import camera_poses_of, single_body_scene, view_point_of
+    from grounder.interaction.flights import find_impacts
+    from grounder.interaction.impacts import _CONTACT_FIELDS, _moved, fit_impacts
+    from grounder.interaction.options import ImpactOptions
+    from grounder.interaction.per_object import single_body_scene
+    from grounder.interaction.tracks import camera_poses_of, view_point_of
     from grounder.sim.restitution import simulated_restitution
-    from grounder.tracking.pipeline import load_object_trajectories
+    from grounder.tracking.output import load_object_trajectories
 
     track_json = json.loads((args.tracks / "track.json").read_text())
     view = view_point_of(camera_poses_of(track_json["world_from_cam"]))

@@ -38,23 +38,24 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from impacts_stability import true_contacts  # noqa: E402
 
 from grounder.calibration.parameters import collision_geoms, contact_priority, resolve_parameters  # noqa: E402
+from grounder.interaction.flights import find_impacts  # noqa: E402
 from grounder.interaction.impacts import (  # noqa: E402
     _CONTACT_FIELDS,
-    ImpactOptions,
     _compared,
     _compared_size,
     _frames_cov,
     _moved,
     _resolved,
     _start_variant,
-    find_impacts,
     profile_range,
     widened,
 )
-from grounder.interaction.pipeline import camera_poses_of, single_body_scene, view_point_of  # noqa: E402
+from grounder.interaction.options import ImpactOptions  # noqa: E402
+from grounder.interaction.per_object import single_body_scene  # noqa: E402
+from grounder.interaction.tracks import camera_poses_of, view_point_of  # noqa: E402
 from grounder.sim.restitution import contact_solref, simulated_restitution  # noqa: E402
 from grounder.sim.rollout import initial_state, prepare  # noqa: E402
-from grounder.tracking.pipeline import load_object_trajectories  # noqa: E402
+from grounder.tracking.output import load_object_trajectories  # noqa: E402
 
 
 def joint_chol(impact, rotation=True):

@@ -52,7 +52,8 @@ from residual import DATA, fmt, metric, split  # noqa: E402  (benchmarks/residua
 
 from grounder.core.importers import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
 from grounder.core.trajectory import Trajectory  # noqa: E402
-from grounder.sim.rollout import _offsets, load_scene_model  # noqa: E402
+from grounder.sim.rollout import _offsets  # noqa: E402
+from grounder.sim.scene_files import load_scene_model  # noqa: E402
 from image2sim_common.rotations import (  # noqa: E402
     quat_from_matrix,
     quat_to_mat,

@@ -88,9 +88,10 @@ from cube_toss import DEFAULT_PARAMS as CUBE_TOSS_PARAMS  # noqa: E402  (benchma
 from grounder.core.importers import DAIR_PLL_CUBE_RATE_HZ, load_dair_pll_cube  # noqa: E402
 from grounder.core.repeats import repeated_motions  # noqa: E402
 from grounder.core.trajectory import Trajectory  # noqa: E402
-from grounder.interaction.impacts import fit_flight  # noqa: E402
+from grounder.interaction.flights import fit_flight  # noqa: E402
+from grounder.residual.options import ResidualOptions  # noqa: E402
 from grounder.residual.simulator import Simulator  # noqa: E402
-from grounder.residual.train import ResidualOptions, train_residual  # noqa: E402
+from grounder.residual.train import train_residual  # noqa: E402
 from grounder.sim.rollout import simulate  # noqa: E402
 from image2sim_common.rotations import (  # noqa: E402
     quat_angle_rad,
@@ -167,7 +168,8 @@ def calibrated_scene(
     """The calibration engineer's calibration (benchmarks/cube_toss.py's settings), else this script's grid."""
     if not force_grid:
         try:
-            from grounder.calibration.fit import CalibrateOptions, calibrate
+            from grounder.calibration.fit import calibrate
+            from grounder.calibration.options import CalibrateOptions
         except ImportError:
             calibrate = None  # type: ignore[assignment]
         if calibrate is not None:
@@ -240,7 +242,7 @@ def output_ablation(residual_dir: Path, val: list[Trajectory]) -> None:
 
     import torch
 
-    from grounder.residual.model import WEIGHTS_FILE
+    from grounder.residual.meta import WEIGHTS_FILE
 
     state = torch.load(residual_dir / WEIGHTS_FILE, weights_only=True)
     last = max(int(k.split(".")[2]) for k in state if k.startswith("nets.0."))

@@ -34,7 +34,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from grounder.calibration.fit import CalibrateOptions, calibrate
+from grounder.calibration.fit import calibrate
+from grounder.calibration.options import CalibrateOptions
 from grounder.core.trajectory import Trajectory
 from grounder.diagnosis.benchmark import select_cases
 from grounder.diagnosis.cases import make_case
@@ -42,8 +43,9 @@ from grounder.diagnosis.effects import Transforms, apply_effects
 from grounder.diagnosis.gap import make_windows, predict
 from grounder.diagnosis.pipeline import DiagnoseOptions, diagnose
 from grounder.residual.joint import joint_error, joint_space
+from grounder.residual.options import ResidualOptions
 from grounder.residual.simulator import Simulator
-from grounder.residual.train import ResidualOptions, train_residual
+from grounder.residual.train import train_residual
 from image2sim_common.rotations import quat_angle_rad
 
 MODELS = ("nominal", "calibrated", "diagnosed", "calibrated + residual")

@@ -38,8 +38,9 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from grounder.core.trajectory import Trajectory  # noqa: E402
+from grounder.residual.options import ResidualOptions  # noqa: E402
 from grounder.residual.simulator import Simulator  # noqa: E402
-from grounder.residual.train import ResidualOptions, train_residual  # noqa: E402
+from grounder.residual.train import train_residual  # noqa: E402
 from grounder.sim.rollout import initial_state  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data" / "cube_toss"
@@ -85,7 +86,7 @@ def _visited(sim: Simulator, starts: list[tuple[np.ndarray, np.ndarray]], period
 
 def _open_gate_share(sim: Simulator, states: list[tuple[np.ndarray, np.ndarray]]) -> float:
     """Share of states whose gate (times the output gain) is not exactly 0: where the network runs."""
-    from grounder.residual.model import body_features
+    from grounder.residual.free_body import body_features
 
     assert sim.residual is not None
     feats, _ = body_features(np.stack([s[0] for s in states]), np.stack([s[1] for s in states]), sim.residual.bodies)

@@ -31,10 +31,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from track import contact_values, truth_offsets  # noqa: E402
 
 from grounder.calibration.parameters import Parameter, collision_geoms, resolve_parameters  # noqa: E402
-from grounder.interaction.pipeline import InteractionOptions, camera_poses_of, single_body_scene, view_point_of  # noqa: E402
+from grounder.interaction.options import InteractionOptions  # noqa: E402
+from grounder.interaction.per_object import single_body_scene  # noqa: E402
 from grounder.interaction.shooting import ShootingOptions, contact_profile, fit_contact, moving_runs  # noqa: E402
+from grounder.interaction.tracks import camera_poses_of, view_point_of  # noqa: E402
 from grounder.sim.restitution import body_restitution, simulated_restitution  # noqa: E402
-from grounder.tracking.pipeline import load_object_trajectories  # noqa: E402
+from grounder.tracking.output import load_object_trajectories  # noqa: E402
 
 FIELDS = ("friction.sliding", "solref.dampratio")
 JOINT_FIELDS = (*FIELDS, "solref.timeconst")

@@ -33,16 +33,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from track import contact_values, true_motion_in_grounded_frames, truth_offsets  # noqa: E402
 
 from grounder.core.trajectory import Trajectory  # noqa: E402
-from grounder.interaction.pipeline import (  # noqa: E402
-    InteractionOptions,
-    _single_body_trajectory,
-    calibrate_constrained,
-    camera_poses_of,
-    object_windows,
-    single_body_scene,
-    view_point_of,
-)
-from grounder.tracking.pipeline import load_object_trajectories  # noqa: E402
+from grounder.interaction.options import InteractionOptions  # noqa: E402
+from grounder.interaction.per_object import _single_body_trajectory, single_body_scene  # noqa: E402
+from grounder.interaction.tracks import camera_poses_of, view_point_of  # noqa: E402
+from grounder.interaction.windows import calibrate_constrained, object_windows  # noqa: E402
+from grounder.tracking.output import load_object_trajectories  # noqa: E402
 
 FIELDS = ("friction.sliding", "solref.dampratio")  # the target's values; the time constant is fitted beside them
 

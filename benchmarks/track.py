@@ -57,7 +57,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from grounder.tracking.pipeline import TrackOptions, track  # noqa: E402
+from grounder.tracking.options import TrackOptions  # noqa: E402
+from grounder.tracking.pipeline import track  # noqa: E402
 from image2sim_common.rotations import (  # noqa: E402
     matrix_from_quat,
     quat_angle_rad,
@@ -446,13 +447,14 @@ def print_window_match(calibration: dict) -> None:
 
 def print_start_errors(scene: Path, clip_dir: Path, track_json: Path, options: Any) -> None:
     """Per object, the windows its calibration is cut into (each object's own tracked runs, window starts as
-    `grounder.interaction.pipeline.calibrate_per_body` chooses them) and how far each tracked start velocity is from the
-    truth: the slide after a landing is as long as the start speed squared over the friction, so these errors show
+    `grounder.interaction.per_object.calibrate_per_body` chooses them) and how far each tracked start velocity is from
+    the truth: the slide after a landing is as long as the start speed squared over the friction, so these errors show
     up in the calibrated values (README, #8)."""
     import mujoco
 
-    from grounder.interaction.pipeline import _single_body_trajectory, reliable_starts, windows
-    from grounder.tracking.pipeline import load_object_trajectories
+    from grounder.interaction.per_object import _single_body_trajectory
+    from grounder.interaction.windows import reliable_starts, windows
+    from grounder.tracking.output import load_object_trajectories
 
     fps = float(json.loads(track_json.read_text())["fps"])
     model = mujoco.MjModel.from_xml_path(str(scene / "scene.xml"))
@@ -501,7 +503,7 @@ def contact_values(truth_xml: Path, clip_dir: Path) -> dict[str, dict[str, float
 def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, str]) -> None:
     """Per parameter: rendered value, calibrated value, whether the clip constrains it, its resolution range, the
     relative error (restitution also as e), and its best values with the windows' start speeds off by a typical
-    tracking error (`grounder.interaction.pipeline.start_error_ranges`)."""
+    tracking error (`grounder.interaction.windows.start_error_ranges`)."""
     import mujoco
 
     from grounder.calibration.parameters import collision_geoms
@@ -565,7 +567,9 @@ def print_parameter_table(params: dict, clip_dir: Path, true_names: dict[str, st
 def tracks_benchmark(clip_dir: Path, scene: Path, tracks: Path, args: argparse.Namespace) -> None:
     """Screen + calibrate the grounded scene on saved tracks (e.g. `OUT/interaction/tracks` of a `--calibrate` run),
     per object as `ground --interaction` does."""
-    from grounder.interaction.pipeline import calibrate_per_body, default_params, saved_tracks
+    from grounder.interaction.options import default_params
+    from grounder.interaction.per_object import calibrate_per_body
+    from grounder.interaction.tracks import saved_tracks
     from grounder.tracking.smooth import SmoothingOptions
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
@@ -626,7 +630,9 @@ def true_motion_benchmark(clip_dir: Path, scene: Path, args: argparse.Namespace)
     """Screen + calibrate the grounded scene on the clip's TRUE motion, per object as `ground --interaction` does:
     what the grounded shapes and masses allow when tracking is perfect (tracking's share of the errors is the
     difference to a `--calibrate` run)."""
-    from grounder.interaction.pipeline import calibrate_per_body, default_params, view_point_of
+    from grounder.interaction.options import default_params
+    from grounder.interaction.per_object import calibrate_per_body
+    from grounder.interaction.tracks import view_point_of
 
     names = list(json.loads((scene / "scene.json").read_text())["objects"])
     offsets = truth_offsets(scene)
@@ -649,8 +655,7 @@ def true_motion_benchmark(clip_dir: Path, scene: Path, args: argparse.Namespace)
 def _options(args: argparse.Namespace, **fields: Any) -> Any:
     """The benchmark's `InteractionOptions`: the tool's defaults (what `ground --interaction` runs), except the search
     budget and seed, `--start-rounds` and `--along-view-weight` where given."""
-    from grounder.interaction.impacts import ImpactOptions
-    from grounder.interaction.pipeline import InteractionOptions
+    from grounder.interaction.options import ImpactOptions, InteractionOptions
 
     budget = {"generations": args.generations, "popsize": args.popsize, "seed": args.seed}
     given = {
@@ -699,7 +704,8 @@ def truth_benchmark(clip_dir: Path, args: argparse.Namespace) -> None:
     import mujoco
 
     from grounder.core.trajectory import Trajectory
-    from grounder.interaction.pipeline import calibrate_per_body, default_params
+    from grounder.interaction.options import default_params
+    from grounder.interaction.per_object import calibrate_per_body
 
     truth = np.load(clip_dir / "truth/trajectory.npz", allow_pickle=False)
     traj = Trajectory(time_s=truth["time"], qpos=truth["qpos"], qvel=truth["qvel"], ctrl=None, name="truth")

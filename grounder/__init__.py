@@ -46,22 +46,22 @@ _LAZY = {
     "GroundOptions": "grounder.grounding.pipeline",
     "GroundResult": "grounder.grounding.pipeline",
     "ground": "grounder.grounding.pipeline",
-    "CalibrateOptions": "grounder.calibration.fit",
-    "CalibrationResult": "grounder.calibration.fit",
+    "CalibrateOptions": "grounder.calibration.options",
+    "CalibrationResult": "grounder.calibration.result",
     "calibrate": "grounder.calibration.fit",
     "DiagnoseOptions": "grounder.diagnosis.pipeline",
-    "Diagnosis": "grounder.diagnosis.pipeline",
+    "Diagnosis": "grounder.diagnosis.result",
     "diagnose": "grounder.diagnosis.pipeline",
     "diagnose_files": "grounder.diagnosis.pipeline",
-    "TrackOptions": "grounder.tracking.pipeline",
-    "TrackResult": "grounder.tracking.pipeline",
+    "TrackOptions": "grounder.tracking.options",
+    "TrackResult": "grounder.tracking.options",
     "track": "grounder.tracking.pipeline",
-    "InteractionOptions": "grounder.interaction.pipeline",
-    "InteractionResult": "grounder.interaction.pipeline",
+    "InteractionOptions": "grounder.interaction.options",
+    "InteractionResult": "grounder.interaction.options",
     "ground_with_interaction": "grounder.interaction.pipeline",
     "Simulator": "grounder.residual.simulator",
     "has_residual": "grounder.residual.simulator",
-    "ResidualOptions": "grounder.residual.train",
+    "ResidualOptions": "grounder.residual.options",
     "train_residual": "grounder.residual.train",
     "load_dair_pll_cube": "grounder.core.importers",
     "simulate": "grounder.sim.rollout",
@@ -77,15 +77,21 @@ def __getattr__(name: str) -> object:
 
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
-    from grounder.calibration.fit import CalibrateOptions, CalibrationResult, calibrate
+    from grounder.calibration.fit import calibrate
+    from grounder.calibration.options import CalibrateOptions
+    from grounder.calibration.result import CalibrationResult
     from grounder.core.importers import load_dair_pll_cube
-    from grounder.diagnosis.pipeline import DiagnoseOptions, Diagnosis, diagnose, diagnose_files
+    from grounder.diagnosis.pipeline import DiagnoseOptions, diagnose, diagnose_files
+    from grounder.diagnosis.result import Diagnosis
     from grounder.grounding.pipeline import GroundOptions, GroundResult, ground
-    from grounder.interaction.pipeline import InteractionOptions, InteractionResult, ground_with_interaction
+    from grounder.interaction.options import InteractionOptions, InteractionResult
+    from grounder.interaction.pipeline import ground_with_interaction
+    from grounder.residual.options import ResidualOptions
     from grounder.residual.simulator import Simulator, has_residual
-    from grounder.residual.train import ResidualOptions, train_residual
+    from grounder.residual.train import train_residual
     from grounder.sim.rollout import simulate
-    from grounder.tracking.pipeline import TrackOptions, TrackResult, track
+    from grounder.tracking.options import TrackOptions, TrackResult
+    from grounder.tracking.pipeline import track
 
 __all__ = [  # spelled out (not built from _LAZY) so that linters and type checkers read it
     "CalibrateOptions",

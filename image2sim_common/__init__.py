@@ -4,4 +4,4 @@ type (`progress`) and the headless-GL set-up (`headless_gl`). It imports none of
 `grounder`, and nothing heavier than numpy.
 """
 
-__all__ = ["headless_gl", "outdir", "progress", "rotations"]
+__all__ = ["headless_gl", "lazy", "outdir", "progress", "rotations"]

@@ -504,6 +504,14 @@ def atomic_file(path: Path, mode: str = "wb") -> Iterator[IO[Any]]:
         raise
 
 
+def write_text_atomic(path: Path, text: str) -> Path:
+    """Writes ``text`` (UTF-8) to ``path`` whole or not at all (`atomic_file`). Returns ``path``."""
+    path = Path(path)
+    with atomic_file(path, "w") as handle:
+        handle.write(text)
+    return path
+
+
 def write_image(path: Path, image: np.ndarray, params: Sequence[int] = (), *, error: type[Exception]) -> None:
     """``cv2.imwrite`` that fails loudly: OpenCV returns False on a full disk or an unwritable folder, and the run
     would go on to fail later somewhere that does not say why.

@@ -12,6 +12,7 @@ pycolmap, Open3D or OpenCV; the stages that need pycolmap import it through `rec
 
 from typing import TYPE_CHECKING
 
+from image2sim_common.lazy import lazy_attributes
 from image2sim_common.outdir import register_record_files
 from reconstruction.errors import InputError, ReconstructionError, RegistrationError, WorldFrameError
 
@@ -66,13 +67,7 @@ _LAZY = {
     "staged_output_dir": "image2sim_common.outdir",
 }
 
-
-def __getattr__(name: str) -> object:
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'reconstruction' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors

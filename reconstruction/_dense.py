@@ -15,6 +15,7 @@ import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -377,17 +378,7 @@ def fuse_views(
     voxel = voxel_m if voxel_m is not None else voxel_size(views, roi, options)
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
     corners = roi.min_world + corners * (roi.max_world - roi.min_world)
-    # Open3D's tensor VoxelBlockGrid: sparse blocks, and the TSDF values stay accessible for meshing.
-    # (The legacy ScalableTSDFVolume of open3d 0.20 extracts nothing on this CPU build.)
-    grid = o3d.t.geometry.VoxelBlockGrid(
-        attr_names=("tsdf", "weight", "color"),
-        attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
-        attr_channels=((1), (1), (3)),  # type: ignore[arg-type]  # the stubs want SizeVector; ints work
-        voxel_size=voxel,
-        block_resolution=8,
-        block_count=40000,
-        device=o3d.core.Device("CPU:0"),
-    )
+    grid = _tsdf_grid(voxel)
     trunc_multiplier = options.trunc_voxels
     # Enough pairs in the video range: those (what `choose_pairs` returns then). Too few: the sweep's depth maps
     # beside them, or without a sweep, `choose_pairs`' wide-baseline partners.
@@ -494,12 +485,33 @@ def fuse_views(
             f"{len(views)} views): the views are too few or too far apart; film more of them, closer together (a "
             "video orbit, or photos every 10-15 deg around the table)"
         )
-    mesh = grid.extract_triangle_mesh(weight_threshold=options.min_weight).to_legacy()
+    return _fused_result(grid, voxel, options.min_weight, used, depth_maps)
+
+
+def _tsdf_grid(voxel_m: float) -> Any:
+    """An empty TSDF of `voxel_m` voxels: Open3D's tensor VoxelBlockGrid (sparse blocks; the TSDF values stay
+    accessible for meshing). The legacy ScalableTSDFVolume of open3d 0.20 extracts nothing on this CPU build."""
+    import open3d as o3d
+
+    return o3d.t.geometry.VoxelBlockGrid(
+        attr_names=("tsdf", "weight", "color"),
+        attr_dtypes=(o3d.core.float32, o3d.core.float32, o3d.core.float32),
+        attr_channels=((1), (1), (3)),  # type: ignore[arg-type]  # the stubs want SizeVector; ints work
+        voxel_size=voxel_m,
+        block_resolution=8,
+        block_count=40000,
+        device=o3d.core.Device("CPU:0"),
+    )
+
+
+def _fused_result(grid: Any, voxel_m: float, min_weight: float, used: int, depth_maps: list[DepthMap]) -> DenseResult:
+    """The fused surface and the observed TSDF voxels of a filled `grid`, each in an order fixed by the geometry."""
+    mesh = grid.extract_triangle_mesh(weight_threshold=min_weight).to_legacy()
     coords, flat = grid.voxel_coordinates_and_flattened_indices()
     flat = flat.numpy()
     weights = grid.attribute("weight").numpy().reshape(-1)[flat]
     observed = weights > 0
-    voxel_ijk = np.round(coords.numpy()[observed] / voxel).astype(np.int64)
+    voxel_ijk = np.round(coords.numpy()[observed] / voxel_m).astype(np.int64)
     tsdf_values = grid.attribute("tsdf").numpy().reshape(-1)[flat][observed]
     mesh.compute_vertex_normals()
     vertex_order, faces = canonical_mesh_order(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
@@ -509,7 +521,7 @@ def fuse_views(
         faces=faces,
         vertex_rgb=(np.clip(np.asarray(mesh.vertex_colors)[vertex_order], 0, 1) * 255).round().astype(np.uint8),
         vertex_normals=np.asarray(mesh.vertex_normals)[vertex_order],
-        voxel_size=voxel,
+        voxel_size=voxel_m,
         num_pairs=used,
         depth_maps=tuple(depth_maps),
         tsdf_voxels=voxel_ijk[voxel_order],

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from image2sim_common.progress import ProgressFn
-from reconstruction import _dense, _objects, _silhouette, _world
+from reconstruction import _dense, _objects, _segment, _silhouette, _world
 from reconstruction._types import CameraIntrinsics, ObjectInstance, ReconstructionResult, TexturedMesh
 from reconstruction.errors import ReconstructionError
 
@@ -22,7 +22,7 @@ class ObjectsOptions:
     """Dense geometry, segmentation and meshing settings (one CLI section)."""
 
     dense: _dense.DenseOptions = field(default_factory=_dense.DenseOptions)
-    segment: _objects.SegmentOptions = field(default_factory=_objects.SegmentOptions)
+    segment: _segment.SegmentOptions = field(default_factory=_segment.SegmentOptions)
     mesh: _objects.MeshOptions = field(default_factory=_objects.MeshOptions)
     roi_margin_fraction: float = 0.08  # margin around the objects' sparse points, x the median camera distance
     min_object_voxels: float = 3.0  # a meshed object smaller than a cube this many fused voxels wide is dropped
@@ -83,7 +83,7 @@ def region_of_interest(result: ReconstructionResult, margin_fraction: float) -> 
         if seen is not None:
             log.warning("no sparse points stand on the table: searching the table the cameras see for objects")
             return seen
-        raise _objects.SegmentationError(
+        raise _segment.SegmentationError(
             "no object found: no cluster of 3D points stands on the table; film the objects from more sides"
         )
     members = points[np.concatenate(clusters)]
@@ -199,7 +199,7 @@ def find_objects(
         instances = _with_silhouettes(instances, views, k, hull_region, dense.voxel_size, options.silhouettes)
         report("silhouettes", 1, 1)
     if not instances:
-        raise _objects.SegmentationError(
+        raise _segment.SegmentationError(
             "no object found: every cluster above the table meshed to almost nothing; film the objects from more sides"
         )
     table = table_under_objects(points_table_extent(result), instances)
@@ -220,7 +220,7 @@ def _fused_and_segmented(
     voxel: float,
     options: ObjectsOptions,
     report: ProgressFn,
-) -> tuple[_dense.DenseResult, list[_objects.ObjectSegment], _dense.RegionOfInterest]:
+) -> tuple[_dense.DenseResult, list[_segment.ObjectSegment], _dense.RegionOfInterest]:
     """The fused surface inside `roi`, its objects, and the region they were fused in: raised and fused again while
     an object reaches its top, up to `max_roi_raises` times (`_grown`).
 
@@ -240,7 +240,7 @@ def _fused_and_segmented(
             voxel_m=voxel,
         )
         report("segmenting objects", 0, 1)
-        segments = _objects.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
+        segments = _segment.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
         grown = _grown(roi, segments, voxel, distance, options)
         if attempt == options.max_roi_raises or grown is None:
             break
@@ -255,7 +255,7 @@ def _fused_and_segmented(
 
 def _grown(
     roi: _dense.RegionOfInterest,
-    segments: list[_objects.ObjectSegment],
+    segments: list[_segment.ObjectSegment],
     voxel_m: float,
     distance_m: float,
     options: ObjectsOptions,

@@ -12,6 +12,7 @@ scene = export_scene([SceneObjectSpec(name="bowl", visual=mesh, collision=collis
 from typing import TYPE_CHECKING
 
 from image2sim_common.headless_gl import choose_headless_gl
+from image2sim_common.lazy import lazy_attributes
 from image2sim_common.outdir import register_record_files
 from scene_export.errors import (
     CompileError,
@@ -48,13 +49,7 @@ _LAZY = {
     "write_preview": "scene_export._mjcf",
 }
 
-
-def __getattr__(name: str) -> object:
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'scene_export' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors

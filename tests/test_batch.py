@@ -20,7 +20,9 @@ import pytest
 from conftest import claim_held_by_another_process
 
 import grounder.sim.rollout as sim
-from grounder.calibration.batch import load_jobs, ray_init_kwargs, read_result, run_batch
+from grounder.calibration.batch import ray_init_kwargs, run_batch
+from grounder.calibration.batch_jobs import load_jobs
+from grounder.calibration.batch_output import read_result
 from grounder.core.trajectory import Trajectory, save_trajectories
 from grounder.errors import GrounderError
 
@@ -381,7 +383,7 @@ def test_a_job_whose_inputs_changed_runs_again(
     show the old result beside the new inputs. An unchanged job is still skipped."""
     import shutil
 
-    from grounder.calibration.batch import write_table
+    from grounder.calibration.batch_output import write_table
     from grounder.core.trajectory import load_trajectory, save_trajectory
 
     scene = tmp_path / "scene" / "cube.xml"
@@ -447,7 +449,7 @@ def test_a_job_whose_inputs_changed_runs_again(
 def test_scene_fingerprint_covers_the_files_it_names(tmp_path: Path) -> None:
     """A scene is its MJCF and what it loads (a mesh here), and for a scene folder also its manifest; a batch output
     written inside a trajectory folder is not one of the folder's trajectories."""
-    from grounder.calibration.batch import scene_sha256, trajectories_sha256
+    from grounder.calibration.batch_output import scene_sha256, trajectories_sha256
 
     folder = tmp_path / "scene"
     (folder / "assets").mkdir(parents=True)

@@ -14,7 +14,8 @@ import pytest
 from typer.testing import CliRunner
 
 import grounder.sim.rollout as sim
-from grounder.calibration.fit import CalibrateOptions, calibrate, split_names
+from grounder.calibration.fit import calibrate, split_names
+from grounder.calibration.options import CalibrateOptions
 from grounder.calibration.parameters import apply_to_model, apply_to_spec, resolve_parameters
 from grounder.core.repeats import split_keeping_together
 from grounder.core.trajectory import Trajectory, load_trajectories, save_trajectories
@@ -845,7 +846,7 @@ def test_cli_overwrite_of_a_folder_inside_the_scene_is_refused(
 def test_options_are_checked(settings: dict, needle: str) -> None:
     """Each field of `CalibrateOptions` is checked for type and range: one line naming it, the value and what is
     expected, whether it came from Python or a batch file's settings."""
-    from grounder.calibration.batch import options_from_settings
+    from grounder.calibration.batch_jobs import options_from_settings
 
     with pytest.raises(GrounderError) as caught:
         CalibrateOptions(**settings)
@@ -894,7 +895,7 @@ def test_cli_nan_rotation_weight_is_refused(traj_dir: Path, tmp_path: Path) -> N
 def test_note_replaces_a_linked_scene_json(tmp_path: Path) -> None:
     """The calibration note replaces the output's scene.json; it used to be written through a copied link, into the
     file the link points at (the user's own, outside the output folder)."""
-    from grounder.calibration.fit import _note_in_manifest
+    from grounder.calibration.scene_output import _note_in_manifest
 
     outside = tmp_path / "victim.json"
     outside.write_text('{"objects": {}, "note": "the user\'s own file"}')

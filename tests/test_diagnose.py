@@ -19,7 +19,8 @@ from grounder import Trajectory, save_trajectories
 from grounder.diagnosis.cases import BENCHMARK, SCENES, CaseSpec, make_case
 from grounder.diagnosis.effects import EFFECT_NAMES, LIBRARY, AppliedEffect, Transforms, apply_effects
 from grounder.diagnosis.gap import coordinate_groups, group_errors_sq, make_windows, predict
-from grounder.diagnosis.pipeline import DiagnoseOptions, _holdout_split, detect_phases, diagnose
+from grounder.diagnosis.phases import detect_phases
+from grounder.diagnosis.pipeline import DiagnoseOptions, _holdout_split, diagnose
 
 REQUIRED_EFFECTS = (
     "air_drag",

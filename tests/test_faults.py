@@ -293,7 +293,8 @@ def test_an_internal_failure_is_one_line_naming_the_stage_and_debug_prints_the_t
 
 def test_fallback_mesh_is_the_closed_hull_of_the_points_standing_on_the_table() -> None:
     """The fallback for an object that cannot be meshed: closed, standing on z = 0, the volume of its points' hull."""
-    from reconstruction._objects import ObjectSegment, SegmentationError, fallback_mesh
+    from reconstruction._objects import fallback_mesh
+    from reconstruction._segment import ObjectSegment, SegmentationError
 
     rng = np.random.default_rng(0)
     # the seen surface of a 4 x 6 x 3 cm box standing 1 cm above... its sides and top only (no underside seen)

@@ -189,8 +189,8 @@ def test_ground_bad_input_exits_2(tmp_path: Path) -> None:
 def test_no_object_on_the_table_is_reported(
     reconstruction_of_points: Callable[[np.ndarray], ReconstructionResult],
 ) -> None:
-    from reconstruction._objects import SegmentationError
     from reconstruction._scene_objects import region_of_interest
+    from reconstruction._segment import SegmentationError
 
     rng = np.random.default_rng(0)
     table = np.c_[rng.uniform(-0.4, 0.4, (3000, 2)), rng.normal(0, 0.0005, 3000)]  # only a flat table
@@ -280,7 +280,8 @@ def test_scan_frames_for_the_feature_models_read_back_with_their_cameras(scene_d
     """`track --scan-features` reads the scene folder's scan frames back (`load_scan`): each frame's camera pose,
     converted from transforms.json's OpenGL axes, agrees with the true camera of that video frame (within 5 mm and
     0.5 deg), and each object's scan pose is the one scene.json gives."""
-    from grounder.tracking.pipeline import TrackOptions, load_scan
+    from grounder.tracking.inputs import load_scan
+    from grounder.tracking.options import TrackOptions
     from image2sim_common.rotations import rotation_angle_deg
 
     names = list(json.loads((scene_dir / "scene.json").read_text())["objects"])

@@ -1,4 +1,5 @@
-"""Identifiability screen and constrained calibration of `grounder.interaction.pipeline` on a small synthetic scene.
+"""Identifiability screen and constrained calibration of `grounder.interaction` (`screen`, `windows`, `per_object`)
+on a small synthetic scene.
 
 A box is thrown along a table and slides to rest (its friction shows); a second box sits still the whole time (its
 friction leaves no trace). The recorded motion is simulated with known values, so the answers are known.
@@ -14,7 +15,9 @@ import numpy as np
 import pytest
 
 from grounder.core.trajectory import Trajectory
-from grounder.interaction.pipeline import InteractionOptions, calibrate_constrained, screen_parameters
+from grounder.interaction.options import InteractionOptions
+from grounder.interaction.screen import screen_parameters
+from grounder.interaction.windows import calibrate_constrained
 
 SCENE = """
 <mujoco>
@@ -106,7 +109,7 @@ def test_a_value_the_screen_passed_but_unresolved_where_the_fit_lands_keeps_the_
     """The screen looks at its grid best; the fit may land where the clip says nothing. With a screen that passes
     everything, the still box's friction is fitted (any value matches a box that never moves), then found unresolved
     at the fitted value: it keeps the prior, the slider is fitted again alone, and the written scene holds the prior."""
-    import grounder.interaction.pipeline as interaction
+    import grounder.interaction.windows as interaction
 
     real_screen = interaction.screen_parameters
 
@@ -139,7 +142,7 @@ def test_nothing_constrained_calibrates_nothing(tmp_path: Path) -> None:
 def test_per_object_calibration_fits_each_object_alone_and_writes_the_whole_scene(tmp_path: Path) -> None:
     """The two boxes never touch: each is calibrated in a scene of its own on windows of its own motion; the values
     found are written into the whole scene (its calibration.json says so) and no helper file is left behind."""
-    from grounder.interaction.pipeline import calibrate_per_body, separable_bodies
+    from grounder.interaction.per_object import calibrate_per_body, separable_bodies
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -179,7 +182,7 @@ def test_per_object_calibration_writes_nothing_into_the_scene_folder(
     calibrations of one scene at once delete each other's (seen: `ParseXML: Error opening file .calibrate_...xml`)."""
     import trimesh
 
-    import grounder.interaction.pipeline as interaction
+    import grounder.interaction.per_object as interaction
 
     folder = tmp_path / "prior"
     (folder / "assets").mkdir(parents=True)
@@ -213,7 +216,7 @@ def test_per_object_calibration_writes_nothing_into_the_scene_folder(
 def test_per_object_values_are_written_without_any_segment(tmp_path: Path) -> None:
     """No frame has both boxes tracked (no segment): each box's own runs still calibrate it, and the values are
     written into the whole scene (`write_values`), said to be unevaluated on it."""
-    from grounder.interaction.pipeline import _single_body_trajectory, calibrate_per_body
+    from grounder.interaction.per_object import _single_body_trajectory, calibrate_per_body
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -238,7 +241,7 @@ def test_per_object_values_are_written_without_any_segment(tmp_path: Path) -> No
 
 
 def test_touching_objects_are_not_separable(tmp_path: Path) -> None:
-    from grounder.interaction.pipeline import separable_bodies
+    from grounder.interaction.per_object import separable_bodies
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -252,7 +255,7 @@ def test_reliable_starts_skip_the_frames_next_to_an_impact() -> None:
     flight are good starts (their velocity comes from the ballistic fit) except the last before the landing
     (impacts are resolved to a frame: it may already be past it); the first sample after the landing is not (it may
     still be mid-impact); the rest of the slide is, to the end of the trajectory."""
-    from grounder.interaction.pipeline import reliable_starts
+    from grounder.interaction.windows import reliable_starts
 
     dt, g = 1 / 30, 9.81
     time_s = np.arange(24) * dt
@@ -282,7 +285,8 @@ def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
     """`CalibrateOptions.separate_bodies` searches each body's parameters on its own (here the slider's friction is
     found from a prior of 0.8 while the still box's stays put); `initial` with no search budget returns exactly
     the given values, evaluated; a non-body parameter is refused."""
-    from grounder.calibration.fit import CalibrateOptions, calibrate
+    from grounder.calibration.fit import calibrate
+    from grounder.calibration.options import CalibrateOptions
     from grounder.errors import GrounderError
 
     traj = _recorded(tmp_path)
@@ -305,7 +309,7 @@ def test_calibrate_separate_bodies_and_initial_values(tmp_path: Path) -> None:
 def test_reliable_starts_skip_the_frame_after_a_bounce() -> None:
     """A ball dropped from 20 cm bounces (restitution 0.6) between two frames at 30 fps and flies again: both
     flights are good starts except the two samples around the bounce."""
-    from grounder.interaction.pipeline import reliable_starts
+    from grounder.interaction.windows import reliable_starts
 
     dt, g = 1 / 30, 9.81
     time_s = np.arange(20) * dt
@@ -383,7 +387,7 @@ def test_start_refits_leave_a_clean_recording_at_its_true_start_and_friction(tmp
 
 
 def test_along_view_weight_scales_only_the_error_along_the_camera_ray(tmp_path: Path) -> None:
-    from grounder.calibration.fit import Evaluator
+    from grounder.calibration.evaluator import Evaluator
     from grounder.calibration.parameters import resolve_parameters
     from grounder.sim.rollout import along_view_weighted
 
@@ -415,7 +419,7 @@ def test_along_view_weight_scales_only_the_error_along_the_camera_ray(tmp_path: 
 
 
 def test_view_point_is_the_mean_camera_centre_where_the_camera_is_known() -> None:
-    from grounder.interaction.pipeline import view_point_of
+    from grounder.interaction.tracks import view_point_of
 
     poses = np.tile(np.eye(4), (3, 1, 1))
     poses[0, :3, 3] = [0.0, -0.5, 0.5]
@@ -448,8 +452,8 @@ def test_the_time_constant_is_calibrated_with_the_damping_ratio(
     at MuJoCo's time step: with the time constant held at the prior the damping ratio comes out biased; calibrated
     together (`default_params`), both come out right, and the time constant stays fitted with its damping ratio even
     where a step of it alone does not show at the fit."""
-    import grounder.interaction.pipeline as interaction
-    from grounder.interaction.pipeline import CONTACT_FIELDS, default_params
+    import grounder.interaction.windows as interaction
+    from grounder.interaction.options import CONTACT_FIELDS, default_params
 
     assert "solref.timeconst" in CONTACT_FIELDS and "ball.solref.timeconst" in default_params(["ball"])
     true_xml = tmp_path / "truth.xml"
@@ -477,7 +481,8 @@ def test_the_time_constant_is_calibrated_with_the_damping_ratio(
 def test_a_time_constant_is_fitted_wherever_its_damping_ratio_is() -> None:
     """The screen moves one parameter at a time by 20%; a time constant whose prior is off by a factor of 2 shows
     little that way, yet held there it biases the damping ratio. It is fitted whenever its body's damping ratio is."""
-    from grounder.interaction.pipeline import ParameterScreen, _paired
+    from grounder.interaction.screen import ParameterScreen
+    from grounder.interaction.windows import _paired
 
     def screen(name: str, constrained: bool) -> ParameterScreen:
         return ParameterScreen(
@@ -505,9 +510,10 @@ def test_robust_scale_keeps_one_badly_measured_trajectory_from_deciding(tmp_path
     """Five pushes of the box at 0.8-1.6 m/s sliding to rest at friction 0.4; one recording's start velocity is 2 m/s
     too fast (as a tracked start next to an impact can be). The mean loss lets that one pull friction far up to
     stop it in time; with `robust_scale` it weighs like a few trajectories, and the other four decide."""
-    from grounder.calibration.fit import CalibrateOptions, calibrate
+    from grounder.calibration.fit import calibrate
+    from grounder.calibration.options import CalibrateOptions
     from grounder.errors import GrounderError
-    from grounder.interaction.pipeline import CALIBRATE_SETTINGS
+    from grounder.interaction.options import CALIBRATE_SETTINGS
 
     model = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
     pushes = [_simulated(model, {0: v_m_s}, 15, f"push_{i}") for i, v_m_s in enumerate((0.8, 1.0, 1.2, 1.4, 1.6))]
@@ -534,7 +540,7 @@ def test_start_error_ranges_follow_the_slide_length_a_start_speed_error_implies(
     the start speed. With the start 10% too fast (slow), the friction that fits best is about 1.1^2 (0.9^2) times the
     true one; the report's range must span that, and no range is computed when the error is 0."""
     from grounder.errors import GrounderError
-    from grounder.interaction.pipeline import start_error_ranges
+    from grounder.interaction.windows import start_error_ranges
 
     traj = _recorded(tmp_path)
     base = mujoco.MjModel.from_xml_path(str(_scene(tmp_path / "truth", TRUE_FRICTION, TRUE_FRICTION)))
@@ -557,10 +563,10 @@ def test_start_error_ranges_also_move_the_whole_start_where_a_landing_turns_on_i
     cannot move it; but a start 5 mm too low (what a tracked depth can be) puts the best damping ratio 35% low. The
     default profile also draws whole-state start errors of tracking's size (`InteractionOptions.start_state_draws`):
     its range must reach past the screen's -20% step, so the value is flagged as resting on the starts."""
-    from grounder.calibration.fit import Evaluator
+    from grounder.calibration.evaluator import Evaluator
     from grounder.calibration.parameters import resolve_parameters
     from grounder.errors import GrounderError
-    from grounder.interaction.pipeline import start_error_ranges
+    from grounder.interaction.windows import start_error_ranges
 
     true_xml = tmp_path / "truth.xml"
     true_xml.write_text(DROPPED_BALL.format(timeconst=0.02, dampratio=0.2))
@@ -589,7 +595,7 @@ def test_start_error_ranges_also_move_the_whole_start_where_a_landing_turns_on_i
 def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -> None:
     """A value flagged as resting on the start states' accuracy gets the advice to film faster, with the clip's own
     frame rate; without such a value the advice is not given."""
-    from grounder.interaction.pipeline import _markdown
+    from grounder.interaction.report import markdown_report
 
     record = {"nominal": 0.45, "value": 0.25, "interval": [0.23, 0.27], "start_error_range": [0.2, 0.3]}
     payload = {
@@ -600,12 +606,12 @@ def test_report_names_the_clips_frame_rate_where_a_value_rests_on_the_starts() -
         "calibration": {"status": "calibrated", "parameters": {"bowl.friction.sliding": record}},
         "match_before": {},
     }
-    assert "60 fps or more" not in _markdown(payload)
-    assert "best value with start speeds +-0.03 m/s" in _markdown(payload)  # a report written before the draws
+    assert "60 fps or more" not in markdown_report(payload)
+    assert "best value with start speeds +-0.03 m/s" in markdown_report(payload)  # a report written before the draws
     payload["start_state_errors"] = {"draws": 6}
-    assert "best value with starts off (speeds +-0.03 m/s; 6 random whole-state errors)" in _markdown(payload)
+    assert "best value with starts off (speeds +-0.03 m/s; 6 random whole-state errors)" in markdown_report(payload)
     record["start_sensitive"] = True
-    text = _markdown(payload)
+    text = markdown_report(payload)
     assert "**rests on the start states' accuracy**" in text
     assert "60 fps or more" in text and "This clip has 30 frames per second." in text
 

@@ -14,14 +14,9 @@ import pytest
 from grounder.calibration.parameters import resolve_parameters
 from grounder.core.trajectory import Trajectory
 from grounder.errors import GrounderError
-from grounder.interaction.impacts import (
-    ImpactOptions,
-    find_flights,
-    find_impacts,
-    fit_impacts,
-    impacts_figure,
-    spin_at_end,
-)
+from grounder.interaction.flights import find_flights, find_impacts, spin_at_end
+from grounder.interaction.impacts import fit_impacts, impacts_figure
+from grounder.interaction.options import ImpactOptions
 from grounder.sim.restitution import contact_solref, simulated_restitution
 from image2sim_common.rotations import quat_mul, quat_to_mat, rotvec_to_quat
 
@@ -174,7 +169,8 @@ def test_ground_interaction_calibrates_from_impacts(tmp_path: Path) -> None:
     seed, the best restitution is -17%; with seeds 1 and 2 it is exact, and compared with the next flight alone it
     is within 10%, above) are calibrated, the time constant is set with the bounce, and the report names the impacts
     and the restitution."""
-    from grounder.interaction.pipeline import InteractionOptions, calibrate_per_body, default_params
+    from grounder.interaction.options import InteractionOptions, default_params
+    from grounder.interaction.per_object import calibrate_per_body
 
     truth = _scene(0.3, 0.6).compile()
     traj, _ = _throw(truth, (1.5, 0.3, -0.8), (1.0, -3.0, 0.5))
@@ -199,7 +195,7 @@ def test_ground_interaction_calibrates_from_impacts(tmp_path: Path) -> None:
     bounce = entry["per_object"]["box"]["restitution"]
     assert bounce["resolved"] and bounce["value"] == pytest.approx(0.6, rel=0.2)
     # The stability copies that confirmed the friction are in the report, and in its words.
-    from grounder.interaction.pipeline import _copies_text
+    from grounder.interaction.report import _copies_text
 
     hits = entry["per_object"]["box"]["impacts"]
     copies = hits["stability_copies"]

@@ -158,7 +158,9 @@ def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_pr
     (`test_sampling_sweeps_get_below_where_least_squares_stops`)."""
     from test_interaction import PARAMS, TRUE_FRICTION, _recorded, _scene
 
-    from grounder.interaction.pipeline import InteractionOptions, _markdown, calibrate_per_body
+    from grounder.interaction.options import InteractionOptions
+    from grounder.interaction.per_object import calibrate_per_body
+    from grounder.interaction.report import markdown_report
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -182,11 +184,11 @@ def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_pr
         "calibration": entry,
         "match_before": {},
     }
-    assert f"- slider: multiple shooting over {shooting['nodes']} nodes (1 run(s))" in _markdown(payload)
+    assert f"- slider: multiple shooting over {shooting['nodes']} nodes (1 run(s))" in markdown_report(payload)
 
 
 def test_an_unknown_calibration_method_is_refused() -> None:
-    from grounder.interaction.pipeline import InteractionOptions
+    from grounder.interaction.options import InteractionOptions
 
     with pytest.raises(GrounderError, match="calibration='grid'"):
         InteractionOptions(calibration="grid")
@@ -243,7 +245,7 @@ def test_a_resolved_bounce_sets_both_solref_values_where_one_alone_is_not(
     the search over time constant and damping ratio (from 0.02 s, 0.4) finds the bounce of the truth (0.02 s, 0.2)
     within 20% and calls it resolved, and both solref values are reported calibrated, one of them with the bounce
     where it is not resolved by itself, so the scene bounces as the fit did."""
-    from grounder.interaction.pipeline import shoot_body
+    from grounder.interaction.per_object import shoot_body
     from grounder.sim.restitution import body_restitution
 
     _, truth = _thrown()

@@ -15,7 +15,7 @@ from reconstruction._objects import MeshOptions, _largest_component, _measured, 
 if TYPE_CHECKING:
     import trimesh
 
-    from reconstruction._objects import ObjectSegment
+    from reconstruction._segment import ObjectSegment
 
 VOXEL_M = 0.01
 
@@ -244,7 +244,7 @@ def _grid_patch(centre_xy: tuple[float, float], half_m: float, z_m: float, step_
 def _segmented(surface: trimesh.Trimesh, voxel_m: float) -> list[ObjectSegment]:
     """`segment_objects` on a fused surface made by hand, seen by one camera 1 m above the table."""
     from reconstruction._dense import DenseResult, RegionOfInterest
-    from reconstruction._objects import segment_objects
+    from reconstruction._segment import segment_objects
 
     dense = DenseResult(
         vertices_world=np.asarray(surface.vertices), faces=np.asarray(surface.faces, np.int64),
@@ -387,7 +387,8 @@ def test_a_thin_walled_cup_keeps_its_foot_on_the_table() -> None:
     import trimesh
 
     from reconstruction._dense import DenseResult
-    from reconstruction._objects import ObjectSegment, mesh_object
+    from reconstruction._objects import mesh_object
+    from reconstruction._segment import ObjectSegment
 
     voxel_m = 0.003
     table = _grid_patch((0.0, 0.0), 0.08, 0.0, voxel_m)
@@ -467,8 +468,8 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
     0.3 m column under a 0.12 m top: 0.12 -> 0.18 -> 0.27 -> stop at the second raise, as allowed), never past
     0.4 x the camera distance; an object clear of the top is fused once, and so is one a side cuts."""
     from reconstruction import _dense, _objects
-    from reconstruction._objects import ObjectSegment
     from reconstruction._scene_objects import ObjectsOptions, _fused_and_segmented
+    from reconstruction._segment import ObjectSegment
     from reconstruction._types import CameraIntrinsics
 
     tops: list[float] = []
@@ -550,8 +551,8 @@ def test_find_objects_drops_a_smear_sheet_and_keeps_a_hull_that_fails_to_mesh(mo
     from types import SimpleNamespace
 
     from reconstruction import _dense, _objects, _scene_objects
-    from reconstruction._objects import ObjectSegment
     from reconstruction._scene_objects import ObjectsOptions
+    from reconstruction._segment import ObjectSegment
 
     rng = np.random.default_rng(3)
     angle = rng.uniform(0.0, 2 * np.pi, 3000)

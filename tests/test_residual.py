@@ -17,23 +17,13 @@ from typer.testing import CliRunner
 
 from grounder.core.trajectory import Trajectory, save_trajectories
 from grounder.errors import GrounderError
-from grounder.residual.model import (
-    FEATURE_NAMES,
-    META_FILE,
-    ONNX_FILE,
-    WEIGHTS_FILE,
-    NumpyResidual,
-    apply_correction,
-    body_features,
-    correction_targets,
-    free_bodies,
-    quat_to_rotvec,
-    rotvec_to_quat,
-)
+from grounder.residual.free_body import NumpyResidual, apply_correction, body_features, correction_targets, free_bodies
+from grounder.residual.meta import FEATURE_NAMES, META_FILE, ONNX_FILE, WEIGHTS_FILE
+from grounder.residual.options import ResidualOptions
 from grounder.residual.simulator import Simulator, has_residual
-from grounder.residual.train import ResidualOptions, _selection_split, train_residual
+from grounder.residual.train import _selection_split, train_residual
 from grounder.sim.rollout import simulate
-from image2sim_common.rotations import quat_angle_rad
+from image2sim_common.rotations import quat_angle_rad, quat_to_rotvec, rotvec_to_quat
 
 HALF_M = 0.05
 RATE_HZ = 100.0

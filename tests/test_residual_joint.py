@@ -17,9 +17,10 @@ from grounder.diagnosis.benchmark import select_cases
 from grounder.diagnosis.cases import make_case
 from grounder.errors import GrounderError
 from grounder.residual.joint import NumpyJointResidual, joint_features, joint_space, joint_targets
-from grounder.residual.model import META_FILE, ONNX_FILE, WEIGHTS_FILE
+from grounder.residual.meta import META_FILE, ONNX_FILE, WEIGHTS_FILE
+from grounder.residual.options import ResidualOptions
 from grounder.residual.simulator import Simulator
-from grounder.residual.train import ResidualOptions, rollout_score, train_residual
+from grounder.residual.train import rollout_score, train_residual
 
 SMALL = ResidualOptions(steps=800, hidden=32, seed=0)
 

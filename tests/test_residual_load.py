@@ -26,19 +26,13 @@ from typer.testing import CliRunner
 from grounder.cli import app
 from grounder.core.trajectory import Trajectory, save_trajectories
 from grounder.errors import GrounderError
-from grounder.residual.model import (
-    META_FILE,
-    WEIGHTS_FILE,
-    GateOptions,
-    NumpyResidual,
-    ResidualMeta,
-    file_sha256,
-    free_bodies,
-    scene_files_sha256,
-)
+from grounder.residual.files import file_sha256, scene_files_sha256
+from grounder.residual.free_body import NumpyResidual, free_bodies
+from grounder.residual.meta import META_FILE, WEIGHTS_FILE, GateOptions, ResidualMeta
+from grounder.residual.options import ResidualOptions
 from grounder.residual.simulator import Simulator
 from grounder.residual.torch_model import residual_model
-from grounder.residual.train import ResidualOptions, train_residual
+from grounder.residual.train import train_residual
 from grounder.sim.rollout import simulate
 
 RATE_HZ = 100.0

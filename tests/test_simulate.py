@@ -131,7 +131,7 @@ def test_scene_files_refuses_what_mujoco_would_read_outside_the_folder(tmp_path:
     """Three ways an MJCF made MuJoCo read a file outside its folder past the check: an XML that expat cannot parse
     but MuJoCo's parser accepts (an undefined entity) skipped the check of its <include>s; a <model> asset (attached
     with <attach>) and a <flexcomp> mesh are read as MuJoCo parses, and were not checked at all."""
-    from grounder.sim.rollout import scene_files
+    from grounder.sim.scene_files import scene_files
 
     xml = _escaping_scene(tmp_path, how, "../outside")
     mujoco.MjSpec.from_file(str(xml)).compile()  # MuJoCo reads the outside file without a word
@@ -148,7 +148,7 @@ def test_scene_folder_links_that_lead_out_of_the_copy_are_refused(tmp_path: Path
     then written through it into the user's file. A relative link within the folder stays a link in the copy."""
     import os
 
-    from grounder.sim.rollout import copy_scene_files
+    from grounder.sim.scene_files import copy_scene_files
 
     scene = tmp_path / "scene"
     scene.mkdir()

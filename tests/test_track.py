@@ -17,16 +17,13 @@ import pytest
 from typer.testing import CliRunner
 
 from grounder import load_trajectories
-from grounder.tracking.pipeline import TrackError, TrackOptions, read_clip, track, tracked_segments
+from grounder.tracking.inputs import read_clip
+from grounder.tracking.options import TrackError, TrackOptions
+from grounder.tracking.output import tracked_segments
+from grounder.tracking.pipeline import track
 from grounder.tracking.render import PinholeCamera, PoseRenderer, backproject
-from grounder.tracking.smooth import (
-    SmoothingOptions,
-    free_body_velocities,
-    matrix_from_quat,
-    quat_from_matrix,
-    quat_mul,
-)
-from image2sim_common.rotations import quat_angle_rad
+from grounder.tracking.smooth import SmoothingOptions, free_body_velocities
+from image2sim_common.rotations import matrix_from_quat, quat_angle_rad, quat_from_matrix, quat_mul
 
 REPO = Path(__file__).resolve().parents[1]
 TOSS = REPO / "samples" / "toss"
@@ -202,7 +199,7 @@ def test_track_first_frames_of_toss(tmp_path: Path, toss_truth: dict[str, np.nda
     assert meta["object_names"] == ["box", "can", "bowl"]
     assert all(all(o["valid"]) for o in meta["objects"].values())
     # Each object's own run, read back from track.json, holds the tracked poses (all 8 frames tracked forward here).
-    from grounder.tracking.pipeline import load_object_trajectories
+    from grounder.tracking.output import load_object_trajectories
 
     runs = load_object_trajectories(out / "track.json")
     assert [len(runs[name]) for name in meta["object_names"]] == [1, 1, 1]
@@ -296,7 +293,7 @@ def test_an_implausible_refined_pose_is_lost(
     backwards alike; the frames around it stay tracked."""
     import cv2
 
-    import grounder.tracking.pipeline as track_module
+    import grounder.tracking.tracker as track_module
 
     first, target = 12, 16
     frames, _ = read_clip(TOSS / "video.mp4", 2, target)  # (a clip is at least 2 frames)
@@ -412,7 +409,7 @@ def test_cli_track_help_and_bad_input(tmp_path: Path) -> None:
 def test_a_scene_with_unreadable_intrinsics_is_one_error(content: str, tmp_path: Path) -> None:
     """The scene's reconstruct.json comes with the scene (maybe someone else's): a missing or malformed value was a
     KeyError / TypeError traceback; now a TrackError naming the file and what to do."""
-    from grounder.tracking.pipeline import scene_intrinsics
+    from grounder.tracking.camera import scene_intrinsics
 
     (tmp_path / "reconstruction").mkdir()
     (tmp_path / "reconstruction" / "reconstruct.json").write_text(content)
@@ -423,7 +420,7 @@ def test_a_scene_with_unreadable_intrinsics_is_one_error(content: str, tmp_path:
 def test_a_distortion_that_folds_the_image_is_refused(tmp_path: Path) -> None:
     """k1, k2 come from the scene's reconstruct.json: a radial model that folds over inside the image (two directions
     on one pixel) was accepted and undistorted into garbage; a real lens's values still load."""
-    from grounder.tracking.pipeline import distortion_folds, scene_intrinsics
+    from grounder.tracking.camera import distortion_folds, scene_intrinsics
 
     (tmp_path / "reconstruction").mkdir()
     base = {"width_px": 640, "height_px": 480, "fx_px": 500, "fy_px": 500, "cx_px": 320, "cy_px": 240}
@@ -450,7 +447,7 @@ def test_scan_frames_outside_the_scene_are_not_read(tmp_path: Path) -> None:
     (the scan frames are then left out, as when they are missing)."""
     import cv2
 
-    from grounder.tracking.pipeline import load_scan
+    from grounder.tracking.inputs import load_scan
 
     cv2.imwrite(str(tmp_path / "private.png"), np.zeros((48, 64, 3), np.uint8))
     rec = tmp_path / "scene" / "reconstruction"
@@ -531,7 +528,7 @@ def test_each_object_keeps_its_own_tracked_runs() -> None:
     """Object a is tracked throughout, b is hidden in frames 10-19: the segments (every object tracked) cut both, but
     each object's own runs keep a whole (one run of 30 frames) and b in two; each run is a single-body trajectory
     whose velocity is the smoothing fit of its own poses (a ballistic throw: exact)."""
-    from grounder.tracking.pipeline import object_trajectories
+    from grounder.tracking.output import object_trajectories
     from grounder.tracking.smooth import SmoothingOptions
 
     time_s = np.arange(30) / 30.0
@@ -559,7 +556,7 @@ def test_each_object_keeps_its_own_tracked_runs() -> None:
 
 def test_windows_cut_tracked_segments_and_drop_still_ones() -> None:
     from grounder import Trajectory
-    from grounder.interaction.pipeline import windows
+    from grounder.interaction.windows import windows
 
     time_s = np.arange(60) / 30.0
     qpos = np.zeros((60, 7))
@@ -581,7 +578,8 @@ def test_ground_with_interaction_tracks_then_calibrates_on_tracked_frames(
     the tracks as written to `interaction/tracks` (rounded there), not as tracking held them, so that calibrating
     the saved tracks again gives the same scene."""
     import grounder.interaction.pipeline as interaction
-    from grounder.interaction.pipeline import InteractionOptions, calibration_available, ground_with_interaction
+    from grounder.interaction.options import InteractionOptions
+    from grounder.interaction.pipeline import calibration_available, ground_with_interaction
 
     if not calibration_available():
         pytest.skip("grounder.calibration.fit is not installed")
@@ -653,7 +651,8 @@ def test_marker_camera_pose_static_and_per_frame(toss_truth: dict[str, np.ndarra
     one static pose and per frame (the moving-camera path)."""
     import cv2
 
-    from grounder.tracking.pipeline import marker_camera_poses, read_clip
+    from grounder.tracking.camera import marker_camera_poses
+    from grounder.tracking.inputs import read_clip
     from image2sim_common.rotations import rotation_angle_deg
 
     intr, world_from_cam = _truth_camera()
@@ -808,8 +807,8 @@ def test_scan_frames_give_the_feature_models_many_more_right_matches() -> None:
     least 40 of each object's land within 3 px of where the true pose puts them, and on the box and the bowl at least
     twice as many as from the rendered model (measured 144 vs 34 and 179 vs 81; even with the true textures here.
     The can's true texture renders well, 98 vs 160; with a grounded scene's baked textures all three gain)."""
-    from grounder.tracking.pipeline import _Tracker
     from grounder.tracking.render import ScanFrame, build_feature_models, scan_feature_models
+    from grounder.tracking.tracker import _Tracker
 
     scan_dir = REPO / "samples" / "tabletop"
     if not (scan_dir / "video.mp4").exists() or not (TOSS / "video.mp4").exists():
@@ -856,7 +855,7 @@ def test_a_clip_without_any_segment_still_gives_each_objects_runs(tmp_path: Path
     calibration uses) and the can lost throughout."""
     import cv2
 
-    from grounder.tracking.pipeline import load_object_trajectories
+    from grounder.tracking.output import load_object_trajectories
 
     intr, world_from_cam = _truth_camera()
     camera = PinholeCamera.from_colmap(intr["width"], intr["height"], intr["fx"], intr["fy"], intr["cx"], intr["cy"])
@@ -909,7 +908,7 @@ def test_moving_camera_is_placed_per_frame_and_the_objects_tracked_in_the_world(
 def test_saved_camera_poses_keep_the_frames_without_a_camera_unknown() -> None:
     """A moving camera's `track.json` has a null row where the marker was not seen: those frames are unknown (NaN),
     and the view point calibration weighs depth by is the mean centre of the known ones."""
-    from grounder.interaction.pipeline import camera_poses_of, view_point_of
+    from grounder.interaction.tracks import camera_poses_of, view_point_of
 
     known = [np.eye(4), np.eye(4)]
     known[0][:3, 3], known[1][:3, 3] = (0.0, -0.6, 0.4), (0.2, -0.6, 0.6)

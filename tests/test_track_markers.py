@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 
 from grounder.errors import GrounderError
 from grounder.grounding.scan_markers import find_scan_markers
+from grounder.tracking.inputs import read_clip
 from grounder.tracking.markers import (
     MarkerPoses,
     MarkerViews,
@@ -28,7 +29,8 @@ from grounder.tracking.markers import (
     marker_agreement,
     place_markers,
 )
-from grounder.tracking.pipeline import TrackOptions, read_clip, track
+from grounder.tracking.options import TrackOptions
+from grounder.tracking.pipeline import track
 from image2sim_common.rotations import matrix_from_quat, quat_angle_rad, quat_from_matrix, rotation_angle_deg
 from reconstruction._texture import TextureView
 from reconstruction._types import CameraIntrinsics

@@ -15,7 +15,7 @@ from grounder.core.repeats import describe_repeats
 from grounder.core.trajectory import Trajectory
 
 if TYPE_CHECKING:
-    from grounder.calibration.fit import CalibrationResult
+    from grounder.calibration.result import CalibrationResult
 
 _MAX_PLOTTED = 4
 

@@ -48,7 +48,15 @@ def _as_flag(message: str) -> str:
 
 def register(app: typer.Typer) -> None:
     """Adds the calibration commands to the ``image2sim`` app."""
-    from grounder.cli.common import fail, require, setup_logging, stage_progress, user_errors_exit_2
+    _add_calibrate(app)
+    _add_rollout(app)
+    _add_import_trajectories(app)
+    _add_batch(app)
+
+
+def _add_calibrate(app: typer.Typer) -> None:
+    """Adds ``calibrate``: fit a scene's parameters to recorded trajectories."""
+    from grounder.cli.common import fail, setup_logging, stage_progress, user_errors_exit_2
 
     @app.command()
     def calibrate(
@@ -83,10 +91,11 @@ def register(app: typer.Typer) -> None:
         """Fit a scene's physical parameters to recorded trajectories: scene.xml, calibration.json, report.html."""
         setup_logging(verbose)
         with user_errors_exit_2():
-            from grounder.calibration.fit import CalibrateOptions, load_scene
             from grounder.calibration.fit import calibrate as run_calibrate
+            from grounder.calibration.options import CalibrateOptions
             from grounder.core.trajectory import load_trajectories
             from grounder.errors import GrounderError
+            from grounder.sim.scene_files import load_scene_spec
 
             if mode not in ("raw", "embedding"):
                 fail(f"--mode must be raw or embedding, got {mode!r}")
@@ -106,7 +115,7 @@ def register(app: typer.Typer) -> None:
                 )
             except GrounderError as exc:  # named by the option's field: say the flag the user typed
                 fail(_as_flag(str(exc)))
-            _, model = load_scene(scene)
+            _, model = load_scene_spec(scene)
             trajs = load_trajectories(traj_dir, model)
             from grounder.calibration.parameters import resolve_parameters
 
@@ -125,6 +134,11 @@ def register(app: typer.Typer) -> None:
             )
         typer.echo(f"wrote {out}")
 
+
+def _add_rollout(app: typer.Typer) -> None:
+    """Adds ``rollout``: re-simulate recorded trajectories (`grounder.sim.rollout_files.run_rollout`)."""
+    from grounder.cli.common import setup_logging, user_errors_exit_2
+
     @app.command()
     def rollout(
         scene: Annotated[Path, typer.Argument(help="An MJCF file or a scene folder (with scene.xml).")],
@@ -142,9 +156,16 @@ def register(app: typer.Typer) -> None:
         """Simulate every trajectory from its first state with its controls; same file names in the output."""
         setup_logging(verbose)
         with user_errors_exit_2():
+            from grounder.sim.rollout_files import run_rollout
+
             preds, used_residual = run_rollout(scene, traj_dir, out, use_residual=not no_residual, overwrite=overwrite)
         what = "MuJoCo + residual" if used_residual else "MuJoCo"
         typer.echo(f"simulated {len(preds)} trajectories with {what}; wrote {out}")
+
+
+def _add_import_trajectories(app: typer.Typer) -> None:
+    """Adds ``import-trajectories``: convert recorded motion into the project's format."""
+    from grounder.cli.common import setup_logging, user_errors_exit_2
 
     @app.command("import-trajectories")
     def import_trajectories_cmd(
@@ -166,6 +187,11 @@ def register(app: typer.Typer) -> None:
             save_trajectories(trajs, out)
         steps = sum(t.num_steps for t in trajs)
         typer.echo(f"imported {len(trajs)} trajectories ({steps} samples) from {src}; wrote {out}")
+
+
+def _add_batch(app: typer.Typer) -> None:
+    """Adds ``batch``: many calibrations from a jobs file, on Ray."""
+    from grounder.cli.common import require, setup_logging, stage_progress, user_errors_exit_2
 
     @app.command()
     def batch(
@@ -213,7 +239,9 @@ def register(app: typer.Typer) -> None:
         before = signal.signal(signal.SIGTERM, terminated) if on_main else None
         try:
             with user_errors_exit_2():
-                from grounder.calibration.batch import check_batch_output, load_jobs, read_table, run_batch
+                from grounder.calibration.batch import run_batch
+                from grounder.calibration.batch_jobs import load_jobs
+                from grounder.calibration.batch_output import check_batch_output, read_table
 
                 jobs = load_jobs(jobs_file)
                 out_dir = out if out is not None else jobs_file.with_name(f"{jobs_file.stem}_results")
@@ -252,48 +280,3 @@ def register(app: typer.Typer) -> None:
         )
         if summary.failed:
             raise typer.Exit(1)  # the other jobs finished; re-running retries only the failed ones
-
-
-def run_rollout(
-    scene: Path, traj_dir: Path, out: Path, *, use_residual: bool = True, overwrite: bool = False
-) -> tuple[list, bool]:
-    """The ``rollout`` command's library side: returns (predicted trajectories, whether the residual was used).
-
-    Uses ``grounder.residual.simulator.Simulator`` when that module exists, the scene folder has a residual and
-    ``use_residual``; plain :func:`grounder.sim.rollout.simulate` otherwise. Writes the predictions (same file names as
-    the recordings) and ``rollout.json`` (what was rolled out, with or without the residual).
-    """
-    import importlib
-    import importlib.util
-    import json
-
-    from grounder.calibration.fit import load_scene
-    from grounder.core.trajectory import load_trajectories, save_trajectories
-    from grounder.errors import GrounderError
-    from grounder.sim.rollout import simulate
-    from reconstruction import check_output_dir, staged_output_dir
-
-    check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))
-    _, model = load_scene(scene)
-    trajs = load_trajectories(traj_dir, model)
-    used = False
-    scene_dir = scene if scene.is_dir() else scene.parent
-    if use_residual and importlib.util.find_spec("grounder.residual.simulator") is not None:
-        module = importlib.import_module("grounder.residual.simulator")
-        module.check_residual_pair(scene_dir)  # half a residual is an error, not a silent plain-MuJoCo run
-        if module.has_residual(scene_dir):
-            preds = module.Simulator(scene).rollout(trajs, stable=True)
-            used = True
-    if not used:
-        preds = simulate(model, trajs, stable=True)
-    with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir)) as stage:
-        save_trajectories(preds, stage)  # the whole folder replaced at once, as every command does
-        record = {
-            "format": "image2sim.rollout/1",
-            "scene": str(scene),
-            "trajectories": str(traj_dir),
-            "residual": used,
-            "files": sorted(f"{t.name}.npz" for t in preds),
-        }
-        (stage / "rollout.json").write_text(json.dumps(record, indent=1) + "\n")  # marks it as an image2sim output
-    return list(preds), used

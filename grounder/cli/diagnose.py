@@ -126,6 +126,6 @@ def register(app: typer.Typer) -> None:
         if json_out is not None:
             import json
 
-            from grounder.core.html_report import write_text_atomic
+            from image2sim_common.outdir import write_text_atomic
 
             write_text_atomic(json_out, json.dumps([r.to_json() for r in results], indent=2))

@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Train a bounded, gated residual on recorded trajectories; write a residual scene folder."""
         setup_logging(verbose)
-        from grounder.residual.train import COUNT_LIMITS
+        from grounder.residual.options import COUNT_LIMITS
 
         require(
             *(
@@ -59,8 +59,9 @@ def register(app: typer.Typer) -> None:
         with user_errors_exit_2():
             from grounder.core.trajectory import load_trajectories
             from grounder.errors import GrounderError
-            from grounder.residual.train import REPORT_FILE, ResidualOptions, train_residual
-            from grounder.sim.rollout import load_scene_model
+            from grounder.residual.options import ResidualOptions
+            from grounder.residual.train import REPORT_FILE, train_residual
+            from grounder.sim.scene_files import load_scene_model
             from reconstruction import check_output_dir
 
             check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))

@@ -142,9 +142,10 @@ def ground(
         if calibration != "impacts" and interaction is None:
             fail("--calibration needs --interaction CLIP: it is how the scene is calibrated to the clip")
         if interaction is not None:
-            from grounder.interaction.pipeline import CALIBRATION_METHODS, InteractionOptions, ground_with_interaction
+            from grounder.interaction.options import CALIBRATION_METHODS, InteractionOptions
+            from grounder.interaction.pipeline import ground_with_interaction
             from grounder.tracking.markers import load_object_markers
-            from grounder.tracking.pipeline import TrackOptions
+            from grounder.tracking.options import TrackOptions
 
             if not interaction.exists():
                 fail(f"interaction clip {interaction} does not exist; give the path of a video of the objects moving")

@@ -77,7 +77,7 @@ def register(app: typer.Typer) -> None:
             fail(f"--marker-use {marker_use}: expected pose or rotation")
         with user_errors_exit_2():
             from grounder.tracking.markers import load_object_markers
-            from grounder.tracking.pipeline import TrackOptions
+            from grounder.tracking.options import TrackOptions
             from grounder.tracking.pipeline import track as run_track
 
             markers = () if object_markers is None else load_object_markers(object_markers)

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from image2sim_common.outdir import write_text_atomic
+
 
 def figure_to_data_uri(fig: Any, *, dpi: int = 100) -> str:
     """A matplotlib figure as a ``data:image/png;base64,...`` URI (the figure is left open)."""
@@ -93,16 +95,6 @@ def render_html(title: str, sections: Sequence[Section | Mapping[str, Any]]) -> 
             parts.append(f'<img alt="{html.escape(section.title)}" src="{html.escape(uri)}">')
     parts.append("</body></html>")
     return "\n".join(parts) + "\n"
-
-
-def write_text_atomic(path: Path, text: str) -> Path:
-    """Writes ``text`` (UTF-8) to a temporary file beside ``path``, then renames it: whole or not at all."""
-    from image2sim_common.outdir import atomic_file
-
-    path = Path(path)
-    with atomic_file(path, "w") as handle:
-        handle.write(text)
-    return path
 
 
 def write_html_report(path: Path, title: str, sections: Sequence[Section | Mapping[str, Any]]) -> Path:

@@ -18,13 +18,11 @@ Steps (one fixed setting for every input; see :class:`DiagnoseOptions`):
 
 from __future__ import annotations
 
-import copy
 import itertools
-import json
 import logging
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -53,18 +51,16 @@ from grounder.diagnosis.gap import (
     score,
 )
 from grounder.diagnosis.noise import add_noise, estimate_noise
+from grounder.diagnosis.outputs import write_outputs
+from grounder.diagnosis.phases import PHASES, detect_phases, phase_reductions, window_labels
+from grounder.diagnosis.result import Diagnosis, EffectResult
 from grounder.errors import GrounderError
-from grounder.sim.rollout import default_nthread, load_scene_model
+from grounder.sim.rollout import default_nthread
+from grounder.sim.scene_files import load_scene_model
 from image2sim_common.progress import ProgressFn
-from reconstruction import check_output_dir, staged_output_dir
+from reconstruction import check_output_dir
 
 log = logging.getLogger(__name__)
-
-
-CONTACT_MARGIN_M = 0.004
-"""Distance under which a recorded body counts as touching (tracking noise keeps resting bodies a few mm off)."""
-
-PHASES = ("free_flight", "impact", "sliding", "rolling", "resting", "actuated", "free_motion")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -102,122 +98,6 @@ class DiagnoseOptions:
     noise_stop_ratio: float = 1.3
     shortlist: int = 5
     nthread: int | None = None
-
-
-@dataclass(frozen=True, kw_only=True)
-class EffectResult:
-    """One effect fitted on the training trajectories and scored on the held-out ones."""
-
-    effect: str
-    kind: str  # recalibration | new_effect | measurement
-    params: dict[str, float]
-    nominal_params: dict[str, float]
-    train_gap_after: float
-    heldout_gap_before: float
-    heldout_gap_after: float
-    heldout_reduction: float
-    ci: tuple[float, float]
-    score: float  # reduction minus the complexity penalty
-    per_traj_after: np.ndarray = field(repr=False)
-    heldout_by_phase: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-@dataclass(frozen=True, kw_only=True)
-class Diagnosis:
-    """The diagnosis; ``to_json()`` is the content of ``diagnosis.json``."""
-
-    gap_metric: str
-    gap: dict[str, Any]
-    effects: list[EffectResult]
-    selected: list[str]
-    steps: list[dict[str, Any]]
-    heldout: dict[str, float]
-    unexplained_fraction: float
-    split: dict[str, list[str]]
-    applied: list[AppliedEffect] = field(repr=False)
-    noise: dict[str, float] = field(default_factory=dict)
-    measurement_check: dict[str, Any] = field(default_factory=dict)
-    figures: dict[str, Any] = field(repr=False, default_factory=dict)
-    seconds: float = 0.0
-
-    def to_json(self) -> dict[str, Any]:
-        best = self.effects[0] if self.effects else None
-        runner_up = self.effects[1] if len(self.effects) > 1 else None
-        return {
-            "gap_metric": self.gap_metric,
-            "gap": self.gap,
-            "effects": [
-                {
-                    "effect": e.effect,
-                    "kind": e.kind,
-                    "meaning": _meaning(e),
-                    "params": e.params,
-                    "nominal_params": e.nominal_params,
-                    "heldout_gap_before": e.heldout_gap_before,
-                    "heldout_gap_after": e.heldout_gap_after,
-                    "heldout_reduction": e.heldout_reduction,
-                    "ci": list(e.ci),
-                    "score": e.score,
-                    "train_gap_after": e.train_gap_after,
-                    "heldout_by_phase": e.heldout_by_phase,
-                }
-                for e in self.effects
-            ],
-            "selected": self.selected,
-            "steps": self.steps,
-            "heldout": self.heldout,
-            "unexplained_fraction": self.unexplained_fraction,
-            "finding": _finding(self),
-            "top_separated_from_runner_up": (
-                None if best is None or runner_up is None else bool(best.ci[0] > runner_up.heldout_reduction)
-            ),
-            "split": self.split,
-            "noise": self.noise,
-            "measurement_check": self.measurement_check,
-            "seconds": self.seconds,
-        }
-
-
-def _meaning(e: EffectResult) -> str:
-    if e.kind == "recalibration":
-        return "miscalibrated existing parameter"
-    if e.kind == "measurement":
-        return "measurement bias of the recording"
-    return "missing effect"
-
-
-def _finding(diag: Diagnosis) -> str:
-    text = _finding_main(diag)
-    check = diag.measurement_check
-    if check.get("selected"):
-        named = ", ".join(
-            f"{e['effect']} ({', '.join(f'{k}={v:.4g}' for k, v in e['params'].items())})" for e in check["selected"]
-        )
-        text += (
-            f"; recording bias suspected: {named}, together {check['heldout_reduction']:.0%} of the held-out gap "
-            f"in free flight and at rest"
-        )
-    return text
-
-
-def _finding_main(diag: Diagnosis) -> str:
-    if not diag.selected:
-        if diag.heldout["gap_before"] <= 1.25 * diag.heldout.get("noise_floor", 0.0):
-            return "the nominal model already matches the recordings to their noise floor"
-        return (
-            "no effect in the library explains the gap on held-out data (largely unexplained: "
-            f"{diag.unexplained_fraction:.0%} remains)"
-        )
-    parts = f"the selected effect(s) {', '.join(diag.selected)}"
-    floor = diag.heldout.get("noise_floor", 0.0)
-    if diag.heldout["gap_after"] <= 1.25 * floor:
-        return (
-            f"{parts} explain {1 - diag.unexplained_fraction:.0%} of the held-out gap; what remains is at the "
-            f"recording's noise floor ({floor:.4g})"
-        )
-    if diag.unexplained_fraction > 0.5:
-        return f"largely unexplained: {parts} explain only {1 - diag.unexplained_fraction:.0%} of the held-out gap"
-    return f"{parts} explain {1 - diag.unexplained_fraction:.0%} of the held-out gap"
 
 
 # ------------------------------------------------------------------------------------------------------- validation
@@ -276,74 +156,6 @@ def _holdout_split(
 
 
 # ------------------------------------------------------------------------------------------------------------- phases
-def detect_phases(model: mujoco.MjModel, traj: Trajectory) -> np.ndarray:
-    """Phase name per recorded sample (T,), from the recorded motion and the model's contacts at recorded states.
-
-    Free bodies: ``impact`` (contact begins, or approaches the surface faster than 0.3 m/s), ``sliding`` (contact
-    point slips faster than 0.05 m/s), ``rolling`` (in contact, not slipping, turning faster than 1 rad/s),
-    ``resting``, ``free_flight`` (no geom within ``CONTACT_MARGIN_M``). Models without free joints: ``actuated``
-    (any control non-zero), ``free_motion`` (moving), ``resting``. With several free bodies the most eventful phase
-    wins.
-    """
-    free = [j for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE]
-    # MuJoCo reports contacts only within the margin: widen it (on a copy) to see near-contacts of noisy data.
-    model = copy.copy(model)
-    model.geom_margin[:] = np.maximum(model.geom_margin, CONTACT_MARGIN_M)
-    data = mujoco.MjData(model)
-    n = traj.num_steps
-    if not free:
-        out = np.full(n, "resting", dtype=object)
-        moving = np.abs(traj.qvel).max(axis=1) > 0.05
-        out[moving] = "free_motion"
-        if traj.ctrl is not None:
-            out[np.abs(traj.ctrl).max(axis=1) > 1e-9] = "actuated"
-        return out
-    priority = {p: i for i, p in enumerate(("impact", "sliding", "rolling", "free_flight", "resting"))}
-    phase = np.full(n, "resting", dtype=object)
-    in_contact = np.zeros((n, len(free)), bool)
-    info = []
-    for t in range(n):
-        data.qpos[:] = traj.qpos[t]
-        data.qvel[:] = traj.qvel[t]
-        mujoco.mj_forward(model, data)
-        row = []
-        for k, j in enumerate(free):
-            body = int(model.jnt_bodyid[j])
-            dof = int(model.jnt_dofadr[j])
-            v = traj.qvel[t, dof : dof + 3]
-            omega_world = data.xmat[body].reshape(3, 3) @ traj.qvel[t, dof + 3 : dof + 6]
-            slip, approach = 0.0, 0.0
-            for c in data.contact[: data.ncon]:
-                if c.dist > CONTACT_MARGIN_M or body not in (model.geom_bodyid[c.geom1], model.geom_bodyid[c.geom2]):
-                    continue
-                in_contact[t, k] = True
-                normal = c.frame[:3] * (1.0 if model.geom_bodyid[c.geom2] == body else -1.0)
-                vp = v + np.cross(omega_world, c.pos - data.xpos[body])
-                vn = float(vp @ normal)
-                slip = max(slip, float(np.linalg.norm(vp - vn * normal)))
-                approach = max(approach, -vn)
-            row.append((slip, approach, float(np.linalg.norm(omega_world))))
-        info.append(row)
-    for t in range(n):
-        best = "resting"
-        for k in range(len(free)):
-            slip, approach, omega = info[t][k]
-            if not in_contact[t, k]:
-                p = "free_flight"
-            elif (t > 0 and not in_contact[max(0, t - 2) : t, k].all()) or approach > 0.3:
-                p = "impact"
-            elif slip > 0.05:
-                p = "sliding"
-            elif omega > 1.0:
-                p = "rolling"
-            else:
-                p = "resting"
-            if priority[p] < priority[best]:
-                best = p
-        phase[t] = best
-    return phase
-
-
 # ------------------------------------------------------------------------------------------------------- the engine
 class _Engine:
     """Batched evaluation of candidate models on fixed window sets."""
@@ -550,84 +362,16 @@ def diagnose(
     engine = _Engine(model, train, held, options)
     try:
         held_count = engine.count(engine.held_w, len(held))
-        held_phases = _window_labels(engine.held_w, [detect_phases(model, t) for t in held])
+        held_phases = window_labels(engine.held_w, [detect_phases(model, t) for t in held])
         base_scores = engine.scores([[]], engine.held_w, len(held))
         base_held = base_scores.per_traj[0]
         gap_before = rms(base_held, held_count)
-        # Which: every effect alone on the nominal model.
-        results: list[EffectResult] = []
-        for i, effect in enumerate(effects):
-            report("fitting effects", i, len(effects))
-            fitted, train_gap = engine.fit([], [effect])
-            after_scores = engine.scores([fitted], engine.held_w, len(held))
-            after = after_scores.per_traj[0]
-            result = _result(effect, fitted[-1], model, train_gap, base_held, after, held_count, options, rng)
-            by_phase = _phase_reductions(base_scores, after_scores, engine.held_w, held_phases)
-            results.append(replace(result, heldout_by_phase=by_phase))
-            log.info("%s: held-out %.4f -> %.4f", effect.name, gap_before, results[-1].heldout_gap_after)
-        report("fitting effects", len(effects), len(effects))
-        results.sort(key=lambda r: -r.score)
+        results = _rank_effects(engine, effects, base_scores, held_count, held_phases, gap_before, rng, report)
         measurement = _measurement_check(engine, effects, held_phases, options, rng)
-        # How far: greedy forward selection.
-        applied: list[AppliedEffect] = []
-        current = base_held
         noise = estimate_noise(model, trajs)
         floor_nominal = _noise_floor(engine, held, [], noise, options.seed)
-        steps: list[dict[str, Any]] = []
-        candidates = {r.effect: r for r in results}
-        for step in range(options.max_effects):
-            report("selecting effects", step, options.max_effects)
-            if step > 0 and rms(current, held_count) <= options.noise_stop_ratio * floor_nominal:
-                steps.append(
-                    {"stopped": "the held-out gap is at the recording's noise floor", "noise_floor": floor_nominal}
-                )
-                break
-            if step == 0:
-                best_name = results[0].effect if results else None
-                trial = (
-                    [AppliedEffect(effect=LIBRARY[best_name], values=candidates[best_name].params)] if best_name else []
-                )
-                after = candidates[best_name].per_traj_after if best_name else current
-            else:
-                pool = [r.effect for r in results if r.effect not in {a.effect.name for a in applied}]
-                pool = pool[: options.shortlist]
-                best_name, trial, after = None, [], current
-                best_score = -np.inf
-                for name in pool:
-                    fitted, _ = engine.fit(applied, [LIBRARY[name]])
-                    per = engine.per_traj([fitted], engine.held_w, len(held))[0]
-                    gain = 1.0 - rms(per, held_count) / max(rms(current, held_count), 1e-300)
-                    s = gain - options.complexity_penalty * len(LIBRARY[name].params_of(model))
-                    if s > best_score:
-                        best_score, best_name, trial, after = s, name, fitted, per
-            if best_name is None:
-                break
-            gap_cur, gap_new = rms(current, held_count), rms(after, held_count)
-            gain = 1.0 - gap_new / max(gap_cur, 1e-300)
-            penalty = options.complexity_penalty * len(LIBRARY[best_name].params_of(model))
-            lower = _lower_bound(current, after, rng, options.n_bootstrap)
-            accepted = gain - penalty >= options.min_gain and lower > 0
-            steps.append(
-                {
-                    "effect": best_name,
-                    "params": trial[-1].values if trial else {},
-                    "heldout_gap_before": gap_cur,
-                    "heldout_gap_after": gap_new,
-                    "relative_gain": gain,
-                    "gain_lower_5pct": lower,
-                    "accepted": bool(accepted),
-                }
-            )
-            if not accepted:
-                break
-            applied, current = trial, after
-        report("selecting effects", options.max_effects, options.max_effects)
-        # Joint refinement of everything selected (small local search on the training windows).
-        if len(applied) > 1:
-            refined, _ = engine.fit([], [a.effect for a in applied], init=[a.values for a in applied])
-            per = engine.per_traj([refined], engine.held_w, len(held))[0]
-            if rms(per, held_count) <= rms(current, held_count):
-                applied, current = refined, per
+        applied, current, steps = _select_effects(engine, results, base_held, held_count, floor_nominal, rng, report)
+        applied, current = _refine_jointly(engine, applied, current, held_count)
         gap_after = rms(current, held_count)
         floor = _noise_floor(engine, held, applied, noise, options.seed)
         report("breaking the gap down", 0, 2)
@@ -637,22 +381,11 @@ def diagnose(
         figures = _figure_data(engine, held, applied)
     finally:
         engine.close()
-    short = gap_all["short_horizon"]
-    gap = {
-        "total": short["total"],
-        "by_body": short["by_body"],
-        "by_phase": short["by_phase"],
-        "by_coordinate": short["by_coordinate"],
-        "by_time": short["by_time"],
-        "phase_share": short["phase_share"],
-        "open_loop": gap_all["open_loop"],
-        "after_selected": gap_diag,
-    }
     held_ol_before = gap_all["open_loop"]["total"]
     reduction = 1.0 - gap_after / max(gap_before, 1e-300)
     return Diagnosis(
         gap_metric=_metric_text(options),
-        gap=gap,
+        gap=_gap_summary(gap_all, gap_diag),
         effects=results,
         selected=[a.effect.name for a in applied],
         steps=steps,
@@ -673,6 +406,132 @@ def diagnose(
         figures=figures,
         seconds=time.perf_counter() - t0,
     )
+
+
+def _rank_effects(
+    engine: _Engine,
+    effects: list[Effect],
+    base_scores: Scores,
+    held_count: np.ndarray,
+    held_phases: np.ndarray,
+    gap_before: float,
+    rng: np.random.Generator,
+    report: ProgressFn,
+) -> list[EffectResult]:
+    """Which: every effect alone on the nominal model, fitted on the training windows and scored on the held-out
+    ones (``base_scores``: the nominal model's held-out scores), best score first."""
+    model, options, held = engine.model, engine.options, engine.held
+    base_held = base_scores.per_traj[0]
+    results: list[EffectResult] = []
+    for i, effect in enumerate(effects):
+        report("fitting effects", i, len(effects))
+        fitted, train_gap = engine.fit([], [effect])
+        after_scores = engine.scores([fitted], engine.held_w, len(held))
+        after = after_scores.per_traj[0]
+        result = _result(effect, fitted[-1], model, train_gap, base_held, after, held_count, options, rng)
+        by_phase = phase_reductions(base_scores, after_scores, engine.held_w, held_phases)
+        results.append(replace(result, heldout_by_phase=by_phase))
+        log.info("%s: held-out %.4f -> %.4f", effect.name, gap_before, results[-1].heldout_gap_after)
+    report("fitting effects", len(effects), len(effects))
+    results.sort(key=lambda r: -r.score)
+    return results
+
+
+def _select_effects(
+    engine: _Engine,
+    results: list[EffectResult],
+    base_held: np.ndarray,
+    held_count: np.ndarray,
+    floor_nominal: float,
+    rng: np.random.Generator,
+    report: ProgressFn,
+) -> tuple[list[AppliedEffect], np.ndarray, list[dict[str, Any]]]:
+    """How far: greedy forward selection from the nominal model (held-out per-trajectory gap ``base_held``), each
+    step's effect re-fitted on top of those already selected, while the held-out gap keeps falling by ``min_gain``
+    with a bootstrap lower bound above zero and stays above the noise floor.
+
+    Returns:
+        The selected effects as fitted, their held-out per-trajectory gap, and one record per step tried.
+    """
+    model, options, held = engine.model, engine.options, engine.held
+    applied: list[AppliedEffect] = []
+    current = base_held
+    steps: list[dict[str, Any]] = []
+    candidates = {r.effect: r for r in results}
+    for step in range(options.max_effects):
+        report("selecting effects", step, options.max_effects)
+        if step > 0 and rms(current, held_count) <= options.noise_stop_ratio * floor_nominal:
+            steps.append(
+                {"stopped": "the held-out gap is at the recording's noise floor", "noise_floor": floor_nominal}
+            )
+            break
+        if step == 0:
+            best_name = results[0].effect if results else None
+            trial = [AppliedEffect(effect=LIBRARY[best_name], values=candidates[best_name].params)] if best_name else []
+            after = candidates[best_name].per_traj_after if best_name else current
+        else:
+            pool = [r.effect for r in results if r.effect not in {a.effect.name for a in applied}]
+            pool = pool[: options.shortlist]
+            best_name, trial, after = None, [], current
+            best_score = -np.inf
+            for name in pool:
+                fitted, _ = engine.fit(applied, [LIBRARY[name]])
+                per = engine.per_traj([fitted], engine.held_w, len(held))[0]
+                gain = 1.0 - rms(per, held_count) / max(rms(current, held_count), 1e-300)
+                s = gain - options.complexity_penalty * len(LIBRARY[name].params_of(model))
+                if s > best_score:
+                    best_score, best_name, trial, after = s, name, fitted, per
+        if best_name is None:
+            break
+        gap_cur, gap_new = rms(current, held_count), rms(after, held_count)
+        gain = 1.0 - gap_new / max(gap_cur, 1e-300)
+        penalty = options.complexity_penalty * len(LIBRARY[best_name].params_of(model))
+        lower = _lower_bound(current, after, rng, options.n_bootstrap)
+        accepted = gain - penalty >= options.min_gain and lower > 0
+        steps.append(
+            {
+                "effect": best_name,
+                "params": trial[-1].values if trial else {},
+                "heldout_gap_before": gap_cur,
+                "heldout_gap_after": gap_new,
+                "relative_gain": gain,
+                "gain_lower_5pct": lower,
+                "accepted": bool(accepted),
+            }
+        )
+        if not accepted:
+            break
+        applied, current = trial, after
+    report("selecting effects", options.max_effects, options.max_effects)
+    return applied, current, steps
+
+
+def _refine_jointly(
+    engine: _Engine, applied: list[AppliedEffect], current: np.ndarray, held_count: np.ndarray
+) -> tuple[list[AppliedEffect], np.ndarray]:
+    """Joint refinement of everything selected (small local search on the training windows), kept when it does not
+    make the held-out gap worse: ``(applied, held-out per-trajectory gap)``."""
+    if len(applied) > 1:
+        refined, _ = engine.fit([], [a.effect for a in applied], init=[a.values for a in applied])
+        per = engine.per_traj([refined], engine.held_w, len(engine.held))[0]
+        if rms(per, held_count) <= rms(current, held_count):
+            applied, current = refined, per
+    return applied, current
+
+
+def _gap_summary(gap_all: dict[str, Any], gap_diag: dict[str, Any]) -> dict[str, Any]:
+    """``Diagnosis.gap``: the nominal model's short-horizon breakdown, its open-loop one, and the diagnosed model's."""
+    short = gap_all["short_horizon"]
+    return {
+        "total": short["total"],
+        "by_body": short["by_body"],
+        "by_phase": short["by_phase"],
+        "by_coordinate": short["by_coordinate"],
+        "by_time": short["by_time"],
+        "phase_share": short["phase_share"],
+        "open_loop": gap_all["open_loop"],
+        "after_selected": gap_diag,
+    }
 
 
 def _result(
@@ -722,7 +581,7 @@ def _measurement_check(
     if not candidates:
         return {}
     model = engine.model
-    train_labels = _window_labels(engine.train_w, [detect_phases(model, t) for t in engine.train])
+    train_labels = window_labels(engine.train_w, [detect_phases(model, t) for t in engine.train])
     # Only slots whose whole window up to them is quiet: an impact earlier in the window would leak into them.
     train_mask = engine.train_w.mask & np.logical_and.accumulate(np.isin(train_labels, QUIET_PHASES), axis=1)
     held_mask = engine.held_w.mask & np.logical_and.accumulate(np.isin(held_phases, QUIET_PHASES), axis=1)
@@ -794,28 +653,6 @@ def _metric_text(options: DiagnoseOptions) -> str:
     return GAP_METRIC_PLAIN.format(horizon_s=options.horizon_s)
 
 
-def _window_labels(windows: Windows, phases: list[np.ndarray]) -> np.ndarray:
-    """Phase name of every window slot (W, S)."""
-    labels = np.empty(windows.mask.shape, dtype=object)
-    for w in range(len(windows.traj_index)):
-        labels[w] = phases[windows.traj_index[w]][windows.sample_index[w]]
-    return labels
-
-
-def _phase_reductions(
-    before: Scores, after: Scores, windows: Windows, labels: np.ndarray
-) -> dict[str, dict[str, float]]:
-    """Held-out gap per phase before and after an effect, and its reduction there."""
-    out = {}
-    e0, e1 = before.sq[0].mean(axis=-1), after.sq[0].mean(axis=-1)
-    for p in PHASES:
-        sel = windows.mask & (labels == p)
-        if sel.any():
-            g0, g1 = float(np.sqrt(e0[sel].mean())), float(np.sqrt(e1[sel].mean()))
-            out[p] = {"before": g0, "after": g1, "reduction": 1.0 - g1 / max(g0, 1e-300)}
-    return out
-
-
 def _above_noise(before: float, after: float, floor: float) -> float:
     """Reduction of the part of the gap above the noise floor (squared gaps subtract)."""
     excess_before = max(before**2 - floor**2, 0.0)
@@ -864,76 +701,6 @@ def _figure_data(engine: _Engine, held: list[Trajectory], applied: list[AppliedE
 
 
 # ------------------------------------------------------------------------------------------------------------ output
-def diagnosed_spec_xml(scene_xml: Path, model: mujoco.MjModel, applied: list[AppliedEffect]) -> str:
-    """The nominal MJCF with the MJCF-expressible selected effects written into it (via MjSpec)."""
-    spec = mujoco.MjSpec.from_file(str(scene_xml))
-    diag, _ = apply_effects(model, [a for a in applied if a.effect.in_mjcf])
-    compiled = spec.compile()
-    if compiled.ngeom != model.ngeom or compiled.nbody != model.nbody:
-        raise GrounderError("the scene XML does not compile to the diagnosed model; cannot write the MJCF")
-    spec.option.density = float(diag.opt.density)
-    spec.option.viscosity = float(diag.opt.viscosity)
-    geoms = {g.id if hasattr(g, "id") else i: g for i, g in enumerate(spec.geoms)}
-    for i in range(model.ngeom):
-        g = geoms.get(i)
-        if g is None:
-            continue
-        g.friction = diag.geom_friction[i].copy()
-        g.solref = diag.geom_solref[i].copy()
-        g.condim = int(diag.geom_condim[i])
-    for j, joint in enumerate(spec.joints):
-        dof = int(model.jnt_dofadr[j])
-        damping = np.atleast_1d(np.array(joint.damping, dtype=float))  # MuJoCo 4: polynomial coefficients
-        damping[0] = float(diag.dof_damping[dof])
-        joint.damping = damping if damping.shape[0] > 1 else float(damping[0])
-        joint.frictionloss = float(diag.dof_frictionloss[dof])
-        joint.armature = float(diag.dof_armature[dof])
-    bodies = list(spec.bodies)
-    for b in range(1, model.nbody):
-        if np.allclose(diag.body_mass[b], model.body_mass[b]) and np.allclose(diag.body_ipos[b], model.body_ipos[b]):
-            continue
-        body = bodies[b]
-        body.explicitinertial = True
-        body.mass = float(diag.body_mass[b])
-        body.ipos = diag.body_ipos[b].copy()
-        body.iquat = diag.body_iquat[b].copy()
-        body.inertia = diag.body_inertia[b].copy()
-        body.fullinertia = np.full(6, np.nan)
-    for a, act in enumerate(spec.actuators):
-        act.gainprm[0] = float(diag.actuator_gainprm[a, 0])
-    return spec.to_xml()
-
-
-def write_outputs(
-    diag: Diagnosis, scene_xml: Path, model: mujoco.MjModel, out_dir: Path, *, overwrite: bool = False
-) -> Path:
-    """Writes ``diagnosis.json``, ``report.html`` and ``diagnosed.xml`` into ``out_dir`` (built aside, then moved)."""
-    from grounder.diagnosis.report import render_report
-
-    out_dir = Path(out_dir)
-    with staged_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml,)) as staging:
-        content = diag.to_json()
-        content["mjcf"] = {
-            "file": "diagnosed.xml",
-            "expressed": [a.effect.name for a in diag.applied if a.effect.in_mjcf],
-            "not_expressible": {a.effect.name: a.values for a in diag.applied if not a.effect.in_mjcf},
-        }
-        (staging / "diagnosis.json").write_text(json.dumps(content, indent=2, default=_json_default))
-        (staging / "diagnosed.xml").write_text(diagnosed_spec_xml(scene_xml, model, diag.applied))
-        (staging / "report.html").write_text(render_report(diag))
-    return out_dir
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if hasattr(obj, "__dataclass_fields__"):
-        return asdict(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
 def diagnose_files(
     scene_xml: Path,
     traj_dir: Path,

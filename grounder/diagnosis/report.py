@@ -12,7 +12,7 @@ import numpy as np
 from image2sim_common.rotations import quat_angle_rad
 
 if TYPE_CHECKING:
-    from grounder.diagnosis.pipeline import Diagnosis
+    from grounder.diagnosis.result import Diagnosis
 
 
 def _png(fig: Any) -> str:

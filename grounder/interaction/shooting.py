@@ -1,6 +1,6 @@
 """Contact values from an object's whole tracked run by multiple shooting, with every start state fitted.
 
-The windowed calibration (`grounder.interaction.pipeline`) rolls each 0.3 s window out from its tracked first state, and
+The windowed calibration (`grounder.interaction.windows`) rolls each 0.3 s window out from its tracked first state, and
 a landing turns on that state: on `samples/toss` and a held-out toss, start errors the size tracking makes at 30 fps
 (1.5 mm, 1 deg, 0.03 m/s, 0.1 rad/s) send friction and damping ratio tens of percent off, where the true starts
 give them within 20% (`benchmarks/start_accuracy.py`). Here the start states are unknowns instead. An object's
@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import mujoco
 import mujoco.rollout
@@ -554,64 +555,90 @@ def fit_contact(
                 f"{parameter.name}: multiple shooting searches positive continuous contact values (friction, solref, "
                 "solimp width), not discrete or linear ones"
             )
-    problem = ShootingProblem(model, runs, options, view_point_m)
-    m = len(contact)
-    unit = np.log(1.0 + options.resolution_fraction) / _CHECK
-    nominal = np.array([p.nominal for p in contact])
-    lowest = np.ceil(np.log(np.array([p.lower for p in contact]) / nominal) / unit)
-    highest = np.floor(np.log(np.array([p.upper for p in contact]) / nominal) / unit)
-    evaluated: dict[tuple[int, ...], tuple[float, np.ndarray]] = {}
-    stage = f"multiple shooting: {contact[0].name.split('.', 1)[0]}, points searched"
+    search = _ContactSearch(model, contact, runs, options, view_point_m, progress)
+    centre = _first_centre(search)
+    centre, best_cost = _compass_search(search, centre)
+    return _contact_fit(search, centre, best_cost)
 
-    def values_at(key: tuple[int, ...]) -> np.ndarray:
-        return nominal * np.exp(np.array(key) * unit)
 
-    timeconst = next((j for j, p in enumerate(contact) if p.name.endswith(".solref.timeconst")), None)
-    stable: dict[tuple[int, ...], bool] = {}
-    limited = options.max_bounce_spread is not None and timeconst is not None
+class _ContactSearch:
+    """`fit_contact`'s search state: the lattice of contact values (integer keys, `_CHECK` steps per
+    `resolution_fraction` on a log scale from the scene's values) and every point evaluated so far, each with its
+    cost and fitted node states."""
 
-    def steady_bounce(key: tuple[int, ...]) -> bool:
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        contact: Sequence[Parameter],
+        runs: Sequence[Trajectory],
+        options: ShootingOptions,
+        view_point_m: Sequence[float] | None,
+        progress: ProgressFn | None,
+    ) -> None:
+        self.model = model
+        self.contact = contact
+        self.options = options
+        self.progress = progress
+        self.problem = ShootingProblem(model, runs, options, view_point_m)
+        self.m = len(contact)
+        self.unit = np.log(1.0 + options.resolution_fraction) / _CHECK
+        self.nominal = np.array([p.nominal for p in contact])
+        # The keys' bounds. `_compass_search` sets `lowest` to the cheapest key after each round, as `fit_contact`
+        # did before it was split into steps: `evaluate` then checks keys against that key.
+        self.lowest: Any = np.ceil(np.log(np.array([p.lower for p in contact]) / self.nominal) / self.unit)
+        self.highest = np.floor(np.log(np.array([p.upper for p in contact]) / self.nominal) / self.unit)
+        self.evaluated: dict[tuple[int, ...], tuple[float, np.ndarray]] = {}
+        self.stage = f"multiple shooting: {contact[0].name.split('.', 1)[0]}, points searched"
+        self.timeconst = next((j for j, p in enumerate(contact) if p.name.endswith(".solref.timeconst")), None)
+        self.stable: dict[tuple[int, ...], bool] = {}
+        self.limited = options.max_bounce_spread is not None and self.timeconst is not None
+        self.tried: set[tuple[tuple[int, ...], tuple[int, ...], float]] = set()
+
+    def values_at(self, key: tuple[int, ...]) -> np.ndarray:
+        return self.nominal * np.exp(np.array(key) * self.unit)
+
+    def steady_bounce(self, key: tuple[int, ...]) -> bool:
         """Whether the point's bounce is within `max_bounce_spread` (always, without a limit or a time constant)."""
-        if not limited or options.max_bounce_spread is None:
+        if not self.limited or self.options.max_bounce_spread is None:
             return True
-        if key not in stable:
-            for parameter, value in zip(contact, values_at(key), strict=True):
-                parameter.set_model(model, float(value))
-            bounces = body_restitution_over_phases(model, contact[0].name.split(".", 1)[0])
-            stable[key] = bounce_spread(bounces) <= options.max_bounce_spread
-        return stable[key]
+        if key not in self.stable:
+            for parameter, value in zip(self.contact, self.values_at(key), strict=True):
+                parameter.set_model(self.model, float(value))
+            bounces = body_restitution_over_phases(self.model, self.contact[0].name.split(".", 1)[0])
+            self.stable[key] = bounce_spread(bounces) <= self.options.max_bounce_spread
+        return self.stable[key]
 
-    def prior_cost(key: tuple[int, ...]) -> float:
-        return float(np.sum((np.log(values_at(key) / nominal) / options.contact_prior_log_sigma) ** 2))
+    def prior_cost(self, key: tuple[int, ...]) -> float:
+        return float(np.sum((np.log(self.values_at(key) / self.nominal) / self.options.contact_prior_log_sigma) ** 2))
 
-    tried: set[tuple[tuple[int, ...], tuple[int, ...], float]] = set()
-
-    def cross_fit(keys: Sequence[tuple[int, ...]]) -> None:
+    def cross_fit(self, keys: Sequence[tuple[int, ...]]) -> None:
         """Each of `keys` (where evaluated) refitted from the node states of the `cross_fit_points` cheapest points
         (`ShootingOptions.cross_fit_points`), each pair once per state; a point keeps its lowest cost."""
+        evaluated, options = self.evaluated, self.options
         sources = sorted(evaluated, key=lambda k: evaluated[k][0])[: options.cross_fit_points]
         for key in keys:
             if key not in evaluated:
                 continue
-            for parameter, value in zip(contact, values_at(key), strict=True):
-                parameter.set_model(model, float(value))
+            for parameter, value in zip(self.contact, self.values_at(key), strict=True):
+                parameter.set_model(self.model, float(value))
             for source in sources:
                 pair = (key, source, evaluated[source][0])
-                if source == key or pair in tried:
+                if source == key or pair in self.tried:
                     continue
-                tried.add(pair)
-                cost, x = problem.fit(evaluated[source][1], continuation=options.continuation[-2:])
-                if cost + prior_cost(key) < evaluated[key][0]:
-                    evaluated[key] = (cost + prior_cost(key), x)
+                self.tried.add(pair)
+                cost, x = self.problem.fit(evaluated[source][1], continuation=options.continuation[-2:])
+                if cost + self.prior_cost(key) < evaluated[key][0]:
+                    evaluated[key] = (cost + self.prior_cost(key), x)
 
-    def evaluate(key: tuple[int, ...], cold: bool = True) -> float:
+    def evaluate(self, key: tuple[int, ...], cold: bool = True) -> float:
+        evaluated, options, problem = self.evaluated, self.options, self.problem
         if key in evaluated:
             return evaluated[key][0]
-        if np.any(np.array(key) < lowest) or np.any(np.array(key) > highest) or not steady_bounce(key):
+        if np.any(np.array(key) < self.lowest) or np.any(np.array(key) > self.highest) or not self.steady_bounce(key):
             return float("inf")
-        values = values_at(key)
-        for parameter, value in zip(contact, values, strict=True):
-            parameter.set_model(model, float(value))
+        values = self.values_at(key)
+        for parameter, value in zip(self.contact, values, strict=True):
+            parameter.set_model(self.model, float(value))
         fits = []
         if cold or not evaluated:
             fits.append(problem.fit(np.zeros(problem.size)))
@@ -626,20 +653,34 @@ def fit_contact(
             for start in dict.fromkeys([near, cheapest] if options.cross_fit_points else [near]):
                 fits.append(problem.fit(evaluated[start][1], continuation=options.continuation[-2:]))
         cost, x = min(fits, key=lambda f: f[0])
-        evaluated[key] = (cost + prior_cost(key), x)
+        evaluated[key] = (cost + self.prior_cost(key), x)
         cost = evaluated[key][0]
-        if progress is not None:
-            progress(stage, len(evaluated), len(evaluated) + 2 * m)  # the search's length is not known ahead
+        if self.progress is not None:
+            # the search's length is not known ahead
+            self.progress(self.stage, len(evaluated), len(evaluated) + 2 * self.m)
         return cost
 
+    @staticmethod
     def moved(key: tuple[int, ...], j: int, step: int) -> tuple[int, ...]:
         return tuple(k + step if i == j else k for i, k in enumerate(key))
 
-    centre = tuple([0] * m)
-    while timeconst is not None and not steady_bounce(centre) and centre[timeconst] + 2 <= highest[timeconst]:
-        centre = moved(centre, timeconst, 2)  # a stiffer start than the step resolves: softer, x1.047 at a time
-    if not steady_bounce(centre):
-        limited = False  # no time constant within bounds bounces steadily: search without the limit
+
+def _first_centre(search: _ContactSearch) -> tuple[int, ...]:
+    """Where the search starts: the scene's values, with the time constant softened until the bounce is steady
+    (`max_bounce_spread`); where none within bounds is, the search goes on without that limit."""
+    centre = tuple([0] * search.m)
+    timeconst, highest = search.timeconst, search.highest
+    while timeconst is not None and not search.steady_bounce(centre) and centre[timeconst] + 2 <= highest[timeconst]:
+        centre = search.moved(centre, timeconst, 2)  # a stiffer start than the step resolves: softer, x1.047 at a time
+    if not search.steady_bounce(centre):
+        search.limited = False  # no time constant within bounds bounces steadily: search without the limit
+    return centre
+
+
+def _compass_search(search: _ContactSearch, centre: tuple[int, ...]) -> tuple[tuple[int, ...], float]:
+    """The compass search from `centre` (`fit_contact`'s docstring), with its restarts: the final centre and its
+    cost."""
+    options, m, evaluate, moved = search.options, search.m, search.evaluate, search.moved
     best_cost = evaluate(centre)
     steps = options.search_steps
     for _ in range(1 + options.max_restarts):
@@ -657,20 +698,34 @@ def fit_contact(
         checks = [moved(centre, j, sign * _CHECK) for j in range(m) for sign in (-1, 1)]
         costs = [evaluate(key) for key in checks]
         if options.cross_fit_points:
-            cross_fit(list(evaluated))
-        lowest = min(evaluated, key=lambda k: evaluated[k][0])  # the centre, unless a check or a cross fit beat it
-        best_cost = evaluated[lowest][0]
-        if lowest == centre:
+            search.cross_fit(list(search.evaluated))
+        evaluated = search.evaluated
+        # the centre, unless a check or a cross fit beat it
+        search.lowest = min(evaluated, key=lambda k: evaluated[k][0])
+        best_cost = evaluated[search.lowest][0]
+        if search.lowest == centre:
             break
-        centre = lowest
+        centre = search.lowest
         steps = tuple(s for s in options.search_steps if s < _CHECK) or options.search_steps[-1:]
+    return centre, best_cost
+
+
+def _contact_fit(search: _ContactSearch, centre: tuple[int, ...], best_cost: float) -> ContactFit:
+    """The search's result at its final centre: each value's range within `resolution_cost` of the best cost and
+    whether it is resolved, the restitution; leaves the model at the best values."""
+    contact, options, evaluated, values_at = search.contact, search.options, search.evaluated, search.values_at
     # The final centre's checks (already evaluated unless the last restart moved it; out of bounds: inf).
-    rises = [[evaluate(moved(centre, j, sign * _CHECK)) - best_cost for sign in (-1, 1)] for j in range(m)]
+    rises = [
+        [search.evaluate(search.moved(centre, j, sign * _CHECK)) - best_cost for sign in (-1, 1)]
+        for j in range(search.m)
+    ]
     best = values_at(centre)
     keys = list(evaluated)
-    bounce = _restitution_fit(model, contact, [(values_at(k), evaluated[k][0]) for k in keys], best, best_cost, options)
+    bounce = _restitution_fit(
+        search.model, contact, [(values_at(k), evaluated[k][0]) for k in keys], best, best_cost, options
+    )
     for parameter, value in zip(contact, best, strict=True):
-        parameter.set_model(model, float(value))
+        parameter.set_model(search.model, float(value))
     near = np.array([values_at(k) for k in keys if evaluated[k][0] - best_cost <= options.resolution_cost])
     low, high = near.min(axis=0), near.max(axis=0)
     share = 1.0 + options.resolution_fraction
@@ -689,6 +744,6 @@ def fit_contact(
         resolved=tuple(resolved),
         cost=best_cost,
         evaluations=tuple((tuple(float(v) for v in values_at(k)), evaluated[k][0]) for k in keys),
-        nodes=len(problem.nodes),
+        nodes=len(search.problem.nodes),
         restitution=bounce,
     )

@@ -5,7 +5,7 @@ a fresh detection, the velocity fitted over a few noisy frames) is read as an er
 `samples/toss` start velocities 0.1 m/s off turned into friction 29% off. The frames after the start say where the
 object must have started and how fast: `refine_window_starts` fits each window's start pose and velocity (6 + 6
 numbers per free body) to the window's tracked poses by least squares, with the scene's current parameters. The
-interaction calibration can alternate the two (`grounder.interaction.pipeline.calibrate_constrained`, `start_rounds`;
+interaction calibration can alternate the two (`grounder.interaction.windows.calibrate_constrained`, `start_rounds`;
 off by default): calibrate the parameters on the windows, refit the starts with the calibrated values, calibrate
 again; the joint estimate of start states and parameters that multiple-shooting system identification makes, done
 in blocks. Where a parameter's loss is nearly flat the starts absorb what decides it (docs/interaction_history.md).

@@ -457,7 +457,7 @@ def sample_variant_specs(scene_dir: str | Path, n: int, seed: int = 0) -> list[t
     """As `sample_scene_variants`, but uncompiled specs, each with the values drawn per object (body name)."""
     import mujoco
 
-    from grounder.sim.rollout import scene_files
+    from grounder.sim.scene_files import scene_files
 
     scene_dir = Path(scene_dir)
     manifest_path, xml_path = scene_dir / "scene.json", scene_dir / "scene.xml"
@@ -524,12 +524,12 @@ def write_scene_variants(
 ) -> list[Path]:
     """Writes `sample_scene_variants` as `out_dir/variant_NNN.xml`, `out_dir/variants.json` (the values drawn per
     variant and object) and one copy of the files the scene's MJCF loads (its meshes and textures), so that the
-    folder is self-contained like every scene folder (`grounder.sim.rollout.scene_files`).
+    folder is self-contained like every scene folder (`grounder.sim.scene_files.scene_files`).
 
     Returns:
         The written MJCF paths; each loads with `mujoco.MjModel.from_xml_path`.
     """
-    from grounder.sim.rollout import copy_scene_files
+    from grounder.sim.scene_files import copy_scene_files
     from reconstruction import staged_output_dir
 
     scene_dir, out_dir = Path(scene_dir).resolve(), Path(out_dir).resolve()

@@ -1,7 +1,7 @@
 """The residual for articulated scenes: a bounded, gated correction of hinge and slide joints at the data rate.
 
 Scenes whose moving parts hang on hinge and slide joints (a pendulum, an arm) have no free body for the
-body-frame residual of ``grounder/residual/model.py``. Here one MLP sees the whole joint space and corrects it after
+body-frame residual of ``grounder/residual/free_body.py``. Here one MLP sees the whole joint space and corrects it after
 every period of ``period_steps`` model steps, like the free-body residual:
 
     q[t+1], qdot[t+1] = mujoco^P(q[t], qdot[t], u[t]) + gain * gate * bound * tanh(mlp(features) * scale / bound)
@@ -28,7 +28,7 @@ import mujoco
 import numpy as np
 
 from grounder.errors import GrounderError
-from grounder.residual.model import ResidualMeta, coverage_gate, fade_ranges, network_layers, smoothstep
+from grounder.residual.meta import ResidualMeta, coverage_gate, fade_ranges, network_layers, smoothstep
 
 JOINT_SPACE = "joint"
 
@@ -156,7 +156,7 @@ def apply_joint_correction(
 
 class JointKernelArgs(NamedTuple):
     """The joint-space residual's constants for ``grounder.residual.kernel.correct_joints`` (J joints, other
-    sizes as in ``grounder.residual.model.FreeKernelArgs``). Few arrays on purpose: numba's dispatch of a call with
+    sizes as in ``grounder.residual.free_body.FreeKernelArgs``). Few arrays on purpose: numba's dispatch of a call with
     more than 15 arguments took twice as long here (3.5 against 1.7 us)."""
 
     joints: np.ndarray  # (J, 3) int64: qpos address, dof address, 1 for a hinge (features sin, cos) else 0

@@ -1,7 +1,7 @@
 """The residuals' single-state corrections, compiled (numba): what ``grounder.Simulator.step`` runs.
 
-``correct_free_bodies`` for the free-body residual (``grounder.residual.model``), ``correct_joints`` for the joint-space
-one (``grounder.residual.joint``); both evaluate the gate and network with ``_gated_network``.
+``correct_free_bodies`` for the free-body residual (``grounder.residual.free_body``), ``correct_joints`` for the
+joint-space one (``grounder.residual.joint``); both evaluate the gate and network with ``_gated_network``.
 
 A single simulation steps MuJoCo in microseconds per model step. Evaluated from Python, the residual's correction
 (features, gate, a 64-wide network, the energy cap) cost 14-60 us per period depending on the machine, most of it
@@ -40,9 +40,9 @@ def _jit(func: Callable[..., Any]) -> Any:
         return numba.njit(nogil=True, error_model="numpy")(func)
 
 
-# order of grounder.residual.model.FreeKernelArgs.body_f's columns
+# order of grounder.residual.free_body.FreeKernelArgs.body_f's columns
 BODY_F_RADIUS, BODY_F_COVERAGE, BODY_F_HALF_MASS, BODY_F_MASS, BODY_F_INERTIA = 0, 1, 2, 3, 4
-# order of grounder.residual.model.FreeKernelArgs.consts
+# order of grounder.residual.free_body.FreeKernelArgs.consts
 CONST_REST_LO, CONST_REST_SPAN, CONST_AIR_LO, CONST_AIR_SPAN, CONST_FRACTION, CONST_GRAVITY = 0, 1, 2, 3, 4, 5
 
 
@@ -196,7 +196,7 @@ def correct_free_bodies(
     hints: np.ndarray,
 ) -> None:
     """Corrects MuJoCo's prediction ``(qpos (nq,), qvel (nv,))`` after one period from ``(qpos0, qvel0)`` in place
-    (the other arguments: the fields of ``grounder.residual.model.FreeKernelArgs``, in order)."""
+    (the other arguments: the fields of ``grounder.residual.free_body.FreeKernelArgs``, in order)."""
     feats = np.empty(ranges.shape[2] + 1)
     feats[-1] = 1.0
     out = np.empty(last.shape[2])
@@ -271,7 +271,7 @@ def correct_free_bodies(
         ny = dw * sqy - dx * sqz + dy * sw + dz * sqx
         nz = dw * sqz + dx * sqy - dy * sqx + dz * sw
         norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        # energy cap (grounder.residual.model.cap_energy)
+        # energy cap (grounder.residual.free_body.cap_energy)
         fraction = consts[CONST_FRACTION]
         cap = max(e_sim, min(e_start, e_sim + fraction * max(e_start - e_sim, 0.0)))
         kinetic, potential = _energy(vx, vy, vz, wx, wy, wz, sx, sy, sz, bf, consts)

@@ -16,8 +16,8 @@ import numpy as np
 
 from grounder.core.html_report import Section, write_html_report
 from grounder.core.trajectory import Trajectory
+from grounder.residual.free_body import free_bodies
 from grounder.residual.joint import joint_error, joint_space
-from grounder.residual.model import free_bodies
 from grounder.sim.rollout import free_body_errors, free_joints
 from image2sim_common.rotations import quat_angle_rad
 

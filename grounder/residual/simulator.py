@@ -1,4 +1,4 @@
-"""MuJoCo plus the learned residual: one simulation or a batch. See ``grounder/residual/model.py`` for the residual.
+"""MuJoCo plus the learned residual: one simulation or a batch. See ``grounder/residual/free_body.py`` for the residual.
 
 A scene folder holds ``scene.xml``; a residual scene also holds ``residual.json``, ``residual.pt`` and
 ``residual.onnx`` (written by ``image2sim residual train``). :class:`Simulator` advances in periods of
@@ -18,24 +18,19 @@ from mujoco import rollout as mj_rollout
 
 from grounder.core.trajectory import Trajectory
 from grounder.errors import GrounderError
+from grounder.residual.files import check_residual_pair, has_residual_files, load_residual
+from grounder.residual.free_body import FreeBody, NumpyResidual
 from grounder.residual.joint import NumpyJointResidual
-from grounder.residual.model import (
-    FreeBody,
-    NumpyResidual,
-    check_residual_pair,
-    has_residual_files,
-    load_residual,
-)
 from grounder.sim.rollout import (
     FULLPHYSICS,
     _offsets,
     check_stable,
     default_nthread,
-    load_scene_model,
     mujoco_warnings,
     prepare,
     simulate,
 )
+from grounder.sim.scene_files import load_scene_model
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,7 @@
 """The residual as a torch module (training, ONNX export). Imported lazily: torch is a heavy import.
 
-Computes exactly what :class:`grounder.residual.model.NumpyResidual` computes; see ``grounder/residual/model.py``.
+Computes exactly what :class:`grounder.residual.free_body.NumpyResidual` computes; see
+``grounder/residual/free_body.py``.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from grounder.residual.model import NUM_FEATURES, NUM_OUTPUTS, GateOptions, ResidualMeta
+from grounder.residual.meta import NUM_FEATURES, NUM_OUTPUTS, GateOptions, ResidualMeta
 
 if TYPE_CHECKING:
     from grounder.residual.joint import JointSpace

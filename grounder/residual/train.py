@@ -17,7 +17,7 @@ import math
 import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,16 @@ import numpy as np
 
 from grounder.core.repeats import describe_repeated_indices, repeated_motion_indices, split_keeping_together
 from grounder.core.trajectory import Trajectory, validate_against_model
-from grounder.errors import GrounderError, integer_in, shown
+from grounder.errors import GrounderError
+from grounder.residual.files import file_sha256, scene_files_sha256
+from grounder.residual.free_body import (
+    FreeBody,
+    NumpyResidual,
+    body_features,
+    correction_targets,
+    free_bodies,
+    smooth_free_bodies,
+)
 from grounder.residual.joint import (
     JOINT_SPACE,
     JointSpace,
@@ -35,35 +44,21 @@ from grounder.residual.joint import (
     joint_space,
     joint_targets,
 )
-from grounder.residual.model import (
+from grounder.residual.meta import (
     META_FILE,
     NUM_OUTPUTS,
     ONNX_FILE,
     OUTPUT_NAMES,
     RESIDUAL_FILES,
     WEIGHTS_FILE,
-    FreeBody,
     GateOptions,
-    NumpyResidual,
     ResidualMeta,
-    body_features,
-    correction_targets,
-    file_sha256,
-    free_bodies,
-    scene_files_sha256,
-    smooth_free_bodies,
 )
+from grounder.residual.options import ResidualOptions, ResidualTrainResult
 from grounder.residual.report import ResidualReport, RolloutErrors, rollout_errors, write_residual_report
 from grounder.residual.simulator import Simulator
-from grounder.sim.rollout import (
-    SCENE_XML,
-    check_links_stay_inside,
-    copy_scene_files,
-    free_joints,
-    quat_angle_rad,
-    scene_xml_path,
-    step_indices,
-)
+from grounder.sim.rollout import free_joints, quat_angle_rad, step_indices
+from grounder.sim.scene_files import SCENE_XML, check_links_stay_inside, copy_scene_files, scene_xml_path
 from image2sim_common.progress import ProgressFn
 from reconstruction import check_output_dir, staged_output_dir
 
@@ -71,119 +66,6 @@ log = logging.getLogger(__name__)
 
 REPORT_FILE = "report.html"  # the residual's HTML report, beside residual.pt/.json/.onnx
 _FREE_RMS = ("position, m", "rotation, rad", "velocity, m/s", "angular velocity, rad/s")  # one-step RMS groups
-
-
-@dataclass(frozen=True, kw_only=True)
-class ResidualOptions:
-    """How the residual is trained (also the CLI's ``residual train`` options).
-
-    Attributes:
-        hidden: Width of each hidden layer of the per-body MLP.
-        layers: Hidden layers.
-        steps: Optimiser steps per round.
-        batch_size: Samples per optimiser step.
-        learning_rate: Adam's learning rate (cosine-decayed to 5% within each round).
-        weight_decay: AdamW weight decay.
-        dagger_rounds: Rounds of data aggregation along rollouts after the one-step round (default 0: on the
-            real cube tosses two rounds made held-out rollouts worse, 29.8% -> 40.9% of the cube width at gain 1).
-        dagger_horizon: Periods each aggregation rollout runs.
-        dagger_stride: A rollout starts at every this many-th recorded sample.
-        dagger_max_pos_error_m: Rollout states farther than this from the recording are not used as targets.
-        dagger_max_rot_error_deg: Same, for the orientation.
-        dagger_pull: Fraction of a rollout state's drift from the recording that its target takes back in one
-            period; the rest of the target matches the recorded increment (1 is plain data-as-demonstrator, whose
-            one-period jumps back to the recording are not learnable from the state alone).
-        ctrl_history_s: A joint-space residual (scenes of hinge and slide joints with actuators) also sees the
-            controls of the periods within this many seconds before the present one, so that an actuator's delay
-            or lag can be learnt.
-        smooth_window: Train on free-body poses smoothed over this many samples and velocities re-estimated
-            from them (``grounder.residual.model.smooth_free_bodies``); 0 (default) trains on the recording as it is.
-            On the real cube tosses smoothing over 5 samples made rollouts worse (it blurs the impacts).
-        selection_fraction: Share of the trajectories (seeded) held out of fitting to choose the output gain.
-        gains: Candidate output gains; the one whose multi-step rollouts of the held-out trajectories (from
-            their first state) are best is kept. 0 is MuJoCo alone, so a residual that does not help is switched
-            off rather than shipped.
-        bound_quantile: Each output component is capped at this quantile of the absolute training targets.
-        gate: Where the correction is active (see ``GateOptions``).
-        seed: Seeds initialisation, shuffling and k-means.
-        num_threads: torch threads (results are reproducible for a given value; 1 is fastest on a busy machine).
-    """
-
-    hidden: int = 64
-    layers: int = 2
-    steps: int = 2000
-    batch_size: int = 256
-    learning_rate: float = 3e-3
-    weight_decay: float = 1e-4
-    dagger_rounds: int = 0
-    dagger_horizon: int = 30
-    dagger_stride: int = 4
-    dagger_max_pos_error_m: float = 0.03
-    dagger_max_rot_error_deg: float = 30.0
-    dagger_pull: float = 0.2
-    smooth_window: int = 0
-    ctrl_history_s: float = 0.05
-    selection_fraction: float = 0.2
-    gains: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0)
-    bound_quantile: float = 0.995
-    gate: GateOptions = field(default_factory=GateOptions)
-    seed: int = 0
-    num_threads: int = 1
-
-    def __post_init__(self) -> None:
-        for name, (low, high) in COUNT_LIMITS.items():  # high: a network or run that could never finish or fit
-            value = getattr(self, name)
-            if not integer_in(value, low, high):
-                raise GrounderError(f"residual option {name} must be an integer in [{low}, {high}], got {shown(value)}")
-        if not 0.0 <= self.ctrl_history_s <= 1.0:
-            raise GrounderError(f"ctrl_history_s must be in [0, 1] s, got {self.ctrl_history_s}")
-        if self.smooth_window < 0 or (self.smooth_window > 2 and self.smooth_window % 2 == 0):
-            raise GrounderError(f"smooth_window must be 0 or odd, got {self.smooth_window}")
-        if not 0.5 < self.bound_quantile <= 1.0:
-            raise GrounderError(f"bound_quantile must be in (0.5, 1], got {self.bound_quantile}")
-
-
-COUNT_LIMITS = {
-    "hidden": (1, 4096),  # 4096 wide: 16 M weights per layer
-    "layers": (1, 16),
-    "steps": (1, 1_000_000),
-    "batch_size": (1, 65_536),
-    "dagger_rounds": (0, 100),
-    "dagger_horizon": (1, 100_000),
-    "dagger_stride": (1, 100_000),
-    "seed": (0, 2**32 - 1),  # numpy's and torch's seeds
-    "num_threads": (1, 256),
-}
-
-
-@dataclass(frozen=True, kw_only=True)
-class ResidualTrainResult:
-    """What ``train_residual`` wrote and how training went.
-
-    Attributes:
-        out: The residual scene folder.
-        num_trajectories: Trajectories trained on.
-        num_samples: Training samples in the last round (one-step and aggregated).
-        one_step_rms_before: Per output group (pos m, rot rad, vel m/s, omega rad/s), RMS of the one-step error of
-            MuJoCo alone on the recorded transitions.
-        one_step_rms_after: The same with the residual at gain 1 (before the gain is chosen).
-        seconds: Wall time.
-        gain: The output gain chosen on held-out rollouts (0: the residual is switched off).
-        gain_scores: Held-out rollout score per candidate gain (mean over trajectories of the time-averaged
-            position error / body size + time-averaged rotation error / 100 deg; jointed scenes: joint error).
-        space: ``free`` (free bodies) or ``joint`` (hinge and slide joints; the one-step RMS tuples are then
-            (joint position, 0, joint velocity, 0) in rad or m, and rad/s or m/s).
-    """
-
-    out: Path
-    gain: float
-    gain_scores: dict[float, float]
-    num_trajectories: int
-    num_samples: int
-    one_step_rms_before: tuple[float, float, float, float]
-    one_step_rms_after: tuple[float, float, float, float]
-    seconds: float
-    space: str = "free"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -485,7 +367,7 @@ def train_residual(
     """
     import torch
 
-    from grounder.residual.torch_model import export_onnx, residual_model
+    from grounder.residual.torch_model import residual_model
 
     options = options or ResidualOptions()
     started = time.perf_counter()
@@ -500,63 +382,14 @@ def train_residual(
     torch.set_num_threads(options.num_threads)
     try:
         torch.manual_seed(options.seed)
-        sim = Simulator(scene_xml, use_residual=False)
-        for traj in trajs:
-            validate_against_model(traj, sim.model)
-        fit_trajs, select_trajs = _selection_split(trajs, options, sim.model)
-        if not select_trajs:
-            log.warning(
-                "no trajectory held out to check the residual's output gain (%d trajectories; it takes 5): the "
-                "residual ships at gain 1 unchecked",
-                len(trajs),
-            )
-        trainer = _Trainer(sim, fit_trajs, options)
+        trainer, fit_trajs, select_trajs = _trainer_and_split(scene_xml, trajs, options)
         report("residual: one-step targets", 0, 1)
         base = trainer.one_step()
         report("residual: one-step targets", 1, 1)
-        meta = ResidualMeta(
-            period_steps=trainer.period,
-            timestep_s=float(trainer.model.opt.timestep),
-            bodies=tuple(b.name for b in trainer.bodies),
-            hidden=options.hidden,
-            layers=options.layers,
-            gate=options.gate,
-            scene_xml_sha256=file_sha256(scene_xml),
-            scene_files_sha256=scene_files_sha256(scene_xml),
-            training={},
-        )
+        meta = _untrained_meta(trainer, options, scene_xml)
         space = trainer.space
-        if space is not None:
-            meta = replace(
-                meta,
-                bodies=space.names,
-                space=JOINT_SPACE,
-                feature_names=space.feature_names,
-                output_names=space.output_names,
-            )
         torch_model = residual_model(meta, space=space, radius_m=np.array([b.radius_m for b in trainer.bodies]))
-        data = base
-        rounds = options.dagger_rounds + 1
-        for r in range(rounds):
-            report("residual: training rounds", r, rounds)
-            stats = _coverage_stats(data.feats, data.groups, options.gate, options.seed) | _output_stats(
-                base.targets, options.bound_quantile
-            )
-            with torch.no_grad():
-                for name, value in stats.items():
-                    getattr(torch_model, name).copy_(torch.as_tensor(value))
-            _fit(torch_model, data, options, r)
-            log.info("round %d: %d samples", r, len(data.feats))
-            if r + 1 < rounds:
-                free_residual = _numpy_residual(torch_model, meta, trainer)
-                assert isinstance(free_residual, NumpyResidual)  # aggregation rounds are refused for joints
-                extra = trainer.aggregate(free_residual)
-                data = _Transitions(
-                    feats=np.concatenate([base.feats, extra.feats]),
-                    targets=np.concatenate([base.targets, extra.targets]),
-                    groups=np.concatenate([base.groups, extra.groups]),
-                )
-        report("residual: training rounds", rounds, rounds)
+        data = _train_rounds(torch_model, meta, trainer, base, options, report)
         residual = _numpy_residual(torch_model, meta, trainer)
         before = _group_rms(base.targets, joint=space is not None)
         after = _group_rms(base.targets - residual(base.feats), joint=space is not None)  # gain 1, before choosing
@@ -573,54 +406,41 @@ def train_residual(
                 "it is saved with gain 0 (MuJoCo alone)"
             )
         seconds = time.perf_counter() - started
-        rms_keys = ("pos_m", "rot_rad", "vel_m_s", "omega_rad_s") if space is None else ("joint_pos", "joint_vel")
         meta = replace(
             meta,
-            training={
-                "num_trajectories": len(trajs),
-                "trajectory_names": [t.name for t in trajs],
-                "num_samples_last_round": len(data.feats),
-                "fit_trajectories": [t.name for t in fit_trajs],
-                "gain_selection_trajectories": [t.name for t in select_trajs],
-                "gain_scores": {f"{g:g}": v for g, v in scores.items()},
-                "selected_gain": gain,
-                "one_step_rms_before": dict(zip(rms_keys, before if space is None else before[::2], strict=True)),
-                "one_step_rms_after": dict(zip(rms_keys, after if space is None else after[::2], strict=True)),
-                "options": _options_json(options),
-                "seconds": seconds,
-                "torch_version": torch.__version__,
-                "mujoco_version": mujoco.__version__,
-            },
+            training=_training_record(
+                trajs,
+                fit_trajs,
+                select_trajs,
+                options,
+                num_samples=len(data.feats),
+                scores=scores,
+                gain=gain,
+                before=before,
+                after=after,
+                seconds=seconds,
+                joint=space is not None,
+            ),
         )
         with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene,)) as staging:
-            # the scene's files without any old residual; the MJCF as scene.xml
-            copy_scene_files(Path(scene), staging, skip=(*RESIDUAL_FILES, SCENE_XML))
-            shutil.copy2(scene_xml, staging / SCENE_XML)
-            torch.save({k: v.detach().clone() for k, v in torch_model.state_dict().items()}, staging / WEIGHTS_FILE)
-            (staging / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
-            export_onnx(torch_model, staging / ONNX_FILE)
-            labels = ("joint position, rad or m", "joint velocity, rad/s or m/s") if space is not None else _FREE_RMS
-            groups = (0, 2) if space is not None else (0, 1, 2, 3)
+            _write_residual_files(staging, Path(scene), scene_xml, torch_model, meta)
             write_residual_report(
                 staging / REPORT_FILE,
-                ResidualReport(
-                    model=trainer.model,
-                    space="free" if space is None else JOINT_SPACE,
+                _residual_report(
+                    trainer,
+                    meta,
+                    residual,
                     num_fit=len(fit_trajs),
                     held_out=select_trajs,
                     num_samples=len(data.feats),
                     seconds=seconds,
-                    period_steps=trainer.period,
                     gain=gain,
                     preds_by_gain=preds_by_gain,
                     errors_by_gain=errors_by_gain,
-                    one_step_rms=[
-                        (label, before[g], after[g], held_rms[0][g], held_rms[1][g])
-                        for label, g in zip(labels, groups, strict=True)
-                    ],
-                    output_names=meta.output_names if space is not None else OUTPUT_NAMES,
-                    output_bound=np.asarray(residual.out_bound),
-                    held_out_gate=held_gate,
+                    before=before,
+                    after=after,
+                    held_rms=held_rms,
+                    held_gate=held_gate,
                 ),
             )
     finally:
@@ -635,6 +455,182 @@ def train_residual(
         one_step_rms_after=after,
         seconds=seconds,
         space="free" if space is None else JOINT_SPACE,
+    )
+
+
+def _trainer_and_split(
+    scene_xml: Path, trajs: Sequence[Trajectory], options: ResidualOptions
+) -> tuple[_Trainer, list[Trajectory], list[Trajectory]]:
+    """Loads the scene as MuJoCo alone, checks the trajectories against it and splits them into those the residual
+    is fitted on and those its output gain is chosen on: ``(trainer of the fit ones, fit, gain selection)``."""
+    sim = Simulator(scene_xml, use_residual=False)
+    for traj in trajs:
+        validate_against_model(traj, sim.model)
+    fit_trajs, select_trajs = _selection_split(trajs, options, sim.model)
+    if not select_trajs:
+        log.warning(
+            "no trajectory held out to check the residual's output gain (%d trajectories; it takes 5): the "
+            "residual ships at gain 1 unchecked",
+            len(trajs),
+        )
+    return _Trainer(sim, fit_trajs, options), fit_trajs, select_trajs
+
+
+def _untrained_meta(trainer: _Trainer, options: ResidualOptions, scene_xml: Path) -> ResidualMeta:
+    """The metadata of the residual about to be trained (no training summary yet): period, bodies or joints,
+    network size, gate and the hashes of the scene's files."""
+    meta = ResidualMeta(
+        period_steps=trainer.period,
+        timestep_s=float(trainer.model.opt.timestep),
+        bodies=tuple(b.name for b in trainer.bodies),
+        hidden=options.hidden,
+        layers=options.layers,
+        gate=options.gate,
+        scene_xml_sha256=file_sha256(scene_xml),
+        scene_files_sha256=scene_files_sha256(scene_xml),
+        training={},
+    )
+    space = trainer.space
+    if space is not None:
+        meta = replace(
+            meta,
+            bodies=space.names,
+            space=JOINT_SPACE,
+            feature_names=space.feature_names,
+            output_names=space.output_names,
+        )
+    return meta
+
+
+def _train_rounds(
+    torch_model: Any,
+    meta: ResidualMeta,
+    trainer: _Trainer,
+    base: _Transitions,
+    options: ResidualOptions,
+    report: ProgressFn,
+) -> _Transitions:
+    """Fits ``torch_model`` in ``dagger_rounds + 1`` rounds: the one-step targets ``base``, then each round also the
+    targets aggregated along rollouts of the previous round's residual; the statistics (normalisation, coverage,
+    output bounds) are recomputed on each round's data first. Returns the last round's data."""
+    import torch
+
+    data = base
+    rounds = options.dagger_rounds + 1
+    for r in range(rounds):
+        report("residual: training rounds", r, rounds)
+        stats = _coverage_stats(data.feats, data.groups, options.gate, options.seed) | _output_stats(
+            base.targets, options.bound_quantile
+        )
+        with torch.no_grad():
+            for name, value in stats.items():
+                getattr(torch_model, name).copy_(torch.as_tensor(value))
+        _fit(torch_model, data, options, r)
+        log.info("round %d: %d samples", r, len(data.feats))
+        if r + 1 < rounds:
+            free_residual = _numpy_residual(torch_model, meta, trainer)
+            assert isinstance(free_residual, NumpyResidual)  # aggregation rounds are refused for joints
+            extra = trainer.aggregate(free_residual)
+            data = _Transitions(
+                feats=np.concatenate([base.feats, extra.feats]),
+                targets=np.concatenate([base.targets, extra.targets]),
+                groups=np.concatenate([base.groups, extra.groups]),
+            )
+    report("residual: training rounds", rounds, rounds)
+    return data
+
+
+def _training_record(
+    trajs: Sequence[Trajectory],
+    fit_trajs: Sequence[Trajectory],
+    select_trajs: Sequence[Trajectory],
+    options: ResidualOptions,
+    *,
+    num_samples: int,
+    scores: dict[float, float],
+    gain: float,
+    before: tuple[float, float, float, float],
+    after: tuple[float, float, float, float],
+    seconds: float,
+    joint: bool,
+) -> dict[str, Any]:
+    """``residual.json``'s training summary: the data and its split, the gain chosen, one-step errors, options and
+    versions, for provenance."""
+    import torch
+
+    rms_keys = ("pos_m", "rot_rad", "vel_m_s", "omega_rad_s") if not joint else ("joint_pos", "joint_vel")
+    return {
+        "num_trajectories": len(trajs),
+        "trajectory_names": [t.name for t in trajs],
+        "num_samples_last_round": num_samples,
+        "fit_trajectories": [t.name for t in fit_trajs],
+        "gain_selection_trajectories": [t.name for t in select_trajs],
+        "gain_scores": {f"{g:g}": v for g, v in scores.items()},
+        "selected_gain": gain,
+        "one_step_rms_before": dict(zip(rms_keys, before if not joint else before[::2], strict=True)),
+        "one_step_rms_after": dict(zip(rms_keys, after if not joint else after[::2], strict=True)),
+        "options": _options_json(options),
+        "seconds": seconds,
+        "torch_version": torch.__version__,
+        "mujoco_version": mujoco.__version__,
+    }
+
+
+def _write_residual_files(staging: Path, scene: Path, scene_xml: Path, torch_model: Any, meta: ResidualMeta) -> None:
+    """Writes the residual scene folder's files into ``staging``: the scene's files (without any old residual; the
+    MJCF as ``scene.xml``), the weights, the metadata and the ONNX export."""
+    import torch
+
+    from grounder.residual.torch_model import export_onnx
+
+    # the scene's files without any old residual; the MJCF as scene.xml
+    copy_scene_files(scene, staging, skip=(*RESIDUAL_FILES, SCENE_XML))
+    shutil.copy2(scene_xml, staging / SCENE_XML)
+    torch.save({k: v.detach().clone() for k, v in torch_model.state_dict().items()}, staging / WEIGHTS_FILE)
+    (staging / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
+    export_onnx(torch_model, staging / ONNX_FILE)
+
+
+def _residual_report(
+    trainer: _Trainer,
+    meta: ResidualMeta,
+    residual: NumpyResidual | NumpyJointResidual,
+    *,
+    num_fit: int,
+    held_out: list[Trajectory],
+    num_samples: int,
+    seconds: float,
+    gain: float,
+    preds_by_gain: dict[float, list[Trajectory]],
+    errors_by_gain: dict[float, RolloutErrors],
+    before: tuple[float, float, float, float],
+    after: tuple[float, float, float, float],
+    held_rms: tuple[tuple[float, ...], tuple[float, ...]],
+    held_gate: np.ndarray,
+) -> ResidualReport:
+    """What the training's HTML report shows: the held-out rollouts per gain and the one-step errors per output
+    group (on the fit and the held-out trajectories, MuJoCo alone and with the residual)."""
+    space = trainer.space
+    labels = ("joint position, rad or m", "joint velocity, rad/s or m/s") if space is not None else _FREE_RMS
+    groups = (0, 2) if space is not None else (0, 1, 2, 3)
+    return ResidualReport(
+        model=trainer.model,
+        space="free" if space is None else JOINT_SPACE,
+        num_fit=num_fit,
+        held_out=held_out,
+        num_samples=num_samples,
+        seconds=seconds,
+        period_steps=trainer.period,
+        gain=gain,
+        preds_by_gain=preds_by_gain,
+        errors_by_gain=errors_by_gain,
+        one_step_rms=[
+            (label, before[g], after[g], held_rms[0][g], held_rms[1][g])
+            for label, g in zip(labels, groups, strict=True)
+        ],
+        output_names=meta.output_names if space is not None else OUTPUT_NAMES,
+        output_bound=np.asarray(residual.out_bound),
+        held_out_gate=held_gate,
     )
 
 

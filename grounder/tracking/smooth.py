@@ -1,4 +1,5 @@
-"""Velocities of tracked free bodies from a smoothing fit (Savitzky-Golay), and the rotation helpers tracking uses.
+"""Velocities of tracked free bodies from a smoothing fit (Savitzky-Golay); its rotation helpers are
+`image2sim_common.rotations`'.
 
 Conventions (MuJoCo's, as in the trajectory format): quaternions are w-first; a free joint's qvel is the world linear
 velocity, then the body-frame angular velocity.
