@@ -15,7 +15,8 @@ Each configuration first prints what the libraries report they run (so a switch 
 then the test counts; any test whose verdict differs between configurations, or that fails, is listed, and the
 exit code is 1.
 
-    .venv/bin/python benchmarks/cpu_switches.py [--tests tests/test_track.py ...] [--configs default,one-core]
+    .venv/bin/python benchmarks/cpu_switches.py [--tests tests/grounder/tracking/test_pipeline.py ...] [--configs
+    default,one-core]
 
 Figures: docs/test_timing.md.
 """
@@ -33,7 +34,11 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_TESTS = ("tests/test_track.py", "tests/test_ground.py", "tests/test_calibrate.py")
+DEFAULT_TESTS = (
+    "tests/grounder/tracking/test_pipeline.py",
+    "tests/grounder/grounding/test_pipeline.py",
+    "tests/grounder/calibration/test_fit.py",
+)
 
 NO_AVX512 = {
     # numpy >= 2.4 groups AVX-512 as X86_V4 plus two extensions; it refuses names it does not dispatch

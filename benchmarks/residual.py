@@ -665,9 +665,9 @@ def _lowest_corner_m(toss: Trajectory, corners_body_m: np.ndarray) -> np.ndarray
 
 
 def synthetic_drag(options: ResidualOptions) -> None:
-    """Withheld effect: the recorded cube feels air drag the nominal model lacks (tests/test_residual.py's case)."""
-    sys.path.insert(0, str(REPO / "tests"))
-    from test_residual import DRAG_DENSITY, _cube_xml, _tosses
+    """Withheld effect: the recorded cube feels air drag the nominal model lacks
+    (tests/grounder/residual/test_train.py's case)."""
+    from tests.grounder.residual.test_train import DRAG_DENSITY, _cube_xml, _tosses
 
     train, val = _tosses(80, seed=1, fluid_density=DRAG_DENSITY), _tosses(40, seed=2, fluid_density=DRAG_DENSITY)
     with tempfile.TemporaryDirectory() as tmp:

@@ -285,8 +285,8 @@ def match_features(
     ``options.matching_workers`` worker processes (0: one per usable core), each matching and verifying its share
     single-threaded in a copy of the database, and the shares' matches and two-view geometries merged back
     (`merge_match_databases`). Every pair's RANSAC starts from the same seed, so that gives the tables one thread
-    writes, row for row and byte for byte (`tests/test_reconstruct.py`), in 10 s instead of 14 s on the tabletop
-    sample's 2 cores. Processes, not threads: pycolmap's matching run in several threads of one process at once
+    writes, row for row and byte for byte (`tests/reconstruction/test_reconstruct.py`), in 10 s instead of 14 s on the
+    tabletop sample's 2 cores. Processes, not threads: pycolmap's matching run in several threads of one process at once
     came out different now and then (a keypoint match more or less in a pair: 4 tables of 48 wrong with 6 threads
     matching the same pairs side by side; none of 90 for SIFT extraction, which stays in threads). Each process
     matches its share in a few chunks (`MATCHING_CHUNKS_PER_WORKER`), one after the other in its copy, and

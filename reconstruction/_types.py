@@ -81,8 +81,8 @@ class SfmOptions:
         extraction_workers: with ``extraction_threads`` 1, the frames are split into this many contiguous shares,
             each extracted single-threaded in its own thread into its own database, and the databases merged in
             frame order: every table row for row and byte for byte as one thread writes it, in about half the
-            time on 2 cores (`tests/test_reconstruct.py`). 0: one per CPU core this process may use. Shares that
-            cannot be merged (frames of different sizes) are extracted again on one thread.
+            time on 2 cores (`tests/reconstruction/test_reconstruct.py`). 0: one per CPU core this process may use.
+            Shares that cannot be merged (frames of different sizes) are extracted again on one thread.
         matching_workers: with ``num_threads`` 1, the image pairs to match are split into this many shares, each
             matched and verified single-threaded in a worker process of its own, and the matches merged: the tables
             one thread writes, in about 70-80% of its time on 2 cores (`reconstruction._sfm.match_features`;

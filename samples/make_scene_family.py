@@ -6,7 +6,7 @@ regenerated alone. `--small` draws the cheap scenes the default tests ground (64
 
 Seed ranges (keep them apart, so that figures are measured on scenes no test or tuning has seen):
 - 0-99: development and tuning;
-- 100-199: the default tests (`tests/test_scene_family.py`);
+- 100-199: the default tests (`tests/samples/test_make_scene_family.py`);
 - 1000 and up: `benchmarks/scene_family.py` (held out).
 
 Each scene draws 1-6 objects from these classes (`_family_shapes.py`): boxes (cubes, flat book-like, 3 cm small

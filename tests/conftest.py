@@ -205,15 +205,24 @@ def reconstruction_of_points() -> Callable[[np.ndarray], ReconstructionResult]:
 
 # `make test` hands whole files to the workers in collection order (`--dist loadfile --no-loadscope-reorder`): the
 # files that take minutes go first, so that the run does not end with one worker busy on one of them, and the files
-# that read test_ground.py's groundings go last, when the groundings are made (a worker waiting on one does nothing).
-_FIRST = ("test_ground.py", "test_scene_family.py", "test_interaction_shooting.py", "test_track.py", "test_cli.py",
-          "test_interaction_impacts.py", "test_track_markers.py")  # fmt: skip
-_LAST = ("test_properties.py", "test_reconstruct.py")
+# that read grounder/grounding/test_pipeline.py's groundings go last, when the groundings are made (a worker waiting on
+# one does nothing).
+TESTS = Path(__file__).resolve().parent
+_FIRST = (
+    "grounder/grounding/test_pipeline.py",
+    "samples/test_make_scene_family.py",
+    "grounder/interaction/test_shooting.py",
+    "grounder/tracking/test_pipeline.py",
+    "grounder/cli/test_app.py",
+    "grounder/interaction/test_impacts.py",
+    "grounder/tracking/test_markers.py",
+)
+_LAST = ("grounder/properties/test_prior.py", "reconstruction/test_reconstruct.py")
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     def rank(item: pytest.Item) -> int:
-        name = item.path.name
+        name = item.path.relative_to(TESTS).as_posix()
         if name in _FIRST:
             return _FIRST.index(name)
         return len(_FIRST) + 1 + _LAST.index(name) if name in _LAST else len(_FIRST)

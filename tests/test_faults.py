@@ -17,7 +17,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import REPO, CliRun, assert_one_line_error, claim_held_by_another_process
 
 from image2sim_common.outdir import (
     check_output_dir,
@@ -26,6 +25,7 @@ from image2sim_common.outdir import (
     staged_output_dir,
 )
 from reconstruction.errors import InputError
+from tests.conftest import REPO, CliRun, assert_one_line_error, claim_held_by_another_process
 
 CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
 ODD = os.fsdecode(b"odd_\xff\xfe")  # a name in no UTF-8 (Latin-1 bytes, say): any bytes but '/' are allowed

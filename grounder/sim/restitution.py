@@ -6,7 +6,7 @@ d), its `solimp`, and the scene's physics settings (time step, integrator, gravi
   back. MuJoCo's contact force never pulls, so the object lets go earlier and bounces higher: e is that of a
   spring-dashpot whose force is clipped at zero (Schwager and Poeschel, Phys. Rev. E 2007): d 0.2 gives 0.572 where
   the textbook says 0.527, d 0.4 0.364 against 0.254 (measured here within 0.5% at a long time constant, without
-  gravity: `tests/test_restitution.py`).
+  gravity: `tests/grounder/sim/test_restitution.py`).
 - Neither holds where the time constant is a few time steps: the bounce then depends on where within a step the
   impact falls. At the scene step of 2 ms, a time constant of 0.0087 s and d 0.2175 bounce at 0.39 to 0.78 over the
   phases of a 1 m/s impact (0.56 on average), and (time constant, damping ratio) pairs trade: (0.0087 s, 0.218) and

@@ -647,7 +647,7 @@ def test_a_missing_marker_size_fails_before_the_grounding(tmp_path: Path) -> Non
     from grounder.errors import GrounderError
     from grounder.interaction.pipeline import ground_with_interaction
 
-    samples = Path(__file__).resolve().parents[1] / "samples"
+    samples = Path(__file__).resolve().parents[3] / "samples"
     with pytest.raises(GrounderError, match=r"pass --aruco-size M \(--known-extent cannot stand in for it\)"):
         ground_with_interaction(samples / "tabletop" / "video.mp4", samples / "toss" / "video.mp4", tmp_path / "out")
     assert list(tmp_path.iterdir()) == []

@@ -22,7 +22,7 @@ from grounder.core.trajectory import Trajectory, load_trajectories, save_traject
 from grounder.errors import GrounderError
 from reconstruction.errors import InputError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
 RATE_HZ = 148.0
 

@@ -25,7 +25,7 @@ from grounder.tracking.render import PinholeCamera, PoseRenderer, backproject
 from grounder.tracking.smooth import SmoothingOptions, free_body_velocities
 from image2sim_common.rotations import matrix_from_quat, quat_angle_rad, quat_from_matrix, quat_mul
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 TOSS = REPO / "samples" / "toss"
 OCCLUDED = REPO / "samples" / "toss_occluded"
 MOVING = REPO / "samples" / "toss_moving"

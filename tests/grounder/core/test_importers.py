@@ -16,9 +16,9 @@ from grounder.core.importers import load_dair_pll_cube
 from grounder.core.trajectory import load_trajectories
 from grounder.errors import GrounderError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
-SHARED_CUBE = Path(__file__).resolve().parents[2] / "shared" / "data" / "cube_toss"
+SHARED_CUBE = Path(__file__).resolve().parents[4] / "shared" / "data" / "cube_toss"
 
 
 def _toss(rows: int, seed: int) -> torch.Tensor:

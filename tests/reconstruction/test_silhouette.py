@@ -22,7 +22,7 @@ from reconstruction._scene_objects import _resting, _with_silhouettes
 from reconstruction._silhouette import SilhouetteOptions, hull_mesh, visual_hull
 from reconstruction._types import ObjectInstance, TexturedMesh
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SEED = 100
 VOXEL_M = 0.0025
 

@@ -12,7 +12,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import CliRun, assert_one_line_error
 from mujoco import rollout as mj_rollout
 
 from grounder import Trajectory, save_trajectories
@@ -21,6 +20,7 @@ from grounder.diagnosis.effects import EFFECT_NAMES, LIBRARY, AppliedEffect, Tra
 from grounder.diagnosis.gap import coordinate_groups, group_errors_sq, make_windows, predict
 from grounder.diagnosis.phases import detect_phases
 from grounder.diagnosis.pipeline import DiagnoseOptions, _holdout_split, diagnose
+from tests.conftest import CliRun, assert_one_line_error
 
 REQUIRED_EFFECTS = (
     "air_drag",

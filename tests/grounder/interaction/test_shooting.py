@@ -10,11 +10,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from test_interaction import DROPPED_BALL
 
 from grounder.core.trajectory import Trajectory
 from grounder.errors import GrounderError
 from grounder.interaction.shooting import ShootingOptions, ShootingProblem, contact_profile, moving_runs
+from tests.grounder.interaction.test_pipeline import DROPPED_BALL
 
 TRUE = (0.4, 0.2)  # friction, damping ratio: DROPPED_BALL's friction and the damping ratio written below
 
@@ -156,11 +156,10 @@ def test_shooting_calibration_fits_the_moving_object_and_keeps_the_still_ones_pr
     The node fits start from the tracked states without sampling sweeps (`sampling_draws=0`): a third of the default's
     time on this clean slide (44 s against 132 s on 2 cores); the sweeps have their own test
     (`test_sampling_sweeps_get_below_where_least_squares_stops`)."""
-    from test_interaction import PARAMS, TRUE_FRICTION, _recorded, _scene
-
     from grounder.interaction.options import InteractionOptions
     from grounder.interaction.per_object import calibrate_per_body
     from grounder.interaction.report import markdown_report
+    from tests.grounder.interaction.test_pipeline import PARAMS, TRUE_FRICTION, _recorded, _scene
 
     traj = _recorded(tmp_path)
     xml = _scene(tmp_path / "prior", 0.8, 0.8)
@@ -202,8 +201,8 @@ def test_cli_calibration_option_rejects_bad_input(tmp_path: Path) -> None:
 
     from grounder.cli import app
 
-    scan = Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"
-    clip = Path(__file__).resolve().parents[1] / "samples" / "toss" / "video.mp4"
+    scan = Path(__file__).resolve().parents[3] / "samples" / "tabletop" / "video.mp4"
+    clip = Path(__file__).resolve().parents[3] / "samples" / "toss" / "video.mp4"
     runner = CliRunner()
     out = tmp_path / "o"
     result = runner.invoke(app, ["ground", str(scan), "-o", str(out), "--calibration", "shooting"])

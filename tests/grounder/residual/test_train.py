@@ -12,7 +12,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from _gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 from typer.testing import CliRunner
 
 from grounder.core.trajectory import Trajectory, save_trajectories
@@ -24,6 +23,7 @@ from grounder.residual.simulator import Simulator, has_residual
 from grounder.residual.train import _selection_split, train_residual
 from grounder.sim.rollout import simulate
 from image2sim_common.rotations import quat_angle_rad, quat_to_rotvec, rotvec_to_quat
+from tests._gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 
 HALF_M = 0.05
 RATE_HZ = 100.0

@@ -18,7 +18,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import CliRun, assert_one_line_error, run_cli
 
 import grounder
 from grounder.grounding.evaluate import compare_to_truth
@@ -31,6 +30,7 @@ from grounder.properties.prior import (
     sample_variant_specs,
 )
 from grounder.properties.training_data import crop_square, shape_features
+from tests.conftest import CliRun, assert_one_line_error, run_cli
 
 MEAN_KEYS = {"density_kg_m3", "friction", "solref", "restitution"}
 

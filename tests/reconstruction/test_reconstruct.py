@@ -232,7 +232,7 @@ def _sample_frames(images: Path, indices: Sequence[int], smaller_from: int | Non
     import cv2
 
     images.mkdir()
-    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
+    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[2] / "samples" / "tabletop" / "video.mp4"))
     names = []
     for k, index in enumerate(indices):
         video.set(cv2.CAP_PROP_POS_FRAMES, index)
@@ -578,7 +578,7 @@ def test_dense_stereo_on_several_threads_fuses_what_one_thread_fuses(
     from reconstruction._types import CameraIntrinsics
 
     truth = {f["frame_index"]: np.array(f["world_from_cam"]) for f in truth_cameras["frames"]}
-    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"))
+    video = cv2.VideoCapture(str(Path(__file__).resolve().parents[2] / "samples" / "tabletop" / "video.mp4"))
     views = []
     for index in range(24):
         ok, frame = video.read()
@@ -664,13 +664,13 @@ def test_importing_reconstruction_keeps_opencv_png_writing_alive(tmp_path: Path)
     write = f"import numpy as np, cv2; assert cv2.imwrite({str(png)!r}, np.zeros((48, 64, 3), np.uint8))"
     first = subprocess.run(
         [sys.executable, "-c", f"import reconstruction, pycolmap; {write}"],
-        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1],
+        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[2],
     )  # fmt: skip
     assert first.returncode == 0, first.stderr[-2000:]
     assert png.is_file()
     late = subprocess.run(
         [sys.executable, "-W", "always", "-c", "import pycolmap, reconstruction"],
-        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1],
+        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[2],
     )  # fmt: skip
     assert late.returncode == 0 and "pycolmap was imported before cv2" in late.stderr, late.stderr[-2000:]
 

@@ -11,7 +11,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import CliRun, assert_one_line_error, run_cli
+
+from tests.conftest import CliRun, assert_one_line_error, run_cli
 
 README_COMMANDS = [
     ["reconstruct"],
@@ -50,7 +51,7 @@ def test_log_messages_go_to_stderr_and_leave_stdout_to_the_results() -> None:
 @pytest.mark.parametrize("page", ["README.md", "docs/cli.md"])
 def test_every_readme_command_has_a_help_test(page: str) -> None:
     """README's examples and the full command reference it links to (docs/cli.md)."""
-    text = (Path(__file__).resolve().parents[1] / page).read_text()
+    text = (Path(__file__).resolve().parents[3] / page).read_text()
     used = {tuple(line.split()[1:3]) for line in text.splitlines() if line.startswith("image2sim ")}
     assert used, f"no `image2sim ...` examples found in {page}"
     tested = {tuple(cmd) for cmd in README_COMMANDS} | {("--help",)}
@@ -428,7 +429,7 @@ def test_sigterm_unwinds_the_output_stage_like_ctrl_c(tmp_path: Path) -> None:
     import time
 
     out = tmp_path / "out"
-    video = Path(__file__).resolve().parents[1] / "samples" / "tabletop" / "video.mp4"
+    video = Path(__file__).resolve().parents[3] / "samples" / "tabletop" / "video.mp4"
     proc = subprocess.Popen(
         [sys.executable, "-m", "grounder.cli", "reconstruct", str(video), "-o", str(out), "--aruco-size", "0.1"],
         stdout=subprocess.PIPE,

@@ -17,11 +17,11 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import PROGRESS_LINE, assert_one_line_error
 
 from grounder.grounding.evaluate import ObjectError, compare_to_truth
 from reconstruction import ReconstructionResult
 from scene_export import settle_test
+from tests.conftest import PROGRESS_LINE, assert_one_line_error
 
 
 def _ground(source: Path, out: Path, *flags: str) -> subprocess.CompletedProcess[str]:
@@ -240,8 +240,8 @@ def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_fai
     """`ground` loads the property model and the bounce table in a thread while mapping runs: afterwards the
     property stage finds the model in its cache (no second load) and asks for the bounce table with the very
     arguments the warm-up built it for (an lru_cache hit; the table itself is a stand-in here, its 4 s build is
-    `tests/test_restitution.py`'s), and a model that cannot load does not escape the thread (the property stage meets
-    that error itself and turns it into a warning)."""
+    `tests/grounder/sim/test_restitution.py`'s), and a model that cannot load does not escape the thread (the property
+    stage meets that error itself and turns it into a warning)."""
     import threading
 
     from grounder import _properties, _restitution

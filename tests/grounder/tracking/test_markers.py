@@ -35,7 +35,7 @@ from image2sim_common.rotations import matrix_from_quat, quat_angle_rad, quat_fr
 from reconstruction._texture import TextureView
 from reconstruction._types import CameraIntrinsics
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 SCAN = REPO / "samples" / "tabletop_markers"
 TOSS = REPO / "samples" / "toss_markers"
 TOSS_SCENE = REPO / "samples" / "toss" / "truth"

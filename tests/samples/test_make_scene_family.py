@@ -13,12 +13,12 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import PROGRESS_LINE, assert_one_line_error
 
 from grounder.grounding.evaluate import ObjectScore, SceneScore, score_scene
 from scene_export import settle_test
+from tests.conftest import PROGRESS_LINE, assert_one_line_error
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SEEDS = (100, 101)
 
 
@@ -30,8 +30,8 @@ def family_scenes(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-# Targets not met yet on these two scenes (measured 2026-12-02, `pytest tests/test_scene_family.py`; seed 101 is
-# at rest since 2026-12-07, its figure no longer toppling); each mark goes once the figure passes (strict: a pass
+# Targets not met yet on these two scenes (measured 2026-12-02, `pytest tests/samples/test_make_scene_family.py`; seed
+# 101 is at rest since 2026-12-07, its figure no longer toppling); each mark goes once the figure passes (strict: a pass
 # then fails the run, so the list cannot go stale). The held-out figures are in docs/results/scene_family.md.
 NOT_YET: dict[tuple[int, str], str] = {
     (100, "found"): "a single low-texture cup on a half orbit with --known-extent: no sparse point stands on it; "

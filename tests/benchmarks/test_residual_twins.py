@@ -18,14 +18,14 @@ from grounder.core.trajectory import Trajectory
 from grounder.sim.rollout import simulate
 from image2sim_common.rotations import quat_from_matrix, quat_to_mat
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from residual import _aligned, _alignment, _cube_rotations, _motion_distance, _yaw_m
 
 # The nominal model of the real cube tosses, with the elliptic friction cone the calibration fits (a pyramidal
 # cone's facets are fixed in the world, so a turned toss is not quite the same motion there).
-NOMINAL_CUBE_XML = Path(__file__).resolve().parents[1] / "samples" / "cube_toss" / "cube.xml"
-SHARED_CUBE = Path(__file__).resolve().parents[2] / "shared" / "data" / "cube_toss"
+NOMINAL_CUBE_XML = Path(__file__).resolve().parents[2] / "samples" / "cube_toss" / "cube.xml"
+SHARED_CUBE = Path(__file__).resolve().parents[3] / "shared" / "data" / "cube_toss"
 
 
 def _cube_model() -> mujoco.MjModel:

@@ -18,7 +18,7 @@ import trimesh
 
 from grounder import Trajectory, load_trajectory, validate_against_model
 
-SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+SAMPLES = Path(__file__).resolve().parents[2] / "samples"
 MARKER_HALF_M = 0.06
 MARKER_TOP_Z_M = 0.0003
 # ArUco corner order: top-left, top-right, bottom-right, bottom-left of the marker image (image top = world +y).
@@ -402,7 +402,7 @@ def test_toss_at_60_fps_shows_every_30_fps_frame(
 ) -> None:
     """`samples/make_toss.py --fps 60` renders the same toss: its even frames are the physics steps of
     `samples/toss`'s frames, so the two clips show the same states (docs/interaction_history.md, "Frame rate")."""
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "samples"))
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[2] / "samples"))
     import make_toss
 
     at_30 = make_toss.frame_steps(len(toss_traj.time_s), 30.0)

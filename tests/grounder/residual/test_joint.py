@@ -10,7 +10,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from _gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 
 from grounder.core.trajectory import Trajectory
 from grounder.diagnosis.benchmark import select_cases
@@ -21,6 +20,7 @@ from grounder.residual.meta import META_FILE, ONNX_FILE, WEIGHTS_FILE
 from grounder.residual.options import ResidualOptions
 from grounder.residual.simulator import Simulator
 from grounder.residual.train import rollout_score, train_residual
+from tests._gate_checks import nearest_centre_dist, onnx_gate, smoothstep
 
 SMALL = ResidualOptions(steps=800, hidden=32, seed=0)
 

@@ -17,7 +17,6 @@ from pathlib import Path
 import mujoco
 import numpy as np
 import pytest
-from conftest import claim_held_by_another_process
 
 import grounder.sim.rollout as sim
 from grounder.calibration.batch import ray_init_kwargs, run_batch
@@ -25,8 +24,9 @@ from grounder.calibration.batch_jobs import load_jobs
 from grounder.calibration.batch_output import read_result
 from grounder.core.trajectory import Trajectory, save_trajectories
 from grounder.errors import GrounderError
+from tests.conftest import claim_held_by_another_process
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
 TINY = {"params": ["cube.friction.sliding"], "generations": 1, "popsize": 2, "local_iterations": 0}
 
