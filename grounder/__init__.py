@@ -1,17 +1,23 @@
-"""The user-facing pipeline of image2sim: trajectories, physical properties, calibration, diagnosis, CLI.
+"""The user-facing pipeline of image2sim: film a scene, calibrate it, learn its residual, diagnose its gap.
 
-Public API::
+Public API: each stage is an options / function / result triple, plus trajectory I/O, `Simulator` and the errors::
 
-    from grounder import ground, load_trajectories, save_trajectories, Trajectory, TrajectoryError
-    from grounder import calibrate, diagnose, track, ground_with_interaction, Simulator, load_dair_pll_cube
+    from grounder import GroundOptions, ground, GroundResult                      # grounding/
+    from grounder import CalibrateOptions, calibrate, CalibrationResult           # calibration/
+    from grounder import DiagnoseOptions, diagnose, Diagnosis                     # diagnosis/
+    from grounder import TrackOptions, track, TrackResult                         # tracking/
+    from grounder import InteractionOptions, ground_with_interaction, InteractionResult  # interaction/
+    from grounder import ResidualOptions, train_residual, ResidualTrainResult, Simulator  # residual/
+    from grounder import Trajectory, load_trajectories, save_trajectories, simulate, load_dair_pll_cube  # core/, sim/
 
-The later stages are imported on first use (they pull in torch, OpenCV renderers or Ray), so `import grounder`
-stays cheap.
+The stages are imported on first use (they pull in torch, COLMAP, OpenCV renderers or Ray), so `import grounder`
+stays cheap. Where each module lives: docs/layout.md.
 """
 
 from typing import TYPE_CHECKING
 
 from image2sim_common.headless_gl import choose_headless_gl
+from image2sim_common.lazy import lazy_attributes
 from image2sim_common.outdir import register_record_files
 
 choose_headless_gl()  # before mujoco is imported
@@ -62,18 +68,15 @@ _LAZY = {
     "Simulator": "grounder.residual.simulator",
     "has_residual": "grounder.residual.simulator",
     "ResidualOptions": "grounder.residual.options",
+    "ResidualTrainResult": "grounder.residual.options",
     "train_residual": "grounder.residual.train",
+    "TrackError": "grounder.tracking.options",
+    "PropertyModelError": "grounder.properties.model_files",
     "load_dair_pll_cube": "grounder.core.importers",
     "simulate": "grounder.sim.rollout",
 }
 
-
-def __getattr__(name: str) -> object:
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module 'grounder' has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
@@ -86,11 +89,12 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from grounder.grounding.pipeline import GroundOptions, GroundResult, ground
     from grounder.interaction.options import InteractionOptions, InteractionResult
     from grounder.interaction.pipeline import ground_with_interaction
-    from grounder.residual.options import ResidualOptions
+    from grounder.properties.model_files import PropertyModelError
+    from grounder.residual.options import ResidualOptions, ResidualTrainResult
     from grounder.residual.simulator import Simulator, has_residual
     from grounder.residual.train import train_residual
     from grounder.sim.rollout import simulate
-    from grounder.tracking.options import TrackOptions, TrackResult
+    from grounder.tracking.options import TrackError, TrackOptions, TrackResult
     from grounder.tracking.pipeline import track
 
 __all__ = [  # spelled out (not built from _LAZY) so that linters and type checkers read it
@@ -103,8 +107,11 @@ __all__ = [  # spelled out (not built from _LAZY) so that linters and type check
     "GrounderError",
     "InteractionOptions",
     "InteractionResult",
+    "PropertyModelError",
     "ResidualOptions",
+    "ResidualTrainResult",
     "Simulator",
+    "TrackError",
     "TrackOptions",
     "TrackResult",
     "Trajectory",

@@ -7,10 +7,26 @@ result = reconstruct("video.mp4", "out/recon", ReconstructOptions(aruco_size_m=0
 ```
 
 The names below load on first use (PEP 562): importing `reconstruction` (its types, its errors) does not load
-pycolmap, Open3D or OpenCV; the stages that need pycolmap import it through `reconstruction._colmap`.
+pycolmap or Open3D (OpenCV it does load: see below); the stages that need pycolmap import it through
+`reconstruction._colmap`.
 """
 
+import sys
+import warnings
 from typing import TYPE_CHECKING
+
+# OpenCV before pycolmap: both carry zlib/libpng, and whichever loads first provides them to the other. With
+# pycolmap first, OpenCV's first PNG write frees a buffer the other copy allocated and the process aborts ("double
+# free or corruption", `python -c "import pycolmap, cv2; cv2.imwrite('x.png', ...)"`); cv2 first is safe. So the
+# package loads cv2 at once (0.1 s), though its other names load on first use.
+if "pycolmap" in sys.modules and "cv2" not in sys.modules:
+    warnings.warn(
+        "pycolmap was imported before cv2: OpenCV's PNG writing may then abort the process (double free); "
+        "import cv2 (or reconstruction, grounder) before pycolmap",
+        RuntimeWarning,
+        stacklevel=2,
+    )
+import cv2  # noqa: F401
 
 from image2sim_common.lazy import lazy_attributes
 from image2sim_common.outdir import register_record_files

@@ -9,20 +9,9 @@ put back; glog keeps its handlers for real crashes (SIGSEGV, SIGABRT, ...).
 from __future__ import annotations
 
 import signal
-import sys
 import threading
-import warnings
 
-# OpenCV before pycolmap: both carry zlib/libpng, and whichever loads first provides them to the other. With
-# pycolmap first, OpenCV's first PNG write frees a buffer the other copy allocated and the process aborts ("double
-# free or corruption", `python -c "import pycolmap, cv2; cv2.imwrite('x.png', ...)"`); cv2 first is safe.
-if "pycolmap" in sys.modules and "cv2" not in sys.modules:
-    warnings.warn(
-        "pycolmap was imported before cv2: OpenCV's PNG writing may then abort the process (double free); "
-        "import cv2 (or reconstruction, grounder) before pycolmap",
-        RuntimeWarning,
-        stacklevel=2,
-    )
+# OpenCV before pycolmap (the package's __init__ says why and warns when a user loaded pycolmap first).
 import cv2  # noqa: F401
 
 _in_main_thread = threading.current_thread() is threading.main_thread()  # signal.signal works only there

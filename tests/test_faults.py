@@ -224,12 +224,12 @@ def test_an_enospc_anywhere_is_one_line_naming_the_folder(
     cli: Callable[..., CliRun], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Any write that finds the disk full, where no check foresaw it, ends as one line with what to free, exit 2."""
-    import grounder.cli.app
+    import grounder.cli.entry
 
     def full(*args: object, **kwargs: object) -> None:
         raise OSError(errno.ENOSPC, "No space left on device", "/data/out/.i2s-0123456789ab-00000000.partial/x.npz")
 
-    monkeypatch.setattr(grounder.cli.app, "app", full)
+    monkeypatch.setattr(grounder.cli.entry, "app", full)
     proc = cli("rollout", "a", "b", "-o", "c")
     assert_one_line_error(proc, "no space left on the disk that holds /", "df -h")
     assert ".i2s-" not in proc.stderr  # the staging folder is no name the user knows
@@ -272,15 +272,15 @@ def test_an_internal_failure_is_one_line_naming_the_stage_and_debug_prints_the_t
 ) -> None:
     """An exception no check foresaw (a bug) was a bare traceback. It is now one line naming the command, the stage
     it was in and the error, exit 1; `--debug`, anywhere on the line, prints the traceback as well."""
-    import grounder.cli.app
     import grounder.cli.common
+    import grounder.cli.entry
 
     def broken(*args: object, **kwargs: object) -> None:
         with grounder.cli.common.stage_progress() as report:
             report("meshing objects", 1, 4)
             raise ValueError("Surface level must be within volume data range.")
 
-    monkeypatch.setattr(grounder.cli.app, "app", broken)
+    monkeypatch.setattr(grounder.cli.entry, "app", broken)
     proc = cli("ground", "video.mp4", "-o", "scene")
     last = proc.stderr.strip().splitlines()[-1]
     assert last.startswith("image2sim: internal error in ground (meshing objects): ValueError: Surface level"), last
@@ -421,12 +421,12 @@ def test_a_native_librarys_full_disk_error_is_the_full_disk_line(
 ) -> None:
     """faiss (COLMAP's loop-detection index) reports a full disk as a RuntimeError, which read as an internal error,
     exit 1 (found by `benchmarks/faults.py`, the disk filled while matching). It is the full-disk line, exit 2."""
-    import grounder.cli.app
+    import grounder.cli.entry
 
     def full(*args: object, **kwargs: object) -> None:
         raise RuntimeError("Error in void faiss::write_index: write error in : 3998 != 16384 (No space left on device)")
 
-    monkeypatch.setattr(grounder.cli.app, "app", full)
+    monkeypatch.setattr(grounder.cli.entry, "app", full)
     proc = cli("ground", "video.mp4", "-o", "/data/scene")
     assert_one_line_error(proc, "no space left on the disk that holds /", "df -h")
     assert "internal error" not in proc.stderr

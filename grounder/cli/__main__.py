@@ -1,5 +1,5 @@
 """`python -m grounder.cli`: the `image2sim` command line."""
 
-from grounder.cli.app import main
+from grounder.cli.entry import main
 
 main()

@@ -233,8 +233,8 @@ def _add_batch(app: typer.Typer) -> None:
         setup_logging(verbose)
         require(("--num-cpus", num_cpus, num_cpus is None or 1 <= num_cpus <= 256, "between 1 and 256"))
         out_dir: Path | None = None
-        # SIGTERM as this command's own exception while it runs, not grounder.cli's `_Terminated`: under
-        # `python -m grounder.cli` the handler main() installs raises the __main__ module's copy of that class.
+        # SIGTERM as this command's own exception while it runs, not `grounder.cli.entry._Terminated`: the batch
+        # says how far it got before it exits 143 (the handler before is put back at the end).
         on_main = threading.current_thread() is threading.main_thread()
         before = signal.signal(signal.SIGTERM, terminated) if on_main else None
         try:

@@ -17,7 +17,7 @@ EXIT_BAD_INPUT = 2
 # The stage the running command last reported (`stage_progress`): an internal failure's line names it.
 current_stage: list[str] = []
 
-# Stand-in paths for arguments whose bytes are not UTF-8, and the arguments as given (`grounder.cli.app`).
+# Stand-in paths for arguments whose bytes are not UTF-8, and the arguments as given (`grounder.cli.entry`).
 ARGUMENT_LINKS: dict[str, str] = {}
 
 

@@ -1,4 +1,4 @@
-"""CLI commands ``reconstruct`` and ``ground``: the scan side of the pipeline (registered by ``grounder.cli.app``)."""
+"""CLI commands ``reconstruct`` and ``ground``: the scan side of the pipeline (registered by ``grounder.cli.entry``)."""
 
 from __future__ import annotations
 
@@ -168,3 +168,4 @@ def ground(
         f"{len(result.object_names)} object(s), scale from {result.scale_source}, "
         f"max drift after {defaults.settle_seconds:.0f} s: {worst * 1000:.1f} mm"
     )
+    typer.echo(f"MJCF: {result.scene_xml}")

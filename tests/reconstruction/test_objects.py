@@ -467,7 +467,7 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
     that reaches the region's top is fused again with the top raised 1.5x, until it stands clear of it (here a
     0.3 m column under a 0.12 m top: 0.12 -> 0.18 -> 0.27 -> stop at the second raise, as allowed), never past
     0.4 x the camera distance; an object clear of the top is fused once, and so is one a side cuts."""
-    from reconstruction import _dense, _objects
+    from reconstruction import _dense, _segment
     from reconstruction._scene_objects import ObjectsOptions, _fused_and_segmented
     from reconstruction._segment import ObjectSegment
     from reconstruction._types import CameraIntrinsics
@@ -496,7 +496,7 @@ def test_an_object_the_region_cuts_is_fused_again_under_a_higher_top(monkeypatch
         return [ObjectSegment(points_world=pts, normals_world=pts, face_ids=np.arange(0), num_views=3, warnings=())]
 
     monkeypatch.setattr(_dense, "fuse_views", fuse)
-    monkeypatch.setattr(_objects, "segment_objects", segment)
+    monkeypatch.setattr(_segment, "segment_objects", segment)
     views = [_dense.StereoView(image_bgr=np.zeros((2, 2, 3), np.uint8), world_from_cam=_looking_down(1.0))]
     intrinsics = CameraIntrinsics(width_px=2, height_px=2, fx_px=1.0, fy_px=1.0, cx_px=1.0, cy_px=1.0)
     roi = _dense.RegionOfInterest(min_world=np.array([-0.2, -0.2, -0.01]), max_world=np.array([0.2, 0.2, 0.12]))

@@ -244,7 +244,8 @@ def test_the_warm_up_fills_the_caches_the_property_stage_reads_and_keeps_its_fai
     stage meets that error itself and turns it into a warning)."""
     import threading
 
-    from grounder import _properties, _restitution
+    import grounder.properties.prior as _properties
+    import grounder.sim.restitution as _restitution
     from grounder.grounding.pipeline import GroundOptions, _start_warm_up
 
     asked: list[tuple[object, ...]] = []

@@ -440,7 +440,7 @@ def _copied_weights(folder: Path, **changes: object) -> Path:
 def test_weights_metadata_is_checked_against_the_tensors_before_building(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from grounder import _properties_model
+    import grounder.properties.network as _properties_model
     from grounder.properties.model_files import PropertyModelError
 
     built: list[int] = []
@@ -566,7 +566,7 @@ def test_train_options_and_dataset_refuse_sizes_that_cannot_finish() -> None:
 def test_saving_weights_that_fails_midway_keeps_the_old_pair(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """`save` replaced the weights, then the metadata: a failure between them left new weights beside old metadata.
     Both are now written in full first; a failure writing the metadata leaves the old pair and no temporary file."""
-    from grounder import _properties_model
+    import grounder.properties.network as _properties_model
     from grounder.properties.network import META_FILE, WEIGHTS_FILE, PropertyNet
 
     folder = _copied_weights(tmp_path / "weights")
