@@ -25,7 +25,7 @@ def _effect_names(flag: str, values: list[str] | None) -> tuple[str, ...] | None
 
 
 def register(app: typer.Typer) -> None:
-    from grounder.cli.common import fail, require, setup_logging, stage_progress, user_errors_exit_2
+    from grounder.cli.common import require, setup_logging, stage_progress, user_errors_exit_2
 
     @app.command("diagnose")
     def diagnose(
@@ -86,7 +86,7 @@ def register(app: typer.Typer) -> None:
         json_out: Annotated[Path | None, typer.Option("--json", help="Also write the results here.")] = None,
     ) -> None:
         """Withheld-effect benchmark: generate cases with hidden effects, diagnose them blind, print the table."""
-        from grounder.diagnosis.benchmark import MAX_TRAJECTORIES, MIN_TRAJECTORIES
+        from grounder.diagnosis.benchmark import MAX_TRAJECTORIES, MIN_TRAJECTORIES, check_results_file, write_results
 
         require(
             (
@@ -100,20 +100,8 @@ def register(app: typer.Typer) -> None:
             ("--seed", seed, seed >= 0, ">= 0"),
         )
         if json_out is not None:  # before the benchmark's minutes, not after
-            if json_out.exists():
-                fail(f"--json {json_out} already exists; remove it or choose another file")
-            folder = json_out.parent
-            if folder.exists() and not folder.is_dir():
-                fail(f"--json {json_out}: {folder} is a file, not a folder; choose another place for the results")
-            if not folder.is_dir():
-                fail(f"--json {json_out}: folder {folder} does not exist; create it or choose another file")
-            try:  # an unwritable place (permissions, a read-only disk) is found now, not after the benchmark
-                import tempfile
-
-                with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{json_out.name}.", suffix=".probe"):
-                    pass
-            except OSError as exc:
-                fail(f"--json {json_out}: cannot write in {folder} ({exc.strerror}); choose a folder you can write to")
+            with user_errors_exit_2():
+                check_results_file(json_out)
         with user_errors_exit_2():
             from grounder.diagnosis.benchmark import format_table, run_benchmark
 
@@ -124,8 +112,4 @@ def register(app: typer.Typer) -> None:
                 )  # fmt: skip
         typer.echo(format_table(results))
         if json_out is not None:
-            import json
-
-            from image2sim_common.outdir import write_text_atomic
-
-            write_text_atomic(json_out, json.dumps([r.to_json() for r in results], indent=2))
+            write_results(json_out, results)

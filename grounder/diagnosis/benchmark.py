@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -12,6 +15,7 @@ import mujoco
 from grounder.diagnosis.cases import BENCHMARK, CaseSpec, make_case
 from grounder.diagnosis.pipeline import DiagnoseOptions, diagnose
 from grounder.errors import GrounderError, integer_in
+from image2sim_common.outdir import write_text_atomic
 from image2sim_common.progress import ProgressFn
 
 MEASUREMENT_EFFECTS = ("length_scale", "time_scale", "velocity_lag")
@@ -137,6 +141,33 @@ def run_benchmark(
         results.append(run_case(spec, num_trajectories, nthread, seed))
     report("withheld-effect cases", len(specs), len(specs))
     return results
+
+
+def check_results_file(path: Path) -> None:
+    """Refuses, before the benchmark's minutes, a results file that exists or whose folder cannot take it.
+
+    Raises:
+        GrounderError: `path` exists; its folder is a file, is missing, or cannot be written in.
+    """
+    if path.exists():
+        raise GrounderError(f"--json {path} already exists; remove it or choose another file")
+    folder = path.parent
+    if folder.exists() and not folder.is_dir():
+        raise GrounderError(f"--json {path}: {folder} is a file, not a folder; choose another place for the results")
+    if not folder.is_dir():
+        raise GrounderError(f"--json {path}: folder {folder} does not exist; create it or choose another file")
+    try:  # an unwritable place (permissions, a read-only disk) is found now, not after the benchmark
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=f".{path.name}.", suffix=".probe"):
+            pass
+    except OSError as exc:
+        raise GrounderError(
+            f"--json {path}: cannot write in {folder} ({exc.strerror}); choose a folder you can write to"
+        ) from exc
+
+
+def write_results(path: Path, results: Sequence[BenchResult]) -> None:
+    """The results as a JSON list (`BenchResult.to_json` each), written whole or not at all."""
+    write_text_atomic(path, json.dumps([r.to_json() for r in results], indent=2))
 
 
 def _fmt_params(values: dict[str, float]) -> str:
