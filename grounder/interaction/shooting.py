@@ -32,7 +32,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import mujoco
 import mujoco.rollout
@@ -583,10 +582,9 @@ class _ContactSearch:
         self.m = len(contact)
         self.unit = np.log(1.0 + options.resolution_fraction) / _CHECK
         self.nominal = np.array([p.nominal for p in contact])
-        # The keys' bounds. `_compass_search` sets `lowest` to the cheapest key after each round, as `fit_contact`
-        # did before it was split into steps: `evaluate` then checks keys against that key.
-        self.lowest: Any = np.ceil(np.log(np.array([p.lower for p in contact]) / self.nominal) / self.unit)
-        self.highest = np.floor(np.log(np.array([p.upper for p in contact]) / self.nominal) / self.unit)
+        # The keys' bounds (the parameters' bounds on the lattice): `evaluate` gives keys outside them cost inf.
+        self.lower_key = np.ceil(np.log(np.array([p.lower for p in contact]) / self.nominal) / self.unit)
+        self.upper_key = np.floor(np.log(np.array([p.upper for p in contact]) / self.nominal) / self.unit)
         self.evaluated: dict[tuple[int, ...], tuple[float, np.ndarray]] = {}
         self.stage = f"multiple shooting: {contact[0].name.split('.', 1)[0]}, points searched"
         self.timeconst = next((j for j, p in enumerate(contact) if p.name.endswith(".solref.timeconst")), None)
@@ -634,7 +632,8 @@ class _ContactSearch:
         evaluated, options, problem = self.evaluated, self.options, self.problem
         if key in evaluated:
             return evaluated[key][0]
-        if np.any(np.array(key) < self.lowest) or np.any(np.array(key) > self.highest) or not self.steady_bounce(key):
+        outside = np.any(np.array(key) < self.lower_key) or np.any(np.array(key) > self.upper_key)
+        if outside or not self.steady_bounce(key):
             return float("inf")
         values = self.values_at(key)
         for parameter, value in zip(self.contact, values, strict=True):
@@ -669,8 +668,8 @@ def _first_centre(search: _ContactSearch) -> tuple[int, ...]:
     """Where the search starts: the scene's values, with the time constant softened until the bounce is steady
     (`max_bounce_spread`); where none within bounds is, the search goes on without that limit."""
     centre = tuple([0] * search.m)
-    timeconst, highest = search.timeconst, search.highest
-    while timeconst is not None and not search.steady_bounce(centre) and centre[timeconst] + 2 <= highest[timeconst]:
+    timeconst, upper = search.timeconst, search.upper_key
+    while timeconst is not None and not search.steady_bounce(centre) and centre[timeconst] + 2 <= upper[timeconst]:
         centre = search.moved(centre, timeconst, 2)  # a stiffer start than the step resolves: softer, x1.047 at a time
     if not search.steady_bounce(centre):
         search.limited = False  # no time constant within bounds bounces steadily: search without the limit
@@ -701,11 +700,11 @@ def _compass_search(search: _ContactSearch, centre: tuple[int, ...]) -> tuple[tu
             search.cross_fit(list(search.evaluated))
         evaluated = search.evaluated
         # the centre, unless a check or a cross fit beat it
-        search.lowest = min(evaluated, key=lambda k: evaluated[k][0])
-        best_cost = evaluated[search.lowest][0]
-        if search.lowest == centre:
+        cheapest = min(evaluated, key=lambda k: evaluated[k][0])
+        best_cost = evaluated[cheapest][0]
+        if cheapest == centre:
             break
-        centre = search.lowest
+        centre = cheapest
         steps = tuple(s for s in options.search_steps if s < _CHECK) or options.search_steps[-1:]
     return centre, best_cost
 

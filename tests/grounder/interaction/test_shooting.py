@@ -334,3 +334,34 @@ def test_cross_fits_keep_a_lucky_fit_from_resolving_a_wrong_friction() -> None:
     assert crossed.cost <= plain.cost + 1e-9
     assert sum(crossed_costs[f] < plain_costs[f] - 3.0 for f in shared) >= 3
     assert not crossed.resolved[0] or abs(crossed.values[0] / TRUE[0] - 1.0) < 0.2
+
+
+def test_a_restarted_search_can_move_down_to_the_optimum(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A cost whose minimum lies one check (+20%, 8 lattice steps) above the start, searched with one move of 2 steps
+    per round: the first round moves to +2, and its +8 check (+10) costs less and becomes the centre; the restart must
+    move DOWN to +8. The search used to keep its lattice's lower bound and its best point in one attribute, so after a
+    round every point below the best one in any value was out of bounds (cost inf): the restart could only move up,
+    and stopped at +10. Points below the centre but within the bounds now get a real cost."""
+    from grounder.calibration.parameters import resolve_parameters
+    from grounder.interaction.shooting import _compass_search, _contact_fit, _ContactSearch, _first_centre
+
+    model, truth = _thrown()
+    (friction,) = resolve_parameters(model, ["ball.friction.sliding"])
+    unit = np.log(1.2) / 8  # one lattice step
+
+    def fit(self: ShootingProblem, start: np.ndarray, continuation: object = None) -> tuple[float, np.ndarray]:
+        key = np.log(model.geom_friction[1, 0] / friction.nominal) / unit
+        return float((key - 8.0) ** 2), np.zeros(self.size)
+
+    monkeypatch.setattr(ShootingProblem, "fit", fit)
+    options = ShootingOptions(
+        search_steps=(2,), max_moves=1, max_restarts=1, contact_prior_log_sigma=100.0, sampling_draws=0
+    )
+    search = _ContactSearch(model, [friction], [truth], options, None, None)
+    centre, best_cost = _compass_search(search, _first_centre(search))
+    assert centre == (8,) and best_cost == pytest.approx(0.0, abs=1e-4)
+    assert (10,) in search.evaluated  # the first round's check, where the restart started
+    assert search.evaluate((-3,)) == pytest.approx(121.0, rel=1e-6)  # below the centre, within bounds: a real cost
+    assert search.evaluate((-200,)) == float("inf")  # below the bound
+    result = _contact_fit(search, centre, best_cost)
+    assert result.values[0] == pytest.approx(friction.nominal * 1.2)
