@@ -35,11 +35,6 @@ def register_record_files(*names: str) -> None:
             _RECORD_FILES.append(name)
 
 
-def record_files() -> tuple[str, ...]:
-    """The registered records, in the order they were registered."""
-    return tuple(_RECORD_FILES)
-
-
 def check_outside_inputs(out_dir: str | Path, inputs: Iterable[str | Path | None], *, error: type[Exception]) -> None:
     """Refuses an output folder that is one of the inputs or holds one: replacing it would delete that input.
 
@@ -73,9 +68,9 @@ def check_output_dir(
     `offers_overwrite=False`: the command has no --overwrite, so the error does not suggest one.
 
     Raises:
-        `error`: `out_dir` exists, is not empty, and `overwrite` is False, or it is not an
-        image2sim output (holds none of `record_files()`); it is a file, a symbolic link or a mount point; it is or
-        holds one of `inputs`; or another image2sim run is writing it.
+        `error`: `out_dir` exists, is not empty, and `overwrite` is False, or it is not an image2sim output (holds
+        none of the records registered with `register_record_files`); it is a file, a symbolic link or a mount point;
+        it is or holds one of `inputs`; or another image2sim run is writing it.
     """
     out_dir = Path(out_dir)
     inputs = tuple(inputs)  # read twice below
@@ -341,7 +336,7 @@ def require_free_space(folder: str | Path, need_bytes: int, what: str, *, error:
 
 
 def _is_image2sim_output(folder: Path) -> bool:
-    """The folder holds one of the records each command writes at the top of its output (`record_files()`)."""
+    """The folder holds one of the records each command writes at the top of its output (`register_record_files`)."""
     return any((folder / marker).is_file() for marker in _RECORD_FILES)
 
 

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from image2sim_common.outdir import staged_output_dir, write_image
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 from reconstruction import _frames, _sfm, _world
 from reconstruction._colmap import pycolmap
 from reconstruction._preview import write_preview
@@ -117,7 +117,7 @@ def reconstruct(
     options = options or ReconstructOptions()
     _validate(options)
     source = Path(source)
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     seconds: dict[str, float] = {}
     _sfm._quiet_colmap()
     _frames.check_source(source)

@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 from reconstruction import _dense, _objects, _segment, _silhouette, _world
 from reconstruction._types import CameraIntrinsics, ObjectInstance, ReconstructionResult, TexturedMesh
 from reconstruction.errors import ReconstructionError
@@ -146,7 +146,7 @@ def find_objects(
         SegmentationError: no object, or an object that cannot be closed.
     """
     options = options or ObjectsOptions()
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     views = load_views(result)
     roi = region_of_interest(result, options.roi_margin_fraction)
     k, _ = _dense._opencv_k(result.intrinsics, 1.0)

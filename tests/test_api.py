@@ -70,7 +70,7 @@ def test_readme_snippet_imports_exist_and_calls_fit_their_signatures() -> None:
         if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in names:
             target = names[node.func.id]
             signature = inspect.signature(target)
-            args = [ast.Constant(None)] * len(node.args)  # the values do not matter, only their number and names
+            args = [None] * len(node.args)  # the values do not matter, only their number and names
             kwargs = {kw.arg: None for kw in node.keywords if kw.arg is not None}
             try:
                 signature.bind(*args, **kwargs)

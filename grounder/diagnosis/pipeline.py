@@ -57,7 +57,7 @@ from grounder.diagnosis.result import Diagnosis, EffectResult
 from grounder.errors import GrounderError
 from grounder.sim.rollout import default_nthread
 from grounder.sim.scene_files import load_scene_model
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 from reconstruction import check_output_dir
 
 log = logging.getLogger(__name__)
@@ -354,7 +354,7 @@ def diagnose(
     trajs = list(trajs)
     check_inputs(model, trajs, options)
     effects = resolve_effects(list(options.effects) if options.effects is not None else None, model)
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     rng = np.random.default_rng(options.seed)
     held_idx, train_idx = _holdout_split(model, trajs, rng.permutation(len(trajs)).tolist(), options)
     held = [trajs[i] for i in sorted(held_idx)]

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from grounder.errors import GrounderError
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 from reconstruction import (
     CylinderFit,
     CylinderSnapOptions,
@@ -299,7 +299,7 @@ def ground(
         GrounderError, ReconstructionError, SceneExportError: bad input or nothing usable, with what to do.
     """
     options = options or GroundOptions()
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     warm_up: list[threading.Thread] = []
     stop_warm_up = threading.Event()
     try:

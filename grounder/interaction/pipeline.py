@@ -70,7 +70,7 @@ from grounder.interaction.windows import calibrate_constrained, windows
 from grounder.tracking.inputs import read_clip
 from grounder.tracking.options import TrackOptions, TrackResult
 from grounder.tracking.pipeline import track
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 from reconstruction.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -127,7 +127,7 @@ def ground_with_interaction(
     from reconstruction import staged_output_dir
 
     options = options or InteractionOptions()
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     track_options = _track_options(options)
     seconds: dict[str, float] = {}
     _check_inputs(scan, clip, grounded_scene, track_options)

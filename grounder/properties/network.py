@@ -38,7 +38,7 @@ from grounder.properties.training_data import (
     PropertyDataset,
     generate_dataset,
 )
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 
 log = logging.getLogger(__name__)
 
@@ -285,7 +285,7 @@ def train(out_dir: Path, options: TrainOptions | None = None, *, progress: Progr
         The metadata written (normalisation, recipe, validation figures, timings).
     """
     options = options or TrainOptions()
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     torch.set_num_threads(options.num_threads)
     torch.manual_seed(options.torch_seed)
     seconds: dict[str, float] = {}

@@ -42,7 +42,7 @@ import numpy as np
 from grounder.core.json_files import read_json_file
 from grounder.errors import GrounderError, shown
 from grounder.tracking.render import PinholeCamera
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 from image2sim_common.rotations import pose_matrix, quat_from_matrix, rotation_angle_deg
 
 log = logging.getLogger(__name__)
@@ -262,7 +262,7 @@ def measure_markers(
     """Detects and aligns every object marker in every frame with a known camera pose; both planar solutions."""
     from reconstruction import aruco_detector
 
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     detector = aruco_detector(dictionary)
     slot = {m.marker_id: k for k, m in enumerate(markers)}
     templates = [marker_template(dictionary, m.marker_id, m.size_m) for m in markers]

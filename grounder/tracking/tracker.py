@@ -28,7 +28,7 @@ from grounder.tracking.render import (
     scan_feature_models,
 )
 from grounder.tracking.support import StaticGeometry
-from image2sim_common.progress import ProgressFn
+from image2sim_common.progress import ProgressFn, no_progress
 from image2sim_common.rotations import matrix_from_quat, rotation_angle_deg
 
 log = logging.getLogger(__name__)
@@ -453,7 +453,7 @@ def track_frames(
 ) -> tuple[np.ndarray, np.ndarray, list[list[FrameScore]]]:
     """Tracks every object through undistorted frames; returns poses (F, N, 4, 4) (NaN where lost), valid (F, N)
     and scores. `scan`: the scan's frames and the objects' poses in them, for the feature models (`load_scan`)."""
-    report = progress or (lambda stage, done, total: None)
+    report = progress or no_progress
     tracker = _Tracker(renderer, options, scan)
     count, num = len(frames_bgr), len(renderer.names)
     poses = np.full((count, num, 4, 4), np.nan)
