@@ -201,15 +201,40 @@ def _fit_embedding(
         )
     report("intervals", 1, 1)
     w_std = np.sqrt(np.maximum(np.diag(cov_w), 0.0))
-    extra = {
+    extra: dict[str, Any] = {
         "embedding": emb.summaries(space, w, w_std),
         "embedding_objective": {
             "prior_mean_loss": float(prior_loss.mean()),
             "data_only_loss": misfit,
             "noise_scale_s2": data_scale**2,
         },
+        "_space": space,  # for the distribution fit; not written
+        "_w": w,
     }
     return params, values, fits, ev, history, extra
+
+
+def _fit_distribution(
+    base: mujoco.MjModel,
+    calibrated: mujoco.MjModel,
+    params: Sequence[Parameter],
+    fit_trajs: Sequence[Trajectory],
+    options: CalibrateOptions,
+    extra: dict[str, Any],
+    report: ProgressFn,
+) -> Any:
+    """``--distribution``: the start noise of the fitted trajectories, then the population fit
+    (`grounder.calibration.distribution`)."""
+    import grounder.calibration.distribution as dist
+    from grounder.sim.start_noise import measure_start_noise
+
+    noise = measure_start_noise(base, fit_trajs)
+    settings = dist.settings_of(options)
+    if options.mode == "embedding":
+        return dist.fit_embedding_distribution(base, extra["_space"], extra["_w"], fit_trajs, noise, settings, report)
+    return dist.calibrated_raw_distribution(
+        calibrated, params, fit_trajs, noise, settings, options.distribution_params, report
+    )
 
 
 def _check_trajectories(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> None:
@@ -305,6 +330,11 @@ def calibrate(
     except Exception as exc:
         raise GrounderError(f"the calibrated scene does not compile ({exc})") from exc
 
+    distribution = None
+    if options.distribution:
+        distribution = _fit_distribution(base, calibrated, params, fit_trajs, options, extra, report)
+    extra = {k: v for k, v in extra.items() if not k.startswith("_")}
+
     report("validation", 0, 1)
     before: dict[str, ErrorSummary] = {}
     after: dict[str, ErrorSummary] = {}
@@ -330,6 +360,7 @@ def calibrate(
         eval_steps_per_second=ev.steps / max(ev.eval_seconds, 1e-9),
         seconds=time.perf_counter() - tick,
         mode=options.mode,
+        distribution=distribution,
         extra={
             **extra,
             "scene": str(scene),

@@ -49,6 +49,12 @@ class CalibrateOptions:
             its own, one body after another, the others held at their current values. Exact when the loss is a
             sum over bodies that each depend only on their own parameters; each search is then a few dimensions
             instead of all of them, which a small budget covers. Raw mode, per-body parameters (``BODY.*``) only.
+        distribution: Also fit a distribution over the parameters (`grounder.calibration.distribution`), written as
+            ``distribution.json`` beside ``scene.xml``.
+        distribution_params: The parameters given a spread (names among the calibrated ones; empty: every
+            continuous one). Raw mode only: embedding mode spreads the embedding.
+        distribution_samples: Parameter draws per iteration of the distribution fit.
+        distribution_iterations: Iterations of the distribution fit.
     """
 
     params: tuple[str, ...] = ()
@@ -70,6 +76,10 @@ class CalibrateOptions:
     initial: dict[str, float] = field(default_factory=dict)
     separate_bodies: bool = False
     robust_scale: float | None = None
+    distribution: bool = False
+    distribution_params: tuple[str, ...] = ()
+    distribution_samples: int = 64
+    distribution_iterations: int = 6
 
     def __post_init__(self) -> None:
         # Options come from the CLI, a batch file's settings and Python callers: each field is checked for type and
@@ -128,6 +138,18 @@ class CalibrateOptions:
             raise bad("separate_bodies", "true or false")
         object.__setattr__(self, "separate_bodies", bool(self.separate_bodies))
         number("robust_scale", "a finite number > 0", lambda v: v > 0.0, optional=True)
+        if not isinstance(self.distribution, bool | np.bool_):
+            raise bad("distribution", "true or false")
+        object.__setattr__(self, "distribution", bool(self.distribution))
+        if isinstance(self.distribution_params, str) or not isinstance(self.distribution_params, Sequence):
+            raise bad("distribution_params", "a list of parameter names")
+        if not all(isinstance(p, str) for p in self.distribution_params):
+            raise bad("distribution_params", "a list of parameter names (text)")
+        object.__setattr__(self, "distribution_params", tuple(self.distribution_params))
+        count("distribution_samples", 4, 4096)
+        count("distribution_iterations", 1, 1000)
+        if self.distribution_params and self.mode != "raw":
+            raise GrounderError("distribution_params applies to raw mode only (embedding mode spreads the embedding)")
         if self.separate_bodies and self.mode != "raw":
             raise GrounderError("separate_bodies applies to raw mode only")
         if self.robust_scale is not None and self.mode != "raw":

@@ -86,6 +86,8 @@ class CalibrationResult:
         seconds: Wall time of the calibration.
         mode: ``raw`` or ``embedding``.
         out_dir: The calibrated scene folder, when one was written.
+        distribution: With ``CalibrateOptions.distribution``: the fitted parameter distribution
+            (`grounder.calibration.distribution.FittedDistribution`, in the calibrated scene's coordinates).
     """
 
     parameters: tuple[ParameterFit, ...]
@@ -103,6 +105,7 @@ class CalibrationResult:
     mode: str = "raw"
     out_dir: Path | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    distribution: Any = None
 
     @property
     def values(self) -> dict[str, float]:

@@ -21,7 +21,14 @@ from image2sim_common.outdir import write_text_atomic
 
 # Not copied from the scene folder: what calibrate writes anew, the large unchanged reconstruction, and a learned
 # residual, which was trained against the uncalibrated model and no longer applies.
-NOT_COPIED = ("scene.xml", "calibration.json", "report.html", "reconstruction", *RESIDUAL_FILES)
+NOT_COPIED = (
+    "scene.xml",
+    "calibration.json",
+    "distribution.json",
+    "report.html",
+    "reconstruction",
+    *RESIDUAL_FILES,
+)
 
 
 def _check_manifest(scene: Path) -> None:
@@ -82,6 +89,10 @@ def write_calibrated_scene(
         if reloaded.nq != base.nq or reloaded.nv != base.nv:
             raise GrounderError("the written scene.xml does not match the scene's joints")
         (stage / "calibration.json").write_text(json.dumps(result.to_json(), indent=1) + "\n")
+        if result.distribution is not None:
+            from grounder.calibration.distribution import DISTRIBUTION_FILE, write_distribution
+
+            write_distribution(stage / DISTRIBUTION_FILE, result.distribution, result.distribution.parameters(reloaded))
         from grounder.calibration.report import write_report
 
         write_report(stage / "report.html", result, base, report_trajs)
