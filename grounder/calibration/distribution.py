@@ -57,7 +57,8 @@ VERSION = 1
 METHOD = "monte-carlo-em"
 INITIAL_STD_UNIT = 0.1  # raw mode's starting spread: a tenth of each parameter's search range
 MIN_VARIANCE_UNIT = 1e-8  # a floor on the covariance's diagonal (a parameter never collapses to exactly one value)
-_SCALE_ROUNDS = 5  # alternations of weights and observation scales per iteration
+_SCALE_ROUNDS = 5
+PROPOSAL_WIDTH = 1.5  # the proposal's spread over the population's  # alternations of weights and observation scales per iteration
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -328,12 +329,13 @@ class _Likelihood:
 
 
 def _weights_and_scales(
-    sq: np.ndarray, counts: np.ndarray, scales: np.ndarray | None
+    sq: np.ndarray, counts: np.ndarray, scales: np.ndarray | None, log_ratio: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Alternates the trajectories' sample weights and the observation scales (module docstring, steps 2-3).
 
     Args:
         sq: (N, M, 3) squared errors per trajectory, sample and group; counts: (N, 3) numbers summed.
+        log_ratio: (M,) log of population density over proposal density of each sample (importance correction).
 
     Returns:
         weights (N, M), scales (3,), log-likelihood (N, M).
@@ -342,9 +344,10 @@ def _weights_and_scales(
     if scales is None:  # start from the plain average over samples
         scales = np.sqrt(np.where(used, sq.mean(axis=1).sum(axis=0) / np.maximum(counts.sum(axis=0), 1), 1.0))
     scales = np.maximum(scales, 1e-9)
+    shift = np.zeros(sq.shape[1]) if log_ratio is None else log_ratio
     for _ in range(_SCALE_ROUNDS):
         loglik = -0.5 * np.sum(sq / scales**2, axis=2) - np.sum(counts * np.log(scales), axis=1)[:, None]
-        loglik = np.where(np.isfinite(loglik), loglik, -np.inf)
+        loglik = np.where(np.isfinite(loglik), loglik + shift[None], -np.inf)
         top = loglik.max(axis=1, keepdims=True)
         top = np.where(np.isfinite(top), top, 0.0)
         w = np.exp(loglik - top)
@@ -354,7 +357,7 @@ def _weights_and_scales(
         scales = np.where(used, np.sqrt(total / np.maximum(counts.sum(axis=0), 1)), 1.0)
         scales = np.maximum(scales, 1e-9)
     loglik = -0.5 * np.sum(sq / scales**2, axis=2) - np.sum(counts * np.log(scales), axis=1)[:, None]
-    return w, scales, np.where(np.isfinite(loglik), loglik, -np.inf)
+    return w, scales, np.where(np.isfinite(loglik), loglik + shift[None], -np.inf)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -407,7 +410,11 @@ def fit_population(
     scales = None
     for it in range(settings.iterations):
         progress("distribution", it, settings.iterations)
-        z = mean + rng.normal(size=(settings.samples, len(mean))) @ _cholesky(cov).T
+        # The proposal is the population widened (its tails are where the extreme trajectories' posteriors lie);
+        # each sample's weight carries the ratio of the population's density to the proposal's.
+        normal = rng.normal(size=(settings.samples, len(mean)))
+        z = mean + PROPOSAL_WIDTH * normal @ _cholesky(cov).T
+        log_ratio = -0.5 * np.sum(normal**2, axis=1) * (PROPOSAL_WIDTH**2 - 1.0)
         models = [apply_to_model(base, params, row, data=data) for row in values_of(z)]
         starts = [perturbed_starts(base, p.qpos[0], p.qvel[0], noise, settings.samples, rng) for p in pieces]
         sims = rollout_samples(models, pieces, starts, nthread=settings.nthread, max_batch_mb=settings.max_batch_mb)
@@ -417,7 +424,7 @@ def fit_population(
             sq_w, count_w = like.squared(piece.qpos[-1], qpos[:, -1])
             sq[b] += sq_w
             counts[b] += count_w
-        w, scales, loglik = _weights_and_scales(sq, counts, scales)
+        w, scales, loglik = _weights_and_scales(sq, counts, scales, log_ratio)
         post_mean = w @ z  # (N, D)
         mean = post_mean.mean(axis=0)
         dev = z - mean  # (M, D)

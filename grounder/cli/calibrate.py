@@ -34,6 +34,9 @@ _FLAG_OF_OPTION = {
     "rotation_weight": "--rotation-weight",
     "seed": "--seed",
     "params": "--params",
+    "distribution_params": "--distribution-params",
+    "distribution_samples": "--distribution-samples",
+    "distribution_iterations": "--distribution-iterations",
 }
 
 
@@ -50,6 +53,7 @@ def register(app: typer.Typer) -> None:
     """Adds the calibration commands to the ``image2sim`` app."""
     _add_calibrate(app)
     _add_rollout(app)
+    _add_randomize(app)
     _add_import_trajectories(app)
     _add_batch(app)
 
@@ -86,9 +90,29 @@ def _add_calibrate(app: typer.Typer) -> None:
         local_iterations: Annotated[int, typer.Option(help="mujoco.minimize least-squares iterations.")] = 10,
         rotation_weight: Annotated[float, typer.Option(help="Loss weight: percent of size per degree.")] = 0.0,
         seed: Annotated[int, typer.Option(help="Seed of the global search.")] = 0,
+        distribution: Annotated[
+            bool,
+            typer.Option(
+                "--distribution",
+                help="Also fit a distribution over the parameters (Monte Carlo EM): distribution.json, for "
+                "`rollout --samples` and `randomize`.",
+            ),
+        ] = False,
+        distribution_params: Annotated[
+            list[str] | None,
+            typer.Option(
+                "--distribution-params",
+                help="Parameters given a spread (names among --params; default: every continuous one).",
+            ),
+        ] = None,
+        distribution_samples: Annotated[
+            int, typer.Option(help="Parameter draws per iteration of the distribution fit.")
+        ] = 64,
+        distribution_iterations: Annotated[int, typer.Option(help="Iterations of the distribution fit.")] = 6,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
     ) -> None:
-        """Fit a scene's physical parameters to recorded trajectories: scene.xml, calibration.json, report.html."""
+        """Fit a scene's physical parameters to recorded trajectories: scene.xml, calibration.json, report.html
+        (and with --distribution, distribution.json)."""
         setup_logging(verbose)
         with user_errors_exit_2():
             from grounder.calibration.fit import calibrate as run_calibrate
@@ -112,6 +136,10 @@ def _add_calibrate(app: typer.Typer) -> None:
                     local_iterations=local_iterations,
                     rotation_weight=rotation_weight,
                     seed=seed,
+                    distribution=distribution,
+                    distribution_params=_split_params(distribution_params),
+                    distribution_samples=distribution_samples,
+                    distribution_iterations=distribution_iterations,
                 )
             except GrounderError as exc:  # named by the option's field: say the flag the user typed
                 fail(_as_flag(str(exc)))
@@ -132,12 +160,19 @@ def _add_calibrate(app: typer.Typer) -> None:
                 f"rotation {before.rotation_deg.mean():.1f} -> {after.rotation_deg.mean():.1f} deg "
                 f"({len(after.names)} trajectories)"
             )
+        if result.distribution is not None:
+            dist = result.distribution
+            for row in dist.summary(dist.parameters(result.model)):
+                typer.echo(
+                    f"{row['name']:32s} distribution: mean {row['mean']:.4g}, std {row['std']:.4g} "
+                    f"(90%: {row['p05']:.4g} to {row['p95']:.4g}) {row['unit']}"
+                )
         typer.echo(f"wrote {out}")
 
 
 def _add_rollout(app: typer.Typer) -> None:
     """Adds ``rollout``: re-simulate recorded trajectories (`grounder.sim.rollout_files.run_rollout`)."""
-    from grounder.cli.common import setup_logging, user_errors_exit_2
+    from grounder.cli.common import require, setup_logging, user_errors_exit_2
 
     @app.command()
     def rollout(
@@ -151,16 +186,64 @@ def _add_rollout(app: typer.Typer) -> None:
             bool,
             typer.Option(help="Replace a non-empty output folder (its files are removed) once the rollouts are done."),
         ] = False,
+        samples: Annotated[
+            int | None,
+            typer.Option(
+                "--samples",
+                help="Simulate each trajectory K times from the scene's distribution.json (parameters and start "
+                "noise): NAME.npz is the median, NAME.samples.npz the K samples.",
+            ),
+        ] = None,
+        seed: Annotated[int, typer.Option(help="Seed of the draws (with --samples).")] = 0,
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
     ) -> None:
         """Simulate every trajectory from its first state with its controls; same file names in the output."""
         setup_logging(verbose)
+        require(("--seed", seed, 0 <= seed < 2**32, "between 0 and 2^32 - 1"))
         with user_errors_exit_2():
-            from grounder.sim.rollout_files import run_rollout
+            from grounder.sim.rollout_files import MAX_SAMPLES, run_rollout, run_sampled_rollout
 
+            if samples is not None:
+                require(("--samples", samples, 1 <= samples <= MAX_SAMPLES, f"between 1 and {MAX_SAMPLES}"))
+                medians, _ = run_sampled_rollout(
+                    scene, traj_dir, out, samples=samples, seed=seed, overwrite=overwrite, use_residual=not no_residual
+                )
+                typer.echo(
+                    f"simulated {len(medians)} trajectories x {samples} samples with MuJoCo (distribution.json); "
+                    f"wrote {out}"
+                )
+                return
             preds, used_residual = run_rollout(scene, traj_dir, out, use_residual=not no_residual, overwrite=overwrite)
         what = "MuJoCo + residual" if used_residual else "MuJoCo"
         typer.echo(f"simulated {len(preds)} trajectories with {what}; wrote {out}")
+
+
+def _add_randomize(app: typer.Typer) -> None:
+    """Adds ``randomize``: domain-randomisation variants drawn from a calibrated scene's distribution.json."""
+    from grounder.cli.common import require, setup_logging, user_errors_exit_2
+
+    @app.command()
+    def randomize(
+        scene: Annotated[Path, typer.Argument(help="A scene folder written by `calibrate --distribution`.")],
+        out: Annotated[Path, typer.Option("-o", "--out", help="Output folder for variant_NNN.xml + variants.json.")],
+        n: Annotated[int, typer.Option("-n", help="Number of variants.")] = 8,
+        seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+        overwrite: Annotated[bool, typer.Option(help="Replace a non-empty output folder.")] = False,
+        verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
+    ) -> None:
+        """Scene variants with the calibrated parameters drawn from the fitted distribution (distribution.json)."""
+        from grounder.calibration.randomize import MAX_VARIANTS
+
+        setup_logging(verbose)
+        require(
+            ("-n", n, 1 <= n <= MAX_VARIANTS, f"between 1 and {MAX_VARIANTS}"),
+            ("--seed", seed, 0 <= seed < 2**32, "between 0 and 2^32 - 1"),
+        )
+        with user_errors_exit_2():
+            from grounder.calibration.randomize import write_randomized_variants
+
+            paths = write_randomized_variants(scene, out, n, seed, overwrite=overwrite)
+        typer.echo(f"wrote {len(paths)} variants to {out}")
 
 
 def _add_import_trajectories(app: typer.Typer) -> None:

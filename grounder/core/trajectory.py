@@ -403,11 +403,15 @@ def _dims(traj: Trajectory) -> str:
     return f"nq={traj.nq}, nv={traj.nv}, nu={'none (no ctrl)' if traj.ctrl is None else traj.nu}"
 
 
+SAMPLES_SUFFIX = ".samples.npz"  # a fan of sampled simulations (`grounder.sim.rollout_files`), not a trajectory
+
+
 def load_trajectories(directory: str | os.PathLike[str], model: mujoco.MjModel | None = None) -> list[Trajectory]:
     """Reads every ``*.npz`` trajectory in a directory, in natural name order (``toss_2`` before ``toss_10``).
 
     Args:
-        directory: Folder of trajectory files; other files and sub-folders are ignored.
+        directory: Folder of trajectory files; other files and sub-folders are ignored, and so are the sample fans
+            ``*.samples.npz`` that ``image2sim rollout --samples`` writes beside each median trajectory.
         model: If given, each trajectory is checked with :func:`validate_against_model`.
 
     Returns:
@@ -427,7 +431,7 @@ def load_trajectories(directory: str | os.PathLike[str], model: mujoco.MjModel |
             f"or use load_trajectory for a single file"
         )
     paths = sorted(
-        (p for p in directory.iterdir() if p.suffix == _SUFFIX and p.is_file()),
+        (p for p in directory.iterdir() if p.suffix == _SUFFIX and not p.name.endswith(SAMPLES_SUFFIX) and p.is_file()),
         key=lambda p: _natural_key(p.stem),
     )
     if not paths:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -30,7 +31,7 @@ from grounder.sim.rollout import free_joints
 from grounder.sim.sampled import median_trajectory
 from image2sim_common.rotations import quat_angle_rad
 
-BANDS = (0.5, 0.9)
+BANDS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)  # the reliability curve's levels; 0.5 and 0.9 reported
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -127,10 +128,10 @@ def score_samples(
     )
 
 
-def summarise(scores: Sequence[SampleScores]) -> dict[str, float]:
+def summarise(scores: Sequence[SampleScores]) -> dict[str, Any]:
     """Means over trajectories (coverage: over all their steps)."""
     steps = sum(s.steps for s in scores)
-    out = {
+    out: dict[str, Any] = {
         "energy": float(np.mean([s.energy for s in scores])),
         "energy_position": float(np.mean([s.energy_position for s in scores])),
         "energy_rotation": float(np.mean([s.energy_rotation for s in scores])),
@@ -140,7 +141,16 @@ def summarise(scores: Sequence[SampleScores]) -> dict[str, float]:
         "median_rotation_deg": float(np.mean([s.median_rotation_deg for s in scores])),
         "trajectories": len(scores),
     }
+    out["reliability_levels"] = list(BANDS)
+    out["reliability_position"] = [
+        sum(s.covered_position[i] for s in scores) / max(steps, 1) for i in range(len(BANDS))
+    ]
+    out["reliability_rotation"] = [
+        sum(s.covered_rotation[i] for s in scores) / max(steps, 1) for i in range(len(BANDS))
+    ]
     for i, level in enumerate(BANDS):
+        if level not in (0.5, 0.9):
+            continue
         tag = f"{round(level * 100)}"
         out[f"coverage{tag}_position"] = sum(s.covered_position[i] for s in scores) / max(steps, 1)
         out[f"coverage{tag}_rotation"] = sum(s.covered_rotation[i] for s in scores) / max(steps, 1)

@@ -73,7 +73,7 @@ def rollout_samples(
         for col, b in enumerate(group):
             qpos, qvel = starts[b]
             if qpos.shape != (k_count, base.nq) or qvel.shape != (k_count, base.nv):
-                raise GrounderError(f"starts of trajectory {trajs[b].name}: expected shapes ({k_count}, nq), ({k_count}, nv)")
+                raise GrounderError(f"starts of {trajs[b].name}: expected shapes ({k_count}, nq), ({k_count}, nv)")
             for k in range(k_count):
                 states0[k, col] = sim.initial_state(base, qpos[k], qvel[k], data)
         per_model_bytes = len(group) * (batch.nstep + 1) * nstate * 8 * 2

@@ -8,8 +8,10 @@ guess of it.
 `measure_start_noise` fits, per trajectory, a quadratic in time to its first `WINDOW` samples in the model's
 tangent space (each sample's displacement from the first one, `mujoco.mj_differentiatePos`: metres, and radians in
 the body frame for a free joint's or ball joint's rotation) and reads the error of the recorded first state against
-the fit: the fitted displacement at the first time (pose error) and the recorded velocity minus the fitted slope
-(velocity error; a free joint's angular velocity is in the body frame both in qvel and in the tangent space). A
+the fit: the fitted displacement at the first time (pose error, divided by sqrt(1 - h) with h the first sample's
+leverage in the fit, since the fit is itself pulled toward that sample's error) and the recorded velocity minus the
+fitted slope (velocity error; a free joint's angular velocity is in the body frame both in qvel and in the tangent
+space). A
 quadratic is exact for free flight (a parabola under gravity, a constant body rate for a body spinning freely about
 a principal axis or with isotropic inertia) and a fair local fit of any smooth motion over a few frames. Across
 trajectories, each tangent component's error scale is the robust one about zero, 1.4826 x the median absolute
@@ -105,7 +107,9 @@ def first_state_errors(
         mujoco.mj_differentiatePos(model, disp[k], 1.0, traj.qpos[0], traj.qpos[k])
     design = np.stack([np.ones(window), time_s, time_s**2], axis=1)
     coef, *_ = np.linalg.lstsq(design, disp, rcond=None)
-    return -coef[0], traj.qvel[0] - coef[1]  # recorded (displacement 0) minus fitted
+    leverage = float(design[0] @ np.linalg.solve(design.T @ design, design[0]))
+    # recorded (displacement 0) minus fitted; the residual of a fitted sample is (1 - h) times its error on average
+    return -coef[0] / np.sqrt(max(1.0 - leverage, 1e-6)), traj.qvel[0] - coef[1]
 
 
 def measure_start_noise(model: mujoco.MjModel, trajs: Sequence[Trajectory], window: int = WINDOW) -> StartNoise:
