@@ -9,7 +9,10 @@
 - `embedding`: embedding mode, the property embedding as the searched quantity;
 - `scene_output`: writing the calibrated scene folder;
 - `report`: the calibration's ``report.html``;
-- `batch`: many calibrations on Ray, resumable; `batch_jobs`: its jobs file; `batch_output`: its output folder.
+- `batch`: many calibrations on Ray, resumable; `batch_jobs`: its jobs file; `batch_output`: its output folder;
+- `distribution`: ``--distribution``, a fitted distribution over the parameters (``distribution.json``);
+- `randomize`: domain-randomisation variants drawn from it (``image2sim randomize``);
+- `known_case`: tosses whose friction and damping ratio vary with a known mean and spread (the fit's check).
 
 The names below are loaded on first use (PEP 562), so that importing one module does not import them all.
 """
@@ -39,6 +42,9 @@ _LAZY = {
     "run_batch": "grounder.calibration.batch",
     "Job": "grounder.calibration.batch_jobs",
     "load_jobs": "grounder.calibration.batch_jobs",
+    "FittedDistribution": "grounder.calibration.distribution",
+    "read_distribution": "grounder.calibration.distribution",
+    "write_randomized_variants": "grounder.calibration.randomize",
 }
 
 
@@ -48,10 +54,12 @@ __getattr__ = lazy_attributes(__name__, _LAZY)
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and editors
     from grounder.calibration.batch import BatchSummary, run_batch
     from grounder.calibration.batch_jobs import Job, load_jobs
+    from grounder.calibration.distribution import FittedDistribution, read_distribution
     from grounder.calibration.evaluator import Evaluator
     from grounder.calibration.fit import calibrate, split_names
     from grounder.calibration.options import CalibrateOptions
     from grounder.calibration.parameters import Parameter, apply_to_model, apply_to_spec, resolve_parameters
+    from grounder.calibration.randomize import write_randomized_variants
     from grounder.calibration.report import write_report
     from grounder.calibration.result import CalibrationResult, ErrorSummary, ParameterFit
     from grounder.calibration.scene_output import write_calibrated_scene
@@ -62,6 +70,7 @@ __all__ = [  # spelled out (not built from _LAZY) so that linters and type check
     "CalibrationResult",
     "ErrorSummary",
     "Evaluator",
+    "FittedDistribution",
     "Job",
     "Parameter",
     "ParameterFit",
@@ -69,9 +78,11 @@ __all__ = [  # spelled out (not built from _LAZY) so that linters and type check
     "apply_to_spec",
     "calibrate",
     "load_jobs",
+    "read_distribution",
     "resolve_parameters",
     "run_batch",
     "split_names",
     "write_calibrated_scene",
+    "write_randomized_variants",
     "write_report",
 ]

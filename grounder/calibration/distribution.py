@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -57,8 +57,8 @@ VERSION = 1
 METHOD = "monte-carlo-em"
 INITIAL_STD_UNIT = 0.1  # raw mode's starting spread: a tenth of each parameter's search range
 MIN_VARIANCE_UNIT = 1e-8  # a floor on the covariance's diagonal (a parameter never collapses to exactly one value)
-_SCALE_ROUNDS = 5
-PROPOSAL_WIDTH = 1.5  # the proposal's spread over the population's  # alternations of weights and observation scales per iteration
+_SCALE_ROUNDS = 5  # alternations of weights and observation scales per iteration
+PROPOSAL_WIDTH = 1.5  # the proposal's spread over the population's
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -590,15 +590,3 @@ def calibrated_raw_distribution(
     on_calibrated = resolve_parameters(calibrated, specs)
     values = np.array([p.nominal for p in on_calibrated], np.float64)
     return fit_raw_distribution(calibrated, on_calibrated, values, trajs, noise, settings, progress=progress)
-
-
-def distribution_values(
-    dist: FittedDistribution, model: mujoco.MjModel, count: int, seed: int
-) -> tuple[list[Parameter], np.ndarray]:
-    """The distribution's parameters resolved on ``model`` and ``count`` seeded draws of their values."""
-    params = dist.parameters(model)
-    return params, dist.draw_values(params, count, np.random.default_rng(seed))
-
-
-def summary_rows(dist: FittedDistribution, model: mujoco.MjModel) -> list[Mapping[str, Any]]:
-    return dist.summary(dist.parameters(model))

@@ -82,5 +82,6 @@ def varying_tosses(
             time_s=time_s, qpos=np.repeat(qpos0[None], num_samples, 0), qvel=np.repeat(qvel0[None], num_samples, 0)
         )
         pred = simulate(model, [seed_traj], stable=True)[0]
+        assert isinstance(pred, Trajectory)
         trajs.append(Trajectory(time_s=time_s, qpos=pred.qpos, qvel=pred.qvel, name=f"toss_{i:03d}"))
     return KnownCase(xml=xml, trajectories=trajs, values=values, mean=np.asarray(mean), std=np.asarray(std))

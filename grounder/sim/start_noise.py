@@ -10,8 +10,8 @@ tangent space (each sample's displacement from the first one, `mujoco.mj_differe
 the body frame for a free joint's or ball joint's rotation) and reads the error of the recorded first state against
 the fit: the fitted displacement at the first time (pose error, divided by sqrt(1 - h) with h the first sample's
 leverage in the fit, since the fit is itself pulled toward that sample's error) and the recorded velocity minus the
-fitted slope (velocity error; a free joint's angular velocity is in the body frame both in qvel and in the tangent
-space). A
+fitted slope (velocity error, less the slope's own variance from the pose noise; a free joint's angular velocity
+is in the body frame both in qvel and in the tangent space). A
 quadratic is exact for free flight (a parabola under gravity, a constant body rate for a body spinning freely about
 a principal axis or with isotropic inertia) and a fair local fit of any smooth motion over a few frames. Across
 trajectories, each tangent component's error scale is the robust one about zero, 1.4826 x the median absolute
@@ -96,9 +96,10 @@ class StartNoise:
 
 def first_state_errors(
     model: mujoco.MjModel, traj: Trajectory, window: int = WINDOW
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """(pose error (nv,), velocity error (nv,)) of a trajectory's first recorded state against a quadratic fitted to
-    its first ``window`` samples in tangent space (module docstring); None when it has fewer samples."""
+) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """(pose error (nv,), velocity error (nv,), the fit's slope variance per unit pose variance) of a trajectory's
+    first recorded state against a quadratic fitted to its first ``window`` samples in tangent space (module
+    docstring); None when it has fewer samples."""
     if traj.num_steps < window or model.nv == 0:
         return None
     time_s = traj.time_s[:window] - traj.time_s[0]
@@ -107,9 +108,10 @@ def first_state_errors(
         mujoco.mj_differentiatePos(model, disp[k], 1.0, traj.qpos[0], traj.qpos[k])
     design = np.stack([np.ones(window), time_s, time_s**2], axis=1)
     coef, *_ = np.linalg.lstsq(design, disp, rcond=None)
-    leverage = float(design[0] @ np.linalg.solve(design.T @ design, design[0]))
+    inverse = np.linalg.inv(design.T @ design)
+    leverage = float(design[0] @ inverse @ design[0])
     # recorded (displacement 0) minus fitted; the residual of a fitted sample is (1 - h) times its error on average
-    return -coef[0] / np.sqrt(max(1.0 - leverage, 1e-6)), traj.qvel[0] - coef[1]
+    return -coef[0] / np.sqrt(max(1.0 - leverage, 1e-6)), traj.qvel[0] - coef[1], float(inverse[1, 1])
 
 
 def measure_start_noise(model: mujoco.MjModel, trajs: Sequence[Trajectory], window: int = WINDOW) -> StartNoise:
@@ -126,9 +128,13 @@ def measure_start_noise(model: mujoco.MjModel, trajs: Sequence[Trajectory], wind
         return StartNoise.zero(model.nv)
     pose = np.stack([e[0] for e in errors])
     vel = np.stack([e[1] for e in errors])
+    pose_std = MAD_TO_STD * np.median(np.abs(pose), axis=0)
+    # the recorded velocity minus the fitted slope also holds the slope's own error (pose noise through the fit)
+    slope_var = pose_std**2 * float(np.median([e[2] for e in errors]))
+    vel_var = (MAD_TO_STD * np.median(np.abs(vel), axis=0)) ** 2 - slope_var
     return StartNoise(
-        pose_std=MAD_TO_STD * np.median(np.abs(pose), axis=0),
-        velocity_std=MAD_TO_STD * np.median(np.abs(vel), axis=0),
+        pose_std=pose_std,
+        velocity_std=np.sqrt(np.maximum(vel_var, 0.0)),
         trajectories=len(errors),
         window=window,
     )
