@@ -131,6 +131,7 @@ def known_answer(count: int, seed: int, settings: EMSettings) -> dict:
         distribution=True,
         distribution_samples=settings.samples,
         distribution_iterations=settings.iterations,
+        distribution_centre="point" if settings.fixed_mean else "fitted",
         seed=seed,
     )
     tick = time.perf_counter()
@@ -255,11 +256,12 @@ def main() -> None:
     parser.add_argument("--known-count", type=int, default=40)
     parser.add_argument("--known-seeds", type=int, nargs="*", default=[101, 102, 103])
     parser.add_argument("--skip-real", action="store_true")
+    parser.add_argument("--fitted-mean", action="store_true", help="fit the mean too (calibrate's default: point)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     figures: dict = {"command": " ".join(sys.argv)}
-    settings = EMSettings(samples=args.fit_samples, iterations=args.iterations)
+    settings = EMSettings(samples=args.fit_samples, iterations=args.iterations, fixed_mean=not args.fitted_mean)
 
     print("known answer: friction and damping ratio ~ N(0.5, 0.1^2) per toss")
     figures["known"] = []

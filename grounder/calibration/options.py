@@ -55,6 +55,9 @@ class CalibrateOptions:
             continuous one). Raw mode only: embedding mode spreads the embedding.
         distribution_samples: Parameter draws per iteration of the distribution fit.
         distribution_iterations: Iterations of the distribution fit.
+        distribution_centre: ``point``: the distribution is centred on the calibrated values and the fit finds its
+            spread (what sampled rollouts are judged by, their median, stays the calibrated scene's); ``fitted``: the
+            mean is fitted too (raw mode; embedding mode always fits both).
     """
 
     params: tuple[str, ...] = ()
@@ -80,6 +83,7 @@ class CalibrateOptions:
     distribution_params: tuple[str, ...] = ()
     distribution_samples: int = 64
     distribution_iterations: int = 6
+    distribution_centre: Literal["point", "fitted"] = "point"
 
     def __post_init__(self) -> None:
         # Options come from the CLI, a batch file's settings and Python callers: each field is checked for type and
@@ -148,6 +152,8 @@ class CalibrateOptions:
         object.__setattr__(self, "distribution_params", tuple(self.distribution_params))
         count("distribution_samples", 4, 4096)
         count("distribution_iterations", 1, 1000)
+        if self.distribution_centre not in ("point", "fitted"):
+            raise bad("distribution_centre", "'point' or 'fitted'")
         if self.distribution_params and self.mode != "raw":
             raise GrounderError("distribution_params applies to raw mode only (embedding mode spreads the embedding)")
         if self.separate_bodies and self.mode != "raw":

@@ -37,6 +37,7 @@ _FLAG_OF_OPTION = {
     "distribution_params": "--distribution-params",
     "distribution_samples": "--distribution-samples",
     "distribution_iterations": "--distribution-iterations",
+    "distribution_centre": "--distribution-centre",
 }
 
 
@@ -109,6 +110,13 @@ def _add_calibrate(app: typer.Typer) -> None:
             int, typer.Option(help="Parameter draws per iteration of the distribution fit.")
         ] = 64,
         distribution_iterations: Annotated[int, typer.Option(help="Iterations of the distribution fit.")] = 6,
+        distribution_centre: Annotated[
+            str,
+            typer.Option(
+                help="point: centre the distribution on the calibrated values and fit its spread; fitted: fit the "
+                "mean too (raw mode)."
+            ),
+        ] = "point",
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
     ) -> None:
         """Fit a scene's physical parameters to recorded trajectories: scene.xml, calibration.json, report.html
@@ -140,6 +148,7 @@ def _add_calibrate(app: typer.Typer) -> None:
                     distribution_params=_split_params(distribution_params),
                     distribution_samples=distribution_samples,
                     distribution_iterations=distribution_iterations,
+                    distribution_centre=distribution_centre,  # type: ignore[arg-type]
                 )
             except GrounderError as exc:  # named by the option's field: say the flag the user typed
                 fail(_as_flag(str(exc)))
@@ -208,10 +217,7 @@ def _add_rollout(app: typer.Typer) -> None:
                 medians, _ = run_sampled_rollout(
                     scene, traj_dir, out, samples=samples, seed=seed, overwrite=overwrite, use_residual=not no_residual
                 )
-                typer.echo(
-                    f"simulated {len(medians)} trajectories x {samples} samples with MuJoCo (distribution.json); "
-                    f"wrote {out}"
-                )
+                typer.echo(f"simulated {len(medians)} trajectories x {samples} samples wrote {out}")
                 return
             preds, used_residual = run_rollout(scene, traj_dir, out, use_residual=not no_residual, overwrite=overwrite)
         what = "MuJoCo + residual" if used_residual else "MuJoCo"

@@ -130,6 +130,14 @@ def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.
         for i in range(meta.layers + 1):
             expected[f"nets.{b}.{2 * i}.weight"] = (widths[i + 1], widths[i])
             expected[f"nets.{b}.{2 * i}.bias"] = (widths[i + 1],)
+    if meta.spread_hidden:  # the learned spread (grounder.residual.spread): one hidden layer per body
+        expected["spread.bound"] = (num_b, num_o)
+        expected["spread.gain"] = (num_b,)
+        for b in range(num_b):
+            expected[f"spread.nets.{b}.0.weight"] = (meta.spread_hidden, num_f)
+            expected[f"spread.nets.{b}.0.bias"] = (meta.spread_hidden,)
+            expected[f"spread.nets.{b}.2.weight"] = (num_o, meta.spread_hidden)
+            expected[f"spread.nets.{b}.2.bias"] = (num_o,)
     sizes = (
         f"{len(meta.bodies)} {'joints' if meta.space == 'joint' else 'bodies'}, {num_f} features, {num_o} outputs, "
         f"hidden={meta.hidden}, layers={meta.layers}, gate.coverage_centres={meta.gate.coverage_centres}"
@@ -158,9 +166,9 @@ def _checked_state(state: Any, meta: ResidualMeta, where: Path) -> dict[str, np.
                 ) from exc
             if not np.isfinite(array).all():
                 problem = "holds NaN or infinite values"
-            elif name in ("feat_std", "out_bound", "coverage_dist") and not (array > 0.0).all():
+            elif name in ("feat_std", "out_bound", "coverage_dist", "spread.bound") and not (array > 0.0).all():
                 problem = "holds values <= 0 (the residual divides by them)"
-            elif name == "out_gain" and not (array >= 0.0).all():
+            elif name in ("out_gain", "spread.gain") and not (array >= 0.0).all():
                 problem = "holds a negative output gain"
             elif name == "range_hi" and not (array >= arrays["range_lo"]).all():
                 problem = "is below range_lo somewhere"

@@ -316,6 +316,10 @@ class NumpyResidual:
             self.layers.append(layers)
         self.kernel_args = self._kernel_args()
         self._kernel: Callable[..., None] | None = None
+        from grounder.residual.spread import NumpySpread
+
+        # the learned spread (grounder.residual.spread), used only by sampled steps (`correct` with an rng)
+        self.spread = NumpySpread(state, num_b) if meta.spread_hidden else None
 
     def _kernel_args(self) -> FreeKernelArgs:
         """The constants of :func:`grounder.residual.kernel.correct_free_bodies` (see :meth:`correct_one`)."""
@@ -400,11 +404,18 @@ class NumpyResidual:
         kernel(qpos0, qvel0, qpos, qvel, *self.kernel_args)
 
     def correct(
-        self, qpos0: np.ndarray, qvel0: np.ndarray, qpos_sim: np.ndarray, qvel_sim: np.ndarray
+        self,
+        qpos0: np.ndarray,
+        qvel0: np.ndarray,
+        qpos_sim: np.ndarray,
+        qvel_sim: np.ndarray,
+        rng: np.random.Generator | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """States after one period: MuJoCo's ``(qpos_sim, qvel_sim)`` from ``(qpos0, qvel0)``, corrected.
 
-        All (N, nq) / (N, nv). Applies the gated correction of the starting state, then the energy cap.
+        All (N, nq) / (N, nv). Applies the gated correction of the starting state, then the energy cap. With
+        ``rng`` and a learned spread, a draw of the spread (its standard deviations times standard normals) is then
+        added the same way.
         """
         feats, rots = body_features(qpos0, qvel0, self.bodies)
         qpos, qvel = apply_correction(qpos_sim, qvel_sim, self(feats), rots, self.bodies)
@@ -412,6 +423,13 @@ class NumpyResidual:
         start = [body_energy(qpos0, qvel0, b, self.gravity) for b in self.bodies]
         sim = [body_energy(qpos_sim, qvel_sim, b, self.gravity) for b in self.bodies]
         cap_energy(start, sim, qpos, qvel, self.bodies, self.gravity, fraction)
+        if rng is not None and self.spread is not None:
+            # the drawn part after the cap: the cap keeps the mean from adding energy, and applied to zero-mean
+            # draws it would only ever take energy away (a bias, not a spread)
+            z = (feats - self.feat_mean) / self.feat_std
+            sd = self.spread.std(z, self.gate(feats))
+            if np.any(sd > 0.0):
+                qpos, qvel = apply_correction(qpos, qvel, sd * rng.normal(size=sd.shape), rots, self.bodies)
         return qpos, qvel
 
 

@@ -112,6 +112,8 @@ class ResidualMeta:
         space: ``free`` (body-frame corrections of free bodies, ``grounder.residual.free_body``) or ``joint``
             (hinge and slide joints, ``grounder.residual.joint``; ``bodies`` then names the joints).
         feature_names, output_names: The network's inputs and outputs (fixed for ``free``, per scene for ``joint``).
+        spread_hidden: Width of the learned spread's hidden layer (``grounder.residual.spread``); 0: no spread (a
+            deterministic residual, and every residual written before the spread existed).
     """
 
     period_steps: int
@@ -126,6 +128,7 @@ class ResidualMeta:
     scene_files_sha256: dict[str, str] | None = None
     feature_names: tuple[str, ...] = FEATURE_NAMES
     output_names: tuple[str, ...] = OUTPUT_NAMES
+    spread_hidden: int = 0
 
     @property
     def period_s(self) -> float:
@@ -160,6 +163,7 @@ class ResidualMeta:
             "scene_xml_sha256": self.scene_xml_sha256,
             **({} if self.scene_files_sha256 is None else {"scene_files_sha256": dict(self.scene_files_sha256)}),
             "files": {"weights": WEIGHTS_FILE, "onnx": ONNX_FILE},
+            **({"spread": {"hidden": self.spread_hidden}} if self.spread_hidden else {}),
             "training": self.training,
         }
 
@@ -222,7 +226,19 @@ class ResidualMeta:
             feature_names=features,
             output_names=outputs,
             scene_files_sha256=None if files_sha256 is None else dict(files_sha256),
+            spread_hidden=_spread_hidden(raw, where, space),
         )
+
+
+def _spread_hidden(raw: dict[str, Any], where: Path, space: str) -> int:
+    """``spread.hidden`` of ``residual.json``: absent (0) or an integer in [1, 4096], free-body residuals only."""
+    if "spread" not in raw:
+        return 0
+    spread = _MetaFields(_MetaFields(raw, where).value("spread", dict, "an object"), where, "spread.")
+    hidden = spread.integer("hidden", 1, 4096)
+    if space != "free":
+        raise GrounderError(f"{where}: a learned spread is for free-body residuals only; {RETRAIN}")
+    return hidden
 
 
 RETRAIN = "retrain with `image2sim residual train`"

@@ -45,6 +45,12 @@ class ResidualOptions:
             off rather than shipped.
         bound_quantile: Each output component is capped at this quantile of the absolute training targets.
         gate: Where the correction is active (see ``GateOptions``).
+        spread: Also learn a state-dependent spread of the correction (``grounder.residual.spread``; free bodies).
+        spread_hidden: Width of the spread's hidden layer.
+        spread_steps: Optimiser steps of its negative log-likelihood fit.
+        spread_gains: Candidate spread gains (0: no spread), chosen by the energy score of sampled rollouts of the
+            held-out trajectories.
+        spread_samples: Sampled rollouts per held-out trajectory for that choice.
         seed: Seeds initialisation, shuffling and k-means.
         num_threads: torch threads (results are reproducible for a given value; 1 is fastest on a busy machine).
     """
@@ -67,6 +73,11 @@ class ResidualOptions:
     gains: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0)
     bound_quantile: float = 0.995
     gate: GateOptions = field(default_factory=GateOptions)
+    spread: bool = True
+    spread_hidden: int = 32
+    spread_steps: int = 400
+    spread_gains: tuple[float, ...] = (0.0, 0.5, 1.0, 2.0)
+    spread_samples: int = 8
     seed: int = 0
     num_threads: int = 1
 
@@ -79,6 +90,8 @@ class ResidualOptions:
             raise GrounderError(f"ctrl_history_s must be in [0, 1] s, got {self.ctrl_history_s}")
         if self.smooth_window < 0 or (self.smooth_window > 2 and self.smooth_window % 2 == 0):
             raise GrounderError(f"smooth_window must be 0 or odd, got {self.smooth_window}")
+        if not all(isinstance(g, int | float) and 0.0 <= g <= 100.0 for g in self.spread_gains):
+            raise GrounderError(f"spread_gains must be numbers in [0, 100], got {shown(self.spread_gains)}")
         if not 0.5 < self.bound_quantile <= 1.0:
             raise GrounderError(f"bound_quantile must be in (0.5, 1], got {self.bound_quantile}")
 
@@ -91,6 +104,9 @@ COUNT_LIMITS = {
     "dagger_rounds": (0, 100),
     "dagger_horizon": (1, 100_000),
     "dagger_stride": (1, 100_000),
+    "spread_hidden": (1, 4096),
+    "spread_steps": (0, 1_000_000),
+    "spread_samples": (2, 1024),
     "seed": (0, 2**32 - 1),  # numpy's and torch's seeds
     "num_threads": (1, 256),
 }

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -148,13 +149,24 @@ class Simulator:
         states[:, self._qvel_at : self._qvel_at + self.model.nv] = qvel
         return states
 
-    def _physics(self, states: np.ndarray, controls: np.ndarray | None, nstep: int) -> np.ndarray:
-        """MuJoCo only: (N, nstate) -> (N, nstep, nstate), batched over threads with `mujoco.rollout`."""
+    def _physics(
+        self,
+        states: np.ndarray,
+        controls: np.ndarray | None,
+        nstep: int,
+        models: Sequence[mujoco.MjModel] | None = None,
+    ) -> np.ndarray:
+        """MuJoCo only: (N, nstate) -> (N, nstep, nstate), batched over threads with `mujoco.rollout`; ``models``:
+        one model per row (parameters drawn per sample), else the scene's."""
         count = min(self.nthread, len(states))
         while len(self._datas) < count:
             self._datas.append(mujoco.MjData(self.model))
         out, _ = mj_rollout.rollout(
-            self.model, self._datas[:count], states, controls if self.model.nu else None, nstep=nstep
+            self.model if models is None else list(models),
+            self._datas[:count],
+            states,
+            controls if self.model.nu else None,
+            nstep=nstep,
         )
         return out
 
@@ -164,10 +176,11 @@ class Simulator:
         states1: np.ndarray,
         ctrl: np.ndarray | None = None,
         ctrl_prev: np.ndarray | None = None,
+        rng: np.random.Generator | None = None,
     ) -> np.ndarray:
         """Applies the residual to states after one period; ``states0`` are the period's starting states,
         ``ctrl`` (N, nu) the controls held over it and ``ctrl_prev`` (N, history, nu) the earlier ones (the
-        joint-space residual sees them)."""
+        joint-space residual sees them); ``rng``: draw the correction from the learned spread."""
         residual = self.residual
         if residual is None:
             return states1
@@ -177,7 +190,7 @@ class Simulator:
         if isinstance(residual, NumpyJointResidual):
             qpos, qvel = residual.correct(*args, ctrl, ctrl_prev)
         else:
-            qpos, qvel = residual.correct(*args)
+            qpos, qvel = residual.correct(*args, rng=rng)
         out = states1.copy()
         out[:, qa : qa + nq] = qpos
         out[:, va : va + nv] = qvel
@@ -252,9 +265,55 @@ class Simulator:
             )
         return preds
 
-    def _rollout_states(self, trajs: Sequence[Trajectory]) -> np.ndarray:
-        """(B, nstep + 1, nstate) states of the hybrid rollout of each trajectory, row 0 the initial state."""
+    def sample(
+        self,
+        trajs: Sequence[Trajectory],
+        starts: Sequence[tuple[np.ndarray, np.ndarray]],
+        rng: np.random.Generator,
+        *,
+        models: Sequence[mujoco.MjModel] | None = None,
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """K sampled rollouts per trajectory: sample k from ``starts[b][0][k], starts[b][1][k]``, with ``models[k]``
+        (default: the scene's), corrections drawn from the residual's learned spread (none without one).
+
+        Returns:
+            Per trajectory, (qpos (K, T, nq), qvel (K, T, nv)) at its recorded times.
+        """
+        count = len(starts[0][0])
+        if self.residual is None:  # MuJoCo alone: every model step in one batched call
+            from grounder.sim.sampled import rollout_samples
+
+            return rollout_samples(models or [self.model] * count, trajs, starts, nthread=self.nthread)
+        rows = [t for t in trajs for _ in range(count)]
+        batch = prepare(self.model, rows)
+        states0 = np.concatenate([self._states(q, v) for q, v in starts])
+        row_models = None if models is None else [m for _ in trajs for m in models]
+        states = self._rollout_states(rows, states0=states0, models=row_models, rng=rng)
+        nq, nv = self.model.nq, self.model.nv
+        out = []
+        for b in range(len(trajs)):
+            picked = states[b * count : (b + 1) * count][:, batch.sample_steps[b * count]]
+            out.append(
+                (
+                    picked[:, :, self._qpos_at : self._qpos_at + nq].copy(),
+                    picked[:, :, self._qvel_at : self._qvel_at + nv].copy(),
+                )
+            )
+        return out
+
+    def _rollout_states(
+        self,
+        trajs: Sequence[Trajectory],
+        *,
+        states0: np.ndarray | None = None,
+        models: Sequence[mujoco.MjModel] | None = None,
+        rng: np.random.Generator | None = None,
+    ) -> np.ndarray:
+        """(B, nstep + 1, nstate) states of the hybrid rollout of each trajectory, row 0 the initial state
+        (``states0`` instead of the recorded first states; ``models`` one per row; ``rng``: sampled corrections)."""
         batch = prepare(self.model, trajs)
+        if states0 is not None:
+            batch = replace(batch, states0=states0)
         period = self.period_steps
         num_periods = -(-batch.nstep // period)
         total = num_periods * period
@@ -272,8 +331,8 @@ class Simulator:
             prev = None
             if controls is not None and history:  # earlier periods' controls, the first one held before the start
                 prev = np.stack([controls[:, max(k - j, 0) * period] for j in range(1, history + 1)], axis=1)
-            block = self._physics(state, ctrl, period)
-            block[:, -1] = self._correct(state, block[:, -1], None if ctrl is None else ctrl[:, 0], prev)
+            block = self._physics(state, ctrl, period, models)
+            block[:, -1] = self._correct(state, block[:, -1], None if ctrl is None else ctrl[:, 0], prev, rng)
             out[:, k * period + 1 : (k + 1) * period + 1] = block
             state = block[:, -1]
         return out[:, : batch.nstep + 1]

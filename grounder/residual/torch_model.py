@@ -187,3 +187,28 @@ def export_onnx(model: ResidualModel, path: Path) -> None:
         dynamo=False,
     )
     onnx.checker.check_model(onnx.load(str(path)))
+
+
+class SpreadModel(nn.Module):
+    """The residual's learned spread (``grounder.residual.spread``): standardised features (N, B, F) and the
+    residual's gate (N, B) -> the standard deviation of each correction output (N, B, 12), bounded by ``bound``
+    (the sigmoid of one small MLP per body) and faded with the gate, times ``gain`` (chosen on held-out rollouts)."""
+
+    bound: torch.Tensor
+    gain: torch.Tensor
+
+    def __init__(
+        self, *, num_bodies: int, hidden: int, num_features: int = NUM_FEATURES, num_outputs: int = NUM_OUTPUTS
+    ):
+        super().__init__()
+        self.nets = nn.ModuleList(
+            nn.Sequential(nn.Linear(num_features, hidden), nn.Tanh(), nn.Linear(hidden, num_outputs))
+            for _ in range(num_bodies)
+        )
+        self.register_buffer("bound", torch.ones(num_bodies, num_outputs, dtype=torch.float64))
+        self.register_buffer("gain", torch.ones(num_bodies, dtype=torch.float64))
+        self.double()
+
+    def forward(self, z: torch.Tensor, gate: torch.Tensor) -> torch.Tensor:
+        outs = [self.bound[b] * torch.sigmoid(net(z[:, b])) for b, net in enumerate(self.nets)]
+        return torch.stack(outs, dim=1) * (gate * self.gain).unsqueeze(-1)

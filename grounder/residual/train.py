@@ -333,11 +333,87 @@ def _fit(torch_model: Any, data: _Transitions, options: ResidualOptions, round_i
     torch_model.eval()
 
 
-def _numpy_residual(torch_model: Any, meta: ResidualMeta, trainer: _Trainer) -> NumpyResidual | NumpyJointResidual:
-    state = {k: v.detach().numpy().copy() for k, v in torch_model.state_dict().items()}
+def _numpy_residual(
+    torch_model: Any, meta: ResidualMeta, trainer: _Trainer, spread_model: Any = None
+) -> NumpyResidual | NumpyJointResidual:
+    state = {k: v.detach().numpy().copy() for k, v in _state_dict(torch_model, spread_model).items()}
     if trainer.space is not None:
         return NumpyJointResidual(state, meta, trainer.space)
     return NumpyResidual(state, meta, trainer.bodies, trainer.model.opt.gravity)
+
+
+def _state_dict(torch_model: Any, spread_model: Any) -> dict[str, Any]:
+    """``residual.pt``'s tensors: the mean's, and the spread's under ``spread.`` when there is one."""
+    from grounder.residual.spread import spread_state
+
+    state = {k: v.detach().clone() for k, v in torch_model.state_dict().items()}
+    return state if spread_model is None else {**state, **spread_state(spread_model)}
+
+
+def _train_spread(
+    torch_model: Any,
+    meta: ResidualMeta,
+    trainer: _Trainer,
+    data: _Transitions,
+    gain: float,
+    scene: Path,
+    trajs: Sequence[Trajectory],
+    select_trajs: Sequence[Trajectory],
+    options: ResidualOptions,
+) -> tuple[Any, ResidualMeta, NumpyResidual | NumpyJointResidual, dict[str, Any]]:
+    """The learned spread (``grounder.residual.spread``) around the mean at its chosen gain, and its gain chosen on
+    sampled rollouts of the held-out trajectories: each start perturbed by the start noise, and the parameters drawn
+    from the scene folder's ``distribution.json`` when it has one (as ``rollout --samples`` draws them)."""
+    import torch
+
+    from grounder.calibration.distribution import DISTRIBUTION_FILE, read_distribution
+    from grounder.calibration.parameters import apply_to_model
+    from grounder.residual.spread import fit_spread, select_spread_gain
+    from grounder.sim.start_noise import measure_start_noise
+
+    spread_model = fit_spread(
+        torch_model,
+        data.feats,
+        data.targets,
+        gain,
+        hidden=options.spread_hidden,
+        steps=options.spread_steps,
+        seed=options.seed,
+    )
+    meta = replace(meta, spread_hidden=options.spread_hidden)
+    residual = _numpy_residual(torch_model, meta, trainer, spread_model)
+    residual.out_gain[:] = gain
+    scene_dir = scene if scene.is_dir() else scene.parent
+    model = trainer.sim.model
+    models = None
+    if (scene_dir / DISTRIBUTION_FILE).is_file():
+        dist = read_distribution(scene_dir / DISTRIBUTION_FILE, model.nv)
+        params = dist.parameters(model)
+        draws = dist.draw_values(params, options.spread_samples, np.random.default_rng(options.seed))
+        models = [apply_to_model(model, params, row) for row in draws]
+        noise = dist.start_noise
+    else:
+        noise = measure_start_noise(model, trajs)
+    spread_gain, scores = select_spread_gain(
+        trainer.sim,
+        residual,
+        select_trajs,
+        options.spread_gains,
+        samples=options.spread_samples,
+        seed=options.seed,
+        noise=noise,
+        models=models,
+    )
+    with torch.no_grad():
+        spread_model.gain.fill_(spread_gain)
+    record = {
+        "gain": spread_gain,
+        "energy_score_by_gain": {str(g): v for g, v in scores.items()},
+        "samples": options.spread_samples,
+        "parameters_from": DISTRIBUTION_FILE if models is not None else "the scene's values",
+    }
+    log.info("held-out energy score per spread gain: %s", scores)
+    return spread_model, meta, residual, record
 
 
 def train_residual(
@@ -405,6 +481,13 @@ def train_residual(
                 "the residual did not improve multi-step rollouts of the held-out trajectories at any gain; "
                 "it is saved with gain 0 (MuJoCo alone)"
             )
+        spread_model, spread_record = None, None
+        if options.spread and space is None and select_trajs:
+            report("residual: spread", 0, 1)
+            spread_model, meta, residual, spread_record = _train_spread(
+                torch_model, meta, trainer, data, gain, Path(scene), trajs, select_trajs, options
+            )
+            report("residual: spread", 1, 1)
         seconds = time.perf_counter() - started
         meta = replace(
             meta,
@@ -420,10 +503,11 @@ def train_residual(
                 after=after,
                 seconds=seconds,
                 joint=space is not None,
-            ),
+            )
+            | ({"spread": spread_record} if spread_record is not None else {}),
         )
         with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene,)) as staging:
-            _write_residual_files(staging, Path(scene), scene_xml, torch_model, meta)
+            _write_residual_files(staging, Path(scene), scene_xml, torch_model, meta, spread_model)
             write_residual_report(
                 staging / REPORT_FILE,
                 _residual_report(
@@ -576,7 +660,9 @@ def _training_record(
     }
 
 
-def _write_residual_files(staging: Path, scene: Path, scene_xml: Path, torch_model: Any, meta: ResidualMeta) -> None:
+def _write_residual_files(
+    staging: Path, scene: Path, scene_xml: Path, torch_model: Any, meta: ResidualMeta, spread_model: Any = None
+) -> None:
     """Writes the residual scene folder's files into ``staging``: the scene's files (without any old residual; the
     MJCF as ``scene.xml``), the weights, the metadata and the ONNX export."""
     import torch
@@ -586,7 +672,7 @@ def _write_residual_files(staging: Path, scene: Path, scene_xml: Path, torch_mod
     # the scene's files without any old residual; the MJCF as scene.xml
     copy_scene_files(scene, staging, skip=(*RESIDUAL_FILES, SCENE_XML))
     shutil.copy2(scene_xml, staging / SCENE_XML)
-    torch.save({k: v.detach().clone() for k, v in torch_model.state_dict().items()}, staging / WEIGHTS_FILE)
+    torch.save(_state_dict(torch_model, spread_model), staging / WEIGHTS_FILE)
     (staging / META_FILE).write_text(json.dumps(meta.to_json(), indent=2) + "\n")
     export_onnx(torch_model, staging / ONNX_FILE)
 

@@ -6,6 +6,8 @@ drawn from the scene folder's ``distribution.json`` (``image2sim calibrate --dis
 recorded one perturbed by the measured start noise stored there, all in batched `mujoco.rollout` calls. Per
 trajectory it writes ``NAME.npz`` (the per-time-step median of the samples, `grounder.sim.sampled.median_trajectory`,
 in the usual trajectory format) and ``NAME.samples.npz`` (``time`` (T,), ``qpos`` (K, T, nq), ``qvel`` (K, T, nv)).
+A scene with a learned residual is stepped with it (``use_residual``), each correction drawn from its learned spread
+(``grounder.residual.spread``).
 """
 
 from __future__ import annotations
@@ -77,9 +79,8 @@ def run_sampled_rollout(
     """``rollout --samples``: returns (median trajectories, qpos samples (K, T, nq) by name); writes ``out``.
 
     Raises:
-        GrounderError: the scene folder has no ``distribution.json`` (or it does not fit the scene), the scene has a
-            learned residual (its spread is not learned yet: roll out with ``--no-residual``), or ``samples`` is
-            out of range.
+        GrounderError: the scene folder has no ``distribution.json`` (or it does not fit the scene), or ``samples``
+            is out of range.
     """
     from grounder.calibration.distribution import DISTRIBUTION_FILE, read_distribution
     from grounder.calibration.parameters import apply_to_model
@@ -98,14 +99,12 @@ def run_sampled_rollout(
             f"{scene_dir} has no {DISTRIBUTION_FILE} to draw from; calibrate it with `image2sim calibrate "
             "--distribution` and roll out the folder that writes"
         )
+    simulator = None
     if use_residual and importlib.util.find_spec("grounder.residual.simulator") is not None:
         module = importlib.import_module("grounder.residual.simulator")
         module.check_residual_pair(scene_dir)
         if module.has_residual(scene_dir):
-            raise GrounderError(
-                f"{scene_dir} has a learned residual, whose spread is not learned yet: sampled rollouts are MuJoCo "
-                "only; pass --no-residual to sample without it"
-            )
+            simulator = module.Simulator(scene)  # MuJoCo + the residual, its corrections drawn from its spread
     dist = read_distribution(dist_path, model.nv)
     trajs = load_trajectories(traj_dir, model)
     params = dist.parameters(model)
@@ -113,7 +112,10 @@ def run_sampled_rollout(
     values = dist.draw_values(params, samples, rng)
     models = [apply_to_model(model, params, row) for row in values]
     starts = [perturbed_starts(model, t.qpos[0], t.qvel[0], dist.start_noise, samples, rng) for t in trajs]
-    sims = rollout_samples(models, trajs, starts, nthread=nthread)
+    if simulator is not None:
+        sims = simulator.sample(trajs, starts, rng, models=models)
+    else:
+        sims = rollout_samples(models, trajs, starts, nthread=nthread)
     medians = []
     fans: dict[str, np.ndarray] = {}
     for traj, (qpos, qvel) in zip(trajs, sims, strict=True):
@@ -133,7 +135,7 @@ def run_sampled_rollout(
             "format": "image2sim.rollout/1",
             "scene": str(scene),
             "trajectories": str(traj_dir),
-            "residual": False,
+            "residual": simulator is not None,
             "samples": samples,
             "seed": seed,
             "distribution": DISTRIBUTION_FILE,
