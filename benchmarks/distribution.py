@@ -12,7 +12,9 @@ its wall time is printed. Then each validation toss is simulated ``--samples`` (
   search bounds), starts as recorded;
 - (c) start noise only: the calibrated parameters, starts perturbed by the measured start noise;
 - (d) the fitted distribution with the start noise (what ``rollout --samples`` draws);
-- (e) (d) with the residual's learned spread: not built yet (issue 62, item 2), reported as such.
+- (e) (d) stepped with a residual trained on the 280 training tosses (`image2sim residual train` defaults, on the
+  calibrated scene with its ``distribution.json``), each correction drawn from the residual's learned spread
+  (`grounder.residual.spread`; its gain chosen on the residual's own held-out tosses, 0 allowed).
 
 Per method (`grounder.sim.sample_scores`): energy score (position / cube width and rotation in radians), coverage of
 the central 50% and 90% bands (position and rotation), their width, the best of 16 samples (Acosta's metric), and the
@@ -59,12 +61,13 @@ from grounder.sim.start_noise import StartNoise, measure_start_noise, perturbed_
 
 DATA = REPO.parent / "shared" / "data" / "cube_toss"
 CUBE_XML = REPO / "samples" / "cube_toss" / "cube.xml"
-METHODS = ("a", "b", "c", "d")
+METHODS = ("a", "b", "c", "d", "e")
 LABELS = {
     "a": "(a) calibrated, deterministic",
     "b": "(b) naive DR +-30%",
     "c": "(c) start noise only",
     "d": "(d) fitted distribution",
+    "e": "(e) (d) + residual spread",
 }
 
 
@@ -110,6 +113,31 @@ def method_draws(
     start_noise = noise if method in ("c", "d") else StartNoise.zero(model.nv)
     starts = [perturbed_starts(model, t.qpos[0], t.qvel[0], start_noise, count, rng) for t in val]
     return models, starts
+
+
+def residual_simulator(args, scene: Path, model, dist, dparams, train: list) -> tuple:
+    """Method (e)'s simulator: a residual trained on the training tosses over the calibrated scene with its
+    distribution.json (copied, so that the spread's gain is chosen on samples drawn as (d) draws them)."""
+    import shutil
+
+    from grounder.calibration.distribution import DISTRIBUTION_FILE, write_distribution
+    from grounder.residual.options import ResidualOptions
+    from grounder.residual.simulator import Simulator
+    from grounder.residual.train import train_residual
+
+    scene_copy = args.out / "distribution_scene"
+    out = args.out / "residual_scene"
+    for folder in (scene_copy, out):
+        if folder.exists():
+            shutil.rmtree(folder)
+    shutil.copytree(scene, scene_copy)
+    write_distribution(scene_copy / DISTRIBUTION_FILE, dist, dparams)
+    tick = time.perf_counter()
+    result = train_residual(scene_copy, train, out, ResidualOptions())
+    seconds = time.perf_counter() - tick
+    meta = json.loads((out / "residual.json").read_text())
+    record = {"mean_gain": result.gain, "spread": meta["training"].get("spread"), "seconds": seconds}
+    return Simulator(out), record
 
 
 def known_answer(count: int, seed: int, settings: EMSettings) -> dict:
@@ -311,9 +339,16 @@ def real(args: argparse.Namespace, settings: EMSettings, figures: dict) -> None:
         )
     results = {}
     fans = {}
+    rollout_s: dict[str, float] = {}
+    simulator, spread_record = residual_simulator(args, scene, model, dist, dparams, train)
     for m in METHODS:
-        models, starts = method_draws(m, model, dist, noise, val, args.samples, seed=7)
-        sims = rollout_samples(models, val, starts)
+        models, starts = method_draws("d" if m == "e" else m, model, dist, noise, val, args.samples, seed=7)
+        tick = time.perf_counter()
+        if m == "e":
+            sims = simulator.sample(val, starts, np.random.default_rng(8), models=models)
+        else:
+            sims = rollout_samples(models, val, starts)
+        rollout_s[m] = time.perf_counter() - tick
         fans[m] = sims
         results[m] = summarise([score_samples(model, t, q, v) for t, (q, v) in zip(val, sims, strict=True)])
     a, b = results["a"]["energy"], results["b"]["energy"]
@@ -330,7 +365,15 @@ def real(args: argparse.Namespace, settings: EMSettings, figures: dict) -> None:
             f"{s['best_position_pct']:6.1f}%/{s['best_rotation_deg']:5.1f}d "
             f"{s['median_position_pct']:6.1f}%/{s['median_rotation_deg']:5.1f}d"
         )
-    print("(e) (d) + the residual's learned spread: not built yet (issue 62 item 2)")
+    print(
+        f"(e): residual gain {spread_record['mean_gain']}, spread gain {spread_record['spread']['gain']} "
+        f"(held-out energy by spread gain {spread_record['spread']['energy_score_by_gain']}), "
+        f"trained in {spread_record['seconds']:.0f} s"
+    )
+    print(
+        f"sampled rollouts, {args.samples} per toss x {len(val)} tosses: (d) {rollout_s['d']:.1f} s (mujoco.rollout), "
+        f"(e) {rollout_s['e']:.1f} s (MuJoCo + residual, period by period)"
+    )
     d = results["d"]
     print(f"energy score of (d): {d['energy'] / a - 1:+.0%} against (a), {d['energy'] / b - 1:+.0%} against (b)")
     write_report(args.out / "report.html", model, val, fans, results, dist, dparams)
@@ -343,6 +386,8 @@ def real(args: argparse.Namespace, settings: EMSettings, figures: dict) -> None:
         "distribution": summary,
         "fit": dist.fit,
         "methods": results,
+        "residual": spread_record,
+        "rollout_seconds": rollout_s,
     }
 
 
