@@ -284,12 +284,12 @@ def main() -> None:
     parser.add_argument("--known-count", type=int, default=40)
     parser.add_argument("--known-seeds", type=int, nargs="*", default=[101, 102, 103])
     parser.add_argument("--skip-real", action="store_true")
-    parser.add_argument("--fitted-mean", action="store_true", help="fit the mean too (calibrate's default: point)")
+    parser.add_argument("--point-centre", action="store_true", help="centre on the calibrated point; fit the spread")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     figures: dict = {"command": " ".join(sys.argv)}
-    settings = EMSettings(samples=args.fit_samples, iterations=args.iterations, fixed_mean=not args.fitted_mean)
+    settings = EMSettings(samples=args.fit_samples, iterations=args.iterations, fixed_mean=args.point_centre)
 
     print("known answer: friction and damping ratio ~ N(0.5, 0.1^2) per toss")
     figures["known"] = []

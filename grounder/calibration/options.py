@@ -55,9 +55,9 @@ class CalibrateOptions:
             continuous one). Raw mode only: embedding mode spreads the embedding.
         distribution_samples: Parameter draws per iteration of the distribution fit.
         distribution_iterations: Iterations of the distribution fit.
-        distribution_centre: ``point``: the distribution is centred on the calibrated values and the fit finds its
-            spread (what sampled rollouts are judged by, their median, stays the calibrated scene's); ``fitted``: the
-            mean is fitted too (raw mode; embedding mode always fits both).
+        distribution_centre: ``fitted``: the fit finds the mean and the covariance; ``point``: the distribution is
+            centred on the calibrated values and the fit finds its spread only (raw mode; embedding mode always fits
+            both).
     """
 
     params: tuple[str, ...] = ()
@@ -83,7 +83,7 @@ class CalibrateOptions:
     distribution_params: tuple[str, ...] = ()
     distribution_samples: int = 64
     distribution_iterations: int = 6
-    distribution_centre: Literal["point", "fitted"] = "point"
+    distribution_centre: Literal["point", "fitted"] = "fitted"
 
     def __post_init__(self) -> None:
         # Options come from the CLI, a batch file's settings and Python callers: each field is checked for type and

@@ -148,7 +148,96 @@ def write_report(path: Path, result: CalibrationResult, base: mujoco.MjModel, tr
             fig.tight_layout()
             figs.append(fig)
         sections.append(Section(title="Real vs simulated", figures=tuple(figs)))
+    if result.distribution is not None and free:
+        sections.append(_distribution_section(result, list(trajs)))
     return write_html_report(path, "Calibration report", sections)
+
+
+_FAN_SAMPLES = 16
+_MAX_SCORED = 200
+
+
+def _distribution_section(result: CalibrationResult, trajs: list[Trajectory]) -> Section:
+    """``--distribution``: the fitted marginals, sample fans against the recordings, and the reliability curve of
+    sampled rollouts (as ``rollout --samples`` draws them) on the report's trajectories (the validation split)."""
+    import matplotlib.pyplot as plt
+
+    from grounder.calibration.parameters import apply_to_model
+    from grounder.sim.sample_scores import score_samples, summarise
+    from grounder.sim.sampled import rollout_samples
+    from grounder.sim.start_noise import perturbed_starts
+
+    dist = result.distribution
+    model = result.model
+    params = dist.parameters(model)
+    rows = dist.summary(params)
+    table: list[list[object]] = [["parameter", "calibrated", "mean", "std", "5%", "95%", "unit"]]
+    table += [
+        [r["name"], _fmt(r["value"]), _fmt(r["mean"]), _fmt(r["std"]), _fmt(r["p05"]), _fmt(r["p95"]), r["unit"]]
+        for r in rows
+    ]
+    rng = np.random.default_rng(0)
+    scored = trajs[:_MAX_SCORED]
+    draws = dist.draw_values(params, _FAN_SAMPLES, rng)
+    models = [apply_to_model(model, params, row) for row in draws]
+    starts = [perturbed_starts(model, t.qpos[0], t.qvel[0], dist.start_noise, _FAN_SAMPLES, rng) for t in scored]
+    fans = rollout_samples(models, scored, starts)
+    scores = summarise([score_samples(model, t, q, v) for t, (q, v) in zip(scored, fans, strict=True)])
+    figs = []
+    values = dist.draw_values(params, 4000, np.random.default_rng(1))
+    cols = min(4, len(params))
+    nrows = -(-len(params) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 2.6 * nrows), squeeze=False)
+    for i, p in enumerate(params):
+        ax = axes[i // cols, i % cols]
+        ax.hist(values[:, i], bins=40, color="tab:green", alpha=0.8)
+        ax.axvline(float(p.from_unit(dist.point[i])), color="k")
+        ax.set_title(f"{p.name} ({p.unit})", fontsize=8)
+    for j in range(len(params), nrows * cols):
+        axes[j // cols, j % cols].axis("off")
+    fig.tight_layout()
+    figs.append(fig)
+    fj = sim.free_joints(model)[0]
+    shown = list(range(min(_MAX_PLOTTED, len(scored))))
+    if shown:
+        fig, axes = plt.subplots(2, len(shown), figsize=(3.6 * len(shown), 5), squeeze=False)
+        for col, b in enumerate(shown):
+            traj, (qpos, _) = scored[b], fans[b]
+            t = traj.time_s - traj.time_s[0]
+            first = np.broadcast_to(traj.qpos[0, fj.quat], traj.qpos[:, fj.quat].shape)
+            for k in range(len(qpos)):
+                axes[0, col].plot(t, qpos[k, :, fj.pos][:, 2], color="tab:blue", alpha=0.25, lw=0.8)
+                turn = np.degrees(sim.quat_angle_rad(qpos[k, :, fj.quat], first))
+                axes[1, col].plot(t, turn, color="tab:blue", alpha=0.25, lw=0.8)
+            axes[0, col].plot(t, traj.qpos[:, fj.pos][:, 2], "k", lw=1.5)
+            axes[1, col].plot(t, np.degrees(sim.quat_angle_rad(traj.qpos[:, fj.quat], first)), "k", lw=1.5)
+            axes[0, col].set_title(f"{traj.name}: height (m)", fontsize=9)
+            axes[1, col].set_title("turn from the first frame (deg)", fontsize=9)
+            axes[1, col].set_xlabel("time, s")
+        fig.tight_layout()
+        figs.append(fig)
+    fig, ax = plt.subplots(figsize=(4.5, 4))
+    ax.plot(scores["reliability_levels"], scores["reliability_position"], marker="o", label="position")
+    ax.plot(scores["reliability_levels"], scores["reliability_rotation"], marker="o", label="rotation")
+    ax.plot([0, 1], [0, 1], "k--", lw=0.8)
+    ax.set_xlabel("central band level")
+    ax.set_ylabel("share of recorded steps inside")
+    ax.legend()
+    fig.tight_layout()
+    figs.append(fig)
+    fit = dist.fit
+    text = (
+        f"Fitted by {dist.method} ({fit.get('iterations')} iterations x {fit.get('samples_per_iteration')} draws on "
+        f"{fit.get('trajectories')} trajectories); centred on the calibrated values unless fitted (distribution.json "
+        f"holds the Gaussian in search coordinates). Sampled rollouts ({_FAN_SAMPLES} per trajectory, starts "
+        f"perturbed by the measured start noise) of {len(scored)} trajectories: 50% bands cover "
+        f"{scores['coverage50_position']:.2f} (position) / {scores['coverage50_rotation']:.2f} (rotation) of the "
+        f"recorded steps, 90% bands {scores['coverage90_position']:.2f} / {scores['coverage90_rotation']:.2f}; "
+        f"energy score {scores['energy']:.4f}; best of {_FAN_SAMPLES}: {scores['best_position_pct']:.1f}% of size / "
+        f"{scores['best_rotation_deg']:.1f} deg. Figures: the marginals (black: calibrated), fans (blue) against the "
+        "recordings (black), reliability (a calibrated fan lies on the diagonal)."
+    )
+    return Section(title="Parameter distribution", text=text, table=table, figures=tuple(figs))
 
 
 def _repeats_note(groups: list[list[str]]) -> str:

@@ -113,10 +113,10 @@ def _add_calibrate(app: typer.Typer) -> None:
         distribution_centre: Annotated[
             str,
             typer.Option(
-                help="point: centre the distribution on the calibrated values and fit its spread; fitted: fit the "
-                "mean too (raw mode)."
+                help="fitted: fit the distribution's mean and covariance; point: centre it on the calibrated values "
+                "and fit its spread only (raw mode)."
             ),
-        ] = "point",
+        ] = "fitted",
         verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Log each step.")] = False,
     ) -> None:
         """Fit a scene's physical parameters to recorded trajectories: scene.xml, calibration.json, report.html

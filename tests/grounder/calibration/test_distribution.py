@@ -48,6 +48,8 @@ def test_fitted_distribution_recovers_the_known_mean_and_spread(calibrated: dict
     assert np.all(dist.start_noise.pose_std < 1e-3)
     summary = json.loads((out / "distribution.json").read_text())["summary"]
     assert [row["name"] for row in summary] == list(VARYING)
+    report = (out / "report.html").read_text()
+    assert "Parameter distribution" in report and "50% bands cover" in report
 
 
 def test_sampled_rollouts_write_the_median_and_the_fan(calibrated: dict, cli, tmp_path: Path) -> None:
