@@ -1,4 +1,5 @@
-"""CLI commands ``calibrate``, ``rollout``, ``import-trajectories`` and ``batch`` (registered by ``grounder.cli``)."""
+"""CLI commands ``calibrate``, ``rollout``, ``randomize``, ``import-trajectories`` and ``batch`` (registered by
+``grounder.cli``)."""
 
 from __future__ import annotations
 

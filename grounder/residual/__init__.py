@@ -8,6 +8,7 @@
 - `torch_model`: the same function in torch, for training and the ONNX export (imported only when needed).
 - `options`: what training takes and returns (`ResidualOptions`, `ResidualTrainResult`).
 - `train`: `train_residual`: one-step targets, aggregation rounds, the output gain chosen on held-out rollouts.
+- `spread`: the learned spread of the correction (negative log-likelihood, gain chosen by held-out energy score).
 - `report`: rollout errors and the HTML report of a training.
 - `simulator`: `Simulator`, MuJoCo plus the residual for one simulation or a batch.
 

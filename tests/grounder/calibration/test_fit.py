@@ -414,6 +414,48 @@ def test_embedding_mode_recovers_a_known_embedding(synthetic, tmp_path: Path, mo
     assert record["mode"] == "embedding" and "posterior_embedding_std" in record["embedding"]["cube"]
 
 
+def test_embedding_mode_distribution_narrows_the_prior(
+    synthetic, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--distribution`` in embedding mode: the population starts as the property model's prior N(0, I) and the
+    fit narrows it where the tosses say something; the file's decoded Gaussian drives ``randomize``."""
+    import grounder.calibration.embedding as emb
+    from grounder.calibration.distribution import read_distribution
+    from grounder.calibration.randomize import write_randomized_variants
+
+    def decoder(z: np.ndarray) -> dict:
+        return {"density_kg_m3": 500.0, "friction": [0.3 * np.exp(z[0]), 0.005, 1e-4], "solref": [0.02, 1.0]}
+
+    monkeypatch.setattr(emb, "embedding_decoder", lambda: decoder)
+    trajs, truth = synthetic
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "scene.xml").write_text(CUBE_XML.read_text())
+    entry = {"density_kg_m3": 500.0, "properties": {"embedding": [0.0, 0.0], "embedding_std": [0.6, 0.6]}}
+    (scene / "scene.json").write_text(json.dumps({"objects": {"cube": entry}}))
+    options = CalibrateOptions(
+        mode="embedding",
+        popsize=4,
+        generations=2,
+        local_iterations=2,
+        distribution=True,
+        distribution_samples=32,
+        distribution_iterations=3,
+    )
+    calibrate(scene, trajs[:8], options=options, out=tmp_path / "out")
+    model = mujoco.MjModel.from_xml_path(str(tmp_path / "out" / "scene.xml"))
+    dist = read_distribution(tmp_path / "out" / "distribution.json", model.nv)
+    assert dist.mode == "embedding" and dist.embedding is not None
+    cov = np.array(dist.embedding["cov"])
+    assert cov[0, 0] < 0.25  # friction's coordinate, which the sliding tosses pin down: far narrower than the prior
+    params = dist.parameters(model)
+    drawn = dist.draw_values(params, 2000, np.random.default_rng(0))
+    sliding = [i for i, p in enumerate(params) if p.name == "cube.friction.sliding"][0]
+    assert np.median(drawn[:, sliding]) == pytest.approx(truth["cube.friction.sliding"], rel=0.15)
+    paths = write_randomized_variants(tmp_path / "out", tmp_path / "dr", 3, seed=1)
+    assert len(paths) == 3 and all(mujoco.MjModel.from_xml_path(str(p)).nbody == model.nbody for p in paths)
+
+
 def test_scene_folder_with_assets(tmp_path: Path, synthetic) -> None:
     """A scene folder is copied with its other files; the calibrated MJCF keeps relative asset paths."""
     trajs, _ = synthetic

@@ -19,6 +19,7 @@ README_COMMANDS = [
     ["ground"],
     ["calibrate"],
     ["rollout"],
+    ["randomize"],
     ["import-trajectories"],
     ["batch"],
     ["diagnose"],
