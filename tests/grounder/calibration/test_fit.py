@@ -450,7 +450,7 @@ def test_embedding_mode_distribution_narrows_the_prior(
     assert cov[0, 0] < 0.25  # friction's coordinate, which the sliding tosses pin down: far narrower than the prior
     params = dist.parameters(model)
     drawn = dist.draw_values(params, 2000, np.random.default_rng(0))
-    sliding = [i for i, p in enumerate(params) if p.name == "cube.friction.sliding"][0]
+    sliding = next(i for i, p in enumerate(params) if p.name == "cube.friction.sliding")
     assert np.median(drawn[:, sliding]) == pytest.approx(truth["cube.friction.sliding"], rel=0.15)
     paths = write_randomized_variants(tmp_path / "out", tmp_path / "dr", 3, seed=1)
     assert len(paths) == 3 and all(mujoco.MjModel.from_xml_path(str(p)).nbody == model.nbody for p in paths)
