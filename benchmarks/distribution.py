@@ -10,7 +10,8 @@ its wall time is printed. Then each validation toss is simulated ``--samples`` (
 - (a) the calibrated scene, deterministic (every sample the same);
 - (b) naive domain randomisation: each spread parameter uniform within +-30% of its calibrated value (clipped to its
   search bounds), starts as recorded;
-- (c) start noise only: the calibrated parameters, starts perturbed by the measured start noise;
+- (c) start noise only: the calibrated parameters, starts perturbed by the start noise (measured, then scaled by the
+  factor the fit chose on the training tosses);
 - (d) the fitted distribution with the start noise (what ``rollout --samples`` draws);
 - (e) (d) stepped with a residual trained on the 280 training tosses (`image2sim residual train` defaults, on the
   calibrated scene with its ``distribution.json``), each correction drawn from the residual's learned spread
@@ -53,6 +54,7 @@ from grounder.calibration.distribution import (  # noqa: E402
     EMSettings,
     FittedDistribution,
     calibrated_raw_distribution,
+    fit_start_noise_scale,
 )
 from grounder.calibration.parameters import apply_to_model, resolve_parameters  # noqa: E402
 from grounder.sim.sample_scores import score_samples, summarise  # noqa: E402
@@ -324,9 +326,12 @@ def real(args: argparse.Namespace, settings: EMSettings, figures: dict) -> None:
     tick = time.perf_counter()
     noise = measure_start_noise(model, train)
     dist = calibrated_raw_distribution(model, params, train, noise, settings)
+    dist = fit_start_noise_scale(model, dist, train, settings)
     fit_s = time.perf_counter() - tick
     dparams = dist.parameters(model)
     print(f"real tosses: fit on {len(train)} training tosses in {fit_s:.0f} s; validation {len(val)} tosses")
+    chosen = dist.fit["start_noise_scale"]
+    print(f"  start noise scale {chosen['chosen']} (training energy by scale {chosen['energy_score_by_scale']})")
     print(
         f"  start noise: position {1e3 * noise.pose_std[:3].mean():.2f} mm, rotation "
         f"{np.degrees(noise.pose_std[3:].mean()):.2f} deg, velocity {noise.velocity_std[:3].mean():.3f} m/s, "

@@ -223,18 +223,20 @@ def _fit_distribution(
     extra: dict[str, Any],
     report: ProgressFn,
 ) -> Any:
-    """``--distribution``: the start noise of the fitted trajectories, then the population fit
-    (`grounder.calibration.distribution`)."""
+    """``--distribution``: the start noise of the fitted trajectories, the population fit, then the start noise's
+    scale (`grounder.calibration.distribution`)."""
     import grounder.calibration.distribution as dist
     from grounder.sim.start_noise import measure_start_noise
 
     noise = measure_start_noise(base, fit_trajs)
     settings = dist.settings_of(options)
     if options.mode == "embedding":
-        return dist.fit_embedding_distribution(base, extra["_space"], extra["_w"], fit_trajs, noise, settings, report)
-    return dist.calibrated_raw_distribution(
-        calibrated, params, fit_trajs, noise, settings, options.distribution_params, report
-    )
+        fitted = dist.fit_embedding_distribution(base, extra["_space"], extra["_w"], fit_trajs, noise, settings, report)
+    else:
+        fitted = dist.calibrated_raw_distribution(
+            calibrated, params, fit_trajs, noise, settings, options.distribution_params, report
+        )
+    return dist.fit_start_noise_scale(calibrated, fitted, fit_trajs, settings, progress=report)
 
 
 def _check_trajectories(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> None:

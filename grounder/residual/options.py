@@ -76,7 +76,7 @@ class ResidualOptions:
     spread: bool = True
     spread_hidden: int = 32
     spread_steps: int = 400
-    spread_gains: tuple[float, ...] = (0.0, 0.5, 1.0, 2.0)
+    spread_gains: tuple[float, ...] = (0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 1.0, 2.0)
     spread_samples: int = 8
     seed: int = 0
     num_threads: int = 1
