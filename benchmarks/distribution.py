@@ -281,6 +281,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True, help="folder for report.html (and a calibrated scene)")
     parser.add_argument("--calibrated", type=Path, default=None, help="a scene folder written by cube_toss.py --out")
     parser.add_argument("--samples", type=int, default=32, help="samples per validation toss and method")
+    parser.add_argument(
+        "--distribution", type=Path, default=None, help="reuse a distribution.json fitted before on the same split"
+    )
     parser.add_argument("--fit-samples", type=int, default=64, help="draws per EM iteration")
     parser.add_argument("--iterations", type=int, default=6, help="EM iterations")
     parser.add_argument("--known-count", type=int, default=40)
@@ -325,8 +328,13 @@ def real(args: argparse.Namespace, settings: EMSettings, figures: dict) -> None:
     params = resolve_parameters(nominal, list(DEFAULT_PARAMS))
     tick = time.perf_counter()
     noise = measure_start_noise(model, train)
-    dist = calibrated_raw_distribution(model, params, train, noise, settings)
-    dist = fit_start_noise_scale(model, dist, train, settings)
+    if args.distribution is not None:  # fitted before (by this script: OUT/distribution_scene/distribution.json)
+        from grounder.calibration.distribution import read_distribution
+
+        dist = read_distribution(args.distribution, model.nv)
+    else:
+        dist = calibrated_raw_distribution(model, params, train, noise, settings)
+        dist = fit_start_noise_scale(model, dist, train, settings)
     fit_s = time.perf_counter() - tick
     dparams = dist.parameters(model)
     print(f"real tosses: fit on {len(train)} training tosses in {fit_s:.0f} s; validation {len(val)} tosses")
@@ -347,7 +355,7 @@ def real(args: argparse.Namespace, settings: EMSettings, figures: dict) -> None:
     rollout_s: dict[str, float] = {}
     simulator, spread_record = residual_simulator(args, scene, model, dist, dparams, train)
     for m in METHODS:
-        models, starts = method_draws("d" if m == "e" else m, model, dist, noise, val, args.samples, seed=7)
+        models, starts = method_draws("d" if m == "e" else m, model, dist, dist.start_noise, val, args.samples, seed=7)
         tick = time.perf_counter()
         if m == "e":
             sims = simulator.sample(val, starts, np.random.default_rng(8), models=models)
@@ -387,7 +395,8 @@ def real(args: argparse.Namespace, settings: EMSettings, figures: dict) -> None:
         "fit_seconds": fit_s,
         "train": len(train),
         "validation": len(val),
-        "start_noise": noise.to_json(),
+        "start_noise_measured": noise.to_json(),
+        "start_noise": dist.start_noise.to_json(),
         "distribution": summary,
         "fit": dist.fit,
         "methods": results,

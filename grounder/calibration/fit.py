@@ -334,7 +334,10 @@ def calibrate(
 
     distribution = None
     if options.distribution:
-        distribution = _fit_distribution(base, calibrated, params, fit_trajs, options, extra, report)
+        # on every training trajectory: max_train_trajectories bounds the point search, and a population is
+        # estimated better from more of its members
+        train_trajs = [by_name[n] for n in train_names]
+        distribution = _fit_distribution(base, calibrated, params, train_trajs, options, extra, report)
     extra = {k: v for k, v in extra.items() if not k.startswith("_")}
 
     report("validation", 0, 1)

@@ -50,7 +50,8 @@ class CalibrateOptions:
             sum over bodies that each depend only on their own parameters; each search is then a few dimensions
             instead of all of them, which a small budget covers. Raw mode, per-body parameters (``BODY.*``) only.
         distribution: Also fit a distribution over the parameters (`grounder.calibration.distribution`), written as
-            ``distribution.json`` beside ``scene.xml``.
+            ``distribution.json`` beside ``scene.xml``; on every training trajectory (``max_train_trajectories``
+            bounds the point search only).
         distribution_params: The parameters given a spread (names among the calibrated ones; empty: every
             continuous one). Raw mode only: embedding mode spreads the embedding.
         distribution_samples: Parameter draws per iteration of the distribution fit.
