@@ -580,6 +580,20 @@ def settings_of(options: Any) -> EMSettings:
     )
 
 
+def check_names(params: Sequence[Parameter], names: Sequence[str]) -> None:
+    """``--distribution-params`` must name calibrated continuous parameters (checked before any search runs).
+
+    Raises:
+        GrounderError: naming the others and the choices.
+    """
+    unknown = set(names) - {p.name for p in params if not p.discrete}
+    if unknown:
+        raise GrounderError(
+            f"--distribution-params names {', '.join(sorted(unknown))}, which calibration does not fit as a "
+            f"continuous parameter; choose among {', '.join(p.name for p in params if not p.discrete)}"
+        )
+
+
 def calibrated_raw_distribution(
     calibrated: mujoco.MjModel,
     params: Sequence[Parameter],
@@ -592,12 +606,7 @@ def calibrated_raw_distribution(
     """Raw mode's distribution in the calibrated scene's own terms: each calibrated parameter re-resolved on the
     calibrated model with the calibration's bounds (factors such as ``size_scale`` around that scene's 1), so that
     ``rollout --samples`` and ``randomize`` apply draws to the written scene.xml exactly as the fit did."""
-    unknown = set(names) - {p.name for p in params}
-    if unknown:
-        raise GrounderError(
-            f"--distribution-params names {', '.join(sorted(unknown))}, which calibration did not fit; choose "
-            f"among {', '.join(p.name for p in params if not p.discrete)}"
-        )
+    check_names(params, names)
     chosen = [p for p in params if not p.discrete and (not names or p.name in names)]
     if not chosen:
         raise GrounderError("no continuous parameter to fit a distribution over (choices such as condim are held)")

@@ -312,6 +312,10 @@ def calibrate(
         params, values, fits, ev, history, extra = _fit_embedding(scene, base, fit_trajs, options, common, report)
     else:
         params = resolve_parameters(base, options.params)
+        if options.distribution:
+            from grounder.calibration.distribution import check_names
+
+            check_names(params, options.distribution_params)  # before the search, not after it
         ev = Evaluator(base, params, fit_trajs, **common)
         prob = _Problem(
             ev=ev,

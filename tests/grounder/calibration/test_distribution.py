@@ -107,3 +107,17 @@ def test_a_damaged_distribution_file_is_refused_in_one_line(calibrated: dict, cl
         assert run.returncode == 2, run.stderr
         assert "distribution.json" in run.stderr and "Traceback" not in run.stderr
         assert not (tmp_path / "out").exists()
+
+
+def test_distribution_options_are_checked_before_any_work(calibrated: dict, cli, tmp_path: Path) -> None:
+    root = calibrated["root"]
+    base = ("calibrate", str(root / "cube.xml"), str(root / "trajs"), "-o", str(tmp_path / "out"), "--distribution")
+    for extra, needle in (
+        (("--params", "cube.friction.sliding", "--distribution-params", "cube.mass"), "cube.mass"),
+        (("--distribution-samples", "2"), "--distribution-samples"),
+        (("--distribution-centre", "middle"), "--distribution-centre"),
+    ):
+        run = cli(*base, *extra)
+        assert run.returncode == 2 and needle in run.stderr and "Traceback" not in run.stderr, run.stderr
+        assert "global search" not in run.stderr  # refused before the calibration ran
+        assert not (tmp_path / "out").exists()
