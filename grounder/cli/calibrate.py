@@ -218,7 +218,7 @@ def _add_rollout(app: typer.Typer) -> None:
                 medians, _ = run_sampled_rollout(
                     scene, traj_dir, out, samples=samples, seed=seed, overwrite=overwrite, use_residual=not no_residual
                 )
-                typer.echo(f"simulated {len(medians)} trajectories x {samples} samples wrote {out}")
+                typer.echo(f"simulated {len(medians)} trajectories x {samples} samples; wrote {out}")
                 return
             preds, used_residual = run_rollout(scene, traj_dir, out, use_residual=not no_residual, overwrite=overwrite)
         what = "MuJoCo + residual" if used_residual else "MuJoCo"
