@@ -27,7 +27,7 @@ def calibrated(tmp_path_factory: pytest.TempPathFactory) -> dict:
     (root / "cube.xml").write_text(case.xml)
     save_trajectories(case.trajectories, root / "trajs")
     options = CalibrateOptions(
-        params=VARYING, validation_fraction=0.0, generations=2, popsize=4, local_iterations=2, distribution=True
+        params=VARYING, validation_fraction=0.0, generations=1, popsize=4, local_iterations=0, distribution=True
     )
     result = calibrate(root / "cube.xml", case.trajectories, options=options, out=root / "cal")
     return {"root": root, "case": case, "result": result}

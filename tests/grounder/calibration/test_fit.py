@@ -439,8 +439,8 @@ def test_embedding_mode_distribution_narrows_the_prior(
         generations=2,
         local_iterations=2,
         distribution=True,
-        distribution_samples=32,
-        distribution_iterations=3,
+        distribution_samples=24,
+        distribution_iterations=2,
     )
     calibrate(scene, trajs[:8], options=options, out=tmp_path / "out")
     model = mujoco.MjModel.from_xml_path(str(tmp_path / "out" / "scene.xml"))

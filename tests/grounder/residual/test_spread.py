@@ -5,6 +5,7 @@ held-out rollouts, and sampled rollouts spread while plain ones do not."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import mujoco
@@ -51,7 +52,7 @@ def gusty(tmp_path_factory: pytest.TempPathFactory) -> Path:
     scene = tmp_path_factory.mktemp("gusty")
     (scene / "scene.xml").write_text(_cube_xml())
     out = scene / "residual_scene"
-    train_residual(scene, _gusty_tosses(30, seed=3), out, TINY)
+    train_residual(scene, _gusty_tosses(30, seed=3), out, replace(TINY, spread=True))
     return out
 
 
@@ -96,3 +97,23 @@ def test_spread_is_zero_at_rest_and_sampled_rollouts_spread(gusty: Path) -> None
     np.testing.assert_allclose(plain[0][0][1:], np.repeat(plain[0][0][:1], 5, 0), atol=1e-12)
     mean = sim.rollout(trajs)
     np.testing.assert_allclose(plain[0][0][0], mean[0].qpos, atol=1e-9)
+
+
+def test_a_damaged_spread_is_refused_in_one_line(gusty: Path, tmp_path: Path) -> None:
+    import shutil
+
+    import torch
+
+    from grounder.errors import GrounderError
+
+    folder = tmp_path / "damaged"
+    shutil.copytree(gusty, folder)
+    weights = torch.load(folder / "residual.pt", weights_only=True)
+    weights["spread.bound"] = -weights["spread.bound"]
+    torch.save(weights, folder / "residual.pt")
+    with pytest.raises(GrounderError, match=r"spread\.bound.*<= 0"):
+        Simulator(folder)
+    del weights["spread.gain"]
+    torch.save(weights, folder / "residual.pt")
+    with pytest.raises(GrounderError, match=r'missing tensor "spread\.gain"'):
+        Simulator(folder)

@@ -82,8 +82,8 @@ def _mean_errors(preds: list[Trajectory], real: list[Trajectory]) -> tuple[float
 
 DRAG_DENSITY = 40.0  # kg/m^3: exaggerated so that a short toss shows it clearly
 TINY = ResidualOptions(
-    steps=600, dagger_rounds=0, dagger_horizon=10, dagger_stride=3, hidden=32, smooth_window=0, seed=0
-)
+    steps=600, dagger_rounds=0, dagger_horizon=10, dagger_stride=3, hidden=32, smooth_window=0, seed=0, spread=False
+)  # the learned spread: tests/grounder/residual/test_spread.py
 
 
 @pytest.fixture(scope="module")
