@@ -52,7 +52,7 @@ def gusty(tmp_path_factory: pytest.TempPathFactory) -> Path:
     scene = tmp_path_factory.mktemp("gusty")
     (scene / "scene.xml").write_text(_cube_xml())
     out = scene / "residual_scene"
-    train_residual(scene, _gusty_tosses(30, seed=3), out, replace(TINY, spread=True))
+    train_residual(scene, _gusty_tosses(30, seed=3), out, replace(TINY, spread=True, spread_gains=(0.0, 0.5, 1.0)))
     return out
 
 
