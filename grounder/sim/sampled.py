@@ -63,19 +63,21 @@ def rollout_samples(
     nthread = nthread or sim.default_nthread()
     qpos_at, qvel_at = sim._offsets(base)
     nstate = mujoco.mj_stateSize(base, sim.FULLPHYSICS)
-    data = mujoco.MjData(base)
+    template = sim.initial_state(base, base.qpos0, np.zeros(base.nv))
     out: list[tuple[np.ndarray, np.ndarray]] = [(np.empty(0), np.empty(0))] * len(trajs)
     order = sorted(range(len(trajs)), key=lambda i: trajs[i].num_steps)
     for g in range(0, len(order), group_size):
         group = order[g : g + group_size]
         batch = sim.prepare(base, [trajs[i] for i in group])
-        states0 = np.empty((k_count, len(group), nstate))
+        # every start is the rest state with its qpos and qvel (what `initial_state` gives, without a forward pass
+        # per sample: a full-physics state holds no derived quantity)
+        states0 = np.tile(template, (k_count, len(group), 1))
         for col, b in enumerate(group):
             qpos, qvel = starts[b]
             if qpos.shape != (k_count, base.nq) or qvel.shape != (k_count, base.nv):
                 raise GrounderError(f"starts of {trajs[b].name}: expected shapes ({k_count}, nq), ({k_count}, nv)")
-            for k in range(k_count):
-                states0[k, col] = sim.initial_state(base, qpos[k], qvel[k], data)
+            states0[:, col, qpos_at : qpos_at + base.nq] = qpos
+            states0[:, col, qvel_at : qvel_at + base.nv] = qvel
         per_model_bytes = len(group) * (batch.nstep + 1) * nstate * 8 * 2
         chunk = max(1, int(max_batch_mb * 2**20 // max(per_model_bytes, 1)))
         results = [np.empty((k_count, len(trajs[b].time_s), nstate)) for b in group]
