@@ -111,7 +111,7 @@ def method_draws(
     elif method == "c":
         models = [model] * count
     else:
-        models = [apply_to_model(model, params, row) for row in dist.draw_values(params, count, rng)]
+        models = dist.draw_models(model, count, rng)
     start_noise = noise if method in ("c", "d") else StartNoise.zero(model.nv)
     starts = [perturbed_starts(model, t.qpos[0], t.qvel[0], start_noise, count, rng) for t in val]
     return models, starts

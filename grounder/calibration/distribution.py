@@ -52,6 +52,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
+from grounder.calibration.evaluator import scalar_joint_errors
 from grounder.calibration.parameters import Parameter, apply_to_model, body_size_m, resolve_parameters
 from grounder.core.trajectory import Trajectory
 from grounder.errors import GrounderError
@@ -134,6 +135,11 @@ class FittedDistribution:
         """(count, P) parameter values in physical units."""
         unit = self.draw_unit(count, rng)
         return np.stack([p.from_unit(unit[:, i]) for i, p in enumerate(params)], axis=1)
+
+    def draw_models(self, model: mujoco.MjModel, count: int, rng: np.random.Generator) -> list[mujoco.MjModel]:
+        """``count`` copies of ``model`` (the scene the file belongs to), each with one draw of the parameters."""
+        params = self.parameters(model)
+        return [apply_to_model(model, params, row) for row in self.draw_values(params, count, rng)]
 
     def summary(self, params: Sequence[Parameter], count: int = 4000, seed: int = 0) -> list[dict[str, Any]]:
         """Per parameter: the point value and the distribution's mean, std, 5th and 95th percentile (physical)."""
@@ -262,6 +268,24 @@ def read_distribution(path: Path, nv: int) -> FittedDistribution:
     )
 
 
+def read_scene_distribution(scene_dir: Path, nv: int, instead: str) -> FittedDistribution:
+    """A scene folder's ``distribution.json`` (`read_distribution`).
+
+    Args:
+        instead: What else the user may do, appended to the complaint when the folder has none.
+
+    Raises:
+        GrounderError: the folder has no distribution.json, or it is malformed.
+    """
+    path = Path(scene_dir) / DISTRIBUTION_FILE
+    if not path.is_file():
+        raise GrounderError(
+            f"{scene_dir} has no {DISTRIBUTION_FILE} to draw from; calibrate it with `image2sim calibrate "
+            f"--distribution` {instead}"
+        )
+    return read_distribution(path, nv)
+
+
 def write_distribution(path: Path, dist: FittedDistribution, params: Sequence[Parameter]) -> None:
     path.write_text(json.dumps(dist.to_json(params), indent=1) + "\n", encoding="utf-8")
 
@@ -312,13 +336,7 @@ class _Likelihood:
         self.sizes = [
             body_size_m(model, mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, fj.body)) for fj in self.free
         ]
-        self.scalar: list[tuple[int, float]] = []
-        for j in range(model.njnt):
-            jtype = int(model.jnt_type[j])
-            if jtype == mujoco.mjtJoint.mjJNT_HINGE:
-                self.scalar.append((int(model.jnt_qposadr[j]), 0.01))
-            elif jtype == mujoco.mjtJoint.mjJNT_SLIDE:
-                self.scalar.append((int(model.jnt_qposadr[j]), 0.001))
+        self.scalar = [(je.qpos_index, je.scale) for je in scalar_joint_errors(model)]  # the calibration loss's scales
         if not self.free and not self.scalar:
             raise GrounderError("the scene has no free body, hinge or slide joint: nothing to fit a distribution to")
 
@@ -357,9 +375,13 @@ def _weights_and_scales(
         scales = np.sqrt(np.where(used, sq.mean(axis=1).sum(axis=0) / np.maximum(counts.sum(axis=0), 1), 1.0))
     scales = np.maximum(scales, 1e-9)
     shift = np.zeros(sq.shape[1]) if log_ratio is None else log_ratio
-    for _ in range(_SCALE_ROUNDS):
+
+    def log_likelihood(scales: np.ndarray) -> np.ndarray:  # (N, M), with the importance correction
         loglik = -0.5 * np.sum(sq / scales**2, axis=2) - np.sum(counts * np.log(scales), axis=1)[:, None]
-        loglik = np.where(np.isfinite(loglik), loglik + shift[None], -np.inf)
+        return np.where(np.isfinite(loglik), loglik + shift[None], -np.inf)
+
+    for _ in range(_SCALE_ROUNDS):
+        loglik = log_likelihood(scales)
         top = loglik.max(axis=1, keepdims=True)
         top = np.where(np.isfinite(top), top, 0.0)
         w = np.exp(loglik - top)
@@ -368,8 +390,7 @@ def _weights_and_scales(
         total = np.einsum("nm,nmg->g", w, np.where(np.isfinite(sq), sq, 0.0))
         scales = np.where(used, np.sqrt(total / np.maximum(counts.sum(axis=0), 1)), 1.0)
         scales = np.maximum(scales, 1e-9)
-    loglik = -0.5 * np.sum(sq / scales**2, axis=2) - np.sum(counts * np.log(scales), axis=1)[:, None]
-    return w, scales, np.where(np.isfinite(loglik), loglik + shift[None], -np.inf)
+    return w, scales, log_likelihood(scales)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -647,17 +668,11 @@ def fit_start_noise_scale(
     if dist.start_noise.trajectories == 0 or not trajs or not free_joints(model):
         return dist
     use = list(trajs)[:SCALE_TRAJECTORIES]
-    params = dist.parameters(model)
-    draws = dist.draw_values(params, SCALE_SAMPLES, np.random.default_rng(settings.seed + 1))
-    models = [apply_to_model(model, params, row) for row in draws]
+    models = dist.draw_models(model, SCALE_SAMPLES, np.random.default_rng(settings.seed + 1))
     scores: dict[float, float] = {}
     for i, scale in enumerate(scales):
         progress("start noise scale", i, len(scales))
-        noise = replace(
-            dist.start_noise,
-            pose_std=dist.start_noise.pose_std * scale,
-            velocity_std=dist.start_noise.velocity_std * scale,
-        )
+        noise = dist.start_noise.scaled(scale)
         rng = np.random.default_rng(settings.seed + 2)
         starts = [perturbed_starts(model, t.qpos[0], t.qvel[0], noise, SCALE_SAMPLES, rng) for t in use]
         fans = rollout_samples(models, use, starts, nthread=settings.nthread, max_batch_mb=settings.max_batch_mb)
@@ -667,9 +682,6 @@ def fit_start_noise_scale(
     progress("start noise scale", len(scales), len(scales))
     best = min(scores, key=lambda s: (scores[s], s))
     log.info("energy score by start noise scale: %s", scores)
-    noise = replace(
-        dist.start_noise, pose_std=dist.start_noise.pose_std * best, velocity_std=dist.start_noise.velocity_std * best
-    )
     fit = {
         **dist.fit,
         "start_noise_scale": {
@@ -680,4 +692,4 @@ def fit_start_noise_scale(
             "measured": dist.start_noise.to_json(),
         },
     }
-    return replace(dist, start_noise=noise, fit=fit)
+    return replace(dist, start_noise=dist.start_noise.scaled(best), fit=fit)

@@ -26,6 +26,18 @@ class _JointError:
     scale: float  # error units per "percent": hinge 0.01 rad, slide 0.001 m
 
 
+def scalar_joint_errors(model: mujoco.MjModel) -> list[_JointError]:
+    """The hinge and slide joints' errors and their scales (hinge 0.01 rad, slide 1 mm per "percent")."""
+    out = []
+    for j in range(model.njnt):
+        jtype = int(model.jnt_type[j])
+        if jtype == mujoco.mjtJoint.mjJNT_HINGE:
+            out.append(_JointError(qpos_index=int(model.jnt_qposadr[j]), scale=0.01))
+        elif jtype == mujoco.mjtJoint.mjJNT_SLIDE:
+            out.append(_JointError(qpos_index=int(model.jnt_qposadr[j]), scale=0.001))
+    return out
+
+
 def pseudo_huber_residuals(res: np.ndarray, scale: float) -> np.ndarray:
     """Residuals whose squares are the pseudo-Huber function of `res` with this scale: quadratic below it, linear
     above, so least squares (and sums of squares) over them are robust to a few large residuals."""
@@ -65,13 +77,7 @@ class Evaluator:
         self.qpos_at, _ = sim._offsets(base)
         self.free = sim.free_joints(base)
         self.sizes = [body_size_m(base, mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_BODY, fj.body)) for fj in self.free]
-        self.scalar: list[_JointError] = []
-        for j in range(base.njnt):
-            jtype = int(base.jnt_type[j])
-            if jtype == mujoco.mjtJoint.mjJNT_HINGE:
-                self.scalar.append(_JointError(qpos_index=int(base.jnt_qposadr[j]), scale=0.01))
-            elif jtype == mujoco.mjtJoint.mjJNT_SLIDE:
-                self.scalar.append(_JointError(qpos_index=int(base.jnt_qposadr[j]), scale=0.001))
+        self.scalar = scalar_joint_errors(base)
         order = sorted(range(len(self.trajs)), key=lambda i: self.trajs[i].num_steps)
         self.groups = [order[i : i + group_size] for i in range(0, len(order), group_size)]
         self.batches = [sim.prepare(base, [self.trajs[i] for i in g]) for g in self.groups]

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from grounder.calibration.distribution import DISTRIBUTION_FILE, read_distribution
+from grounder.calibration.distribution import DISTRIBUTION_FILE, read_scene_distribution
 from grounder.calibration.parameters import apply_to_spec
 from grounder.errors import GrounderError
 
@@ -43,13 +43,10 @@ def write_randomized_variants(scene: Path, out: Path, n: int, seed: int = 0, *, 
     xml_path = scene_xml_path(scene)
     scene_dir = xml_path.parent
     dist_path = scene_dir / DISTRIBUTION_FILE
-    if not dist_path.is_file():
-        raise GrounderError(
-            f"{scene_dir} has no {DISTRIBUTION_FILE} to draw from; calibrate it with `image2sim calibrate "
-            "--distribution` (or draw from the property model's prior with `image2sim properties sample`)"
-        )
     _, model = load_scene_spec(scene)
-    dist = read_distribution(dist_path, model.nv)
+    dist = read_scene_distribution(
+        scene_dir, model.nv, "(or draw from the property model's prior with `image2sim properties sample`)"
+    )
     params = dist.parameters(model)
     values = dist.draw_values(params, n, np.random.default_rng(seed))
     paths = []

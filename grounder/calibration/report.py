@@ -162,7 +162,6 @@ def _distribution_section(result: CalibrationResult, trajs: list[Trajectory]) ->
     sampled rollouts (as ``rollout --samples`` draws them) on the report's trajectories (the validation split)."""
     import matplotlib.pyplot as plt
 
-    from grounder.calibration.parameters import apply_to_model
     from grounder.sim.sample_scores import score_samples, summarise
     from grounder.sim.sampled import rollout_samples
     from grounder.sim.start_noise import perturbed_starts
@@ -178,8 +177,7 @@ def _distribution_section(result: CalibrationResult, trajs: list[Trajectory]) ->
     ]
     rng = np.random.default_rng(0)
     scored = trajs[:_MAX_SCORED]
-    draws = dist.draw_values(params, _FAN_SAMPLES, rng)
-    models = [apply_to_model(model, params, row) for row in draws]
+    models = dist.draw_models(model, _FAN_SAMPLES, rng)
     starts = [perturbed_starts(model, t.qpos[0], t.qvel[0], dist.start_noise, _FAN_SAMPLES, rng) for t in scored]
     fans = rollout_samples(models, scored, starts)
     scores = summarise([score_samples(model, t, q, v) for t, (q, v) in zip(scored, fans, strict=True)])

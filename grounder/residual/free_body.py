@@ -418,7 +418,9 @@ class NumpyResidual:
         added the same way.
         """
         feats, rots = body_features(qpos0, qvel0, self.bodies)
-        qpos, qvel = apply_correction(qpos_sim, qvel_sim, self(feats), rots, self.bodies)
+        gate = self.gate(feats)
+        correction = self.raw(feats) * (gate * self.out_gain)[..., None]  # self(feats), keeping the gate for below
+        qpos, qvel = apply_correction(qpos_sim, qvel_sim, correction, rots, self.bodies)
         fraction = self.meta.gate.energy_restore_fraction
         start = [body_energy(qpos0, qvel0, b, self.gravity) for b in self.bodies]
         sim = [body_energy(qpos_sim, qvel_sim, b, self.gravity) for b in self.bodies]
@@ -427,7 +429,7 @@ class NumpyResidual:
             # the drawn part after the cap: the cap keeps the mean from adding energy, and applied to zero-mean
             # draws it would only ever take energy away (a bias, not a spread)
             z = (feats - self.feat_mean) / self.feat_std
-            sd = self.spread.std(z, self.gate(feats))
+            sd = self.spread.std(z, gate)
             if np.any(sd > 0.0):
                 qpos, qvel = apply_correction(qpos, qvel, sd * rng.normal(size=sd.shape), rots, self.bodies)
         return qpos, qvel

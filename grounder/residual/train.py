@@ -367,7 +367,6 @@ def _train_spread(
     import torch
 
     from grounder.calibration.distribution import DISTRIBUTION_FILE, read_distribution
-    from grounder.calibration.parameters import apply_to_model
     from grounder.residual.spread import fit_spread, select_spread_gain
     from grounder.sim.start_noise import measure_start_noise
 
@@ -388,9 +387,7 @@ def _train_spread(
     models = None
     if (scene_dir / DISTRIBUTION_FILE).is_file():
         dist = read_distribution(scene_dir / DISTRIBUTION_FILE, model.nv)
-        params = dist.parameters(model)
-        draws = dist.draw_values(params, options.spread_samples, np.random.default_rng(options.seed))
-        models = [apply_to_model(model, params, row) for row in draws]
+        models = dist.draw_models(model, options.spread_samples, np.random.default_rng(options.seed))
         noise = dist.start_noise
     else:
         noise = measure_start_noise(model, trajs)

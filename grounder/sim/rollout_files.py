@@ -16,6 +16,7 @@ import importlib
 import importlib.util
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -39,15 +40,11 @@ def run_rollout(
     check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))
     _, model = load_scene_spec(scene)
     trajs = load_trajectories(traj_dir, model)
-    used = False
-    scene_dir = scene if scene.is_dir() else scene.parent
-    if use_residual and importlib.util.find_spec("grounder.residual.simulator") is not None:
-        module = importlib.import_module("grounder.residual.simulator")
-        module.check_residual_pair(scene_dir)  # half a residual is an error, not a silent plain-MuJoCo run
-        if module.has_residual(scene_dir):
-            preds = module.Simulator(scene).rollout(trajs, stable=True)
-            used = True
-    if not used:
+    simulator = _residual_simulator(scene) if use_residual else None
+    used = simulator is not None
+    if simulator is not None:
+        preds = simulator.rollout(trajs, stable=True)
+    else:
         preds = simulate(model, trajs, stable=True)
     with staged_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir)) as stage:
         save_trajectories(preds, stage)  # the whole folder replaced at once, as every command does
@@ -63,6 +60,18 @@ def run_rollout(
 
 
 MAX_SAMPLES = 4096
+
+
+def _residual_simulator(scene: Path) -> Any:
+    """``grounder.residual.simulator.Simulator`` of the scene when that module exists and the scene folder has a
+    residual; None otherwise. Half a residual (one of its files without the other) is an error, not a silent
+    plain-MuJoCo run."""
+    if importlib.util.find_spec("grounder.residual.simulator") is None:
+        return None
+    module = importlib.import_module("grounder.residual.simulator")
+    scene_dir = scene if scene.is_dir() else scene.parent
+    module.check_residual_pair(scene_dir)
+    return module.Simulator(scene) if module.has_residual(scene_dir) else None
 
 
 def run_sampled_rollout(
@@ -82,8 +91,7 @@ def run_sampled_rollout(
         GrounderError: the scene folder has no ``distribution.json`` (or it does not fit the scene), or ``samples``
             is out of range.
     """
-    from grounder.calibration.distribution import DISTRIBUTION_FILE, read_distribution
-    from grounder.calibration.parameters import apply_to_model
+    from grounder.calibration.distribution import DISTRIBUTION_FILE, read_scene_distribution
     from grounder.sim.sampled import median_trajectory, rollout_samples
     from grounder.sim.start_noise import perturbed_starts
     from reconstruction import check_output_dir, staged_output_dir
@@ -93,24 +101,12 @@ def run_sampled_rollout(
     check_output_dir(out, overwrite=overwrite, error=GrounderError, inputs=(scene, traj_dir))
     _, model = load_scene_spec(scene)
     scene_dir = scene if scene.is_dir() else scene.parent
-    dist_path = scene_dir / DISTRIBUTION_FILE
-    if not dist_path.is_file():
-        raise GrounderError(
-            f"{scene_dir} has no {DISTRIBUTION_FILE} to draw from; calibrate it with `image2sim calibrate "
-            "--distribution` and roll out the folder that writes"
-        )
-    simulator = None
-    if use_residual and importlib.util.find_spec("grounder.residual.simulator") is not None:
-        module = importlib.import_module("grounder.residual.simulator")
-        module.check_residual_pair(scene_dir)
-        if module.has_residual(scene_dir):
-            simulator = module.Simulator(scene)  # MuJoCo + the residual, its corrections drawn from its spread
-    dist = read_distribution(dist_path, model.nv)
+    dist = read_scene_distribution(scene_dir, model.nv, "and roll out the folder that writes")
+    # MuJoCo + the residual, its corrections drawn from its spread, when the folder has one
+    simulator = _residual_simulator(scene) if use_residual else None
     trajs = load_trajectories(traj_dir, model)
-    params = dist.parameters(model)
     rng = np.random.default_rng(seed)
-    values = dist.draw_values(params, samples, rng)
-    models = [apply_to_model(model, params, row) for row in values]
+    models = dist.draw_models(model, samples, rng)
     starts = [perturbed_starts(model, t.qpos[0], t.qvel[0], dist.start_noise, samples, rng) for t in trajs]
     if simulator is not None:
         sims = simulator.sample(trajs, starts, rng, models=models)

@@ -60,6 +60,15 @@ class StartNoise:
         """No start noise (starts as recorded)."""
         return StartNoise(pose_std=np.zeros(nv), velocity_std=np.zeros(nv), trajectories=0)
 
+    def scaled(self, factor: float) -> StartNoise:
+        """The same noise with every scale multiplied by ``factor``."""
+        return StartNoise(
+            pose_std=self.pose_std * factor,
+            velocity_std=self.velocity_std * factor,
+            trajectories=self.trajectories,
+            window=self.window,
+        )
+
     def to_json(self) -> dict[str, Any]:
         return {
             "method": "quadratic fit of the first samples in tangent space; robust scale about zero",
