@@ -85,6 +85,12 @@ def outcome_breakdown(model: mujoco.MjModel, trajs: list) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--max-train", type=int, default=40, help="training tosses used by the fit (seeded subset)")
+    parser.add_argument(
+        "--global-search-trajectories",
+        type=int,
+        default=48,
+        help="training tosses the global search scores candidates on (seeded subset; 0: all of --max-train)",
+    )
     parser.add_argument("--popsize", type=int, default=5)
     parser.add_argument("--generations", type=int, default=12)
     parser.add_argument("--local-iterations", type=int, default=4)
@@ -113,6 +119,7 @@ def main() -> None:
         split_seed=args.split_seed,
         seed=args.seed,
         max_train_trajectories=args.max_train,
+        global_search_trajectories=args.global_search_trajectories or None,
         popsize=args.popsize,
         generations=args.generations,
         local_iterations=args.local_iterations,

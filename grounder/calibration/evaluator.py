@@ -86,6 +86,13 @@ class Evaluator:
         self.rollout_seconds = 0.0
         self.eval_seconds = 0.0
 
+    def absorb_counts(self, other: Evaluator) -> None:
+        """Adds another evaluator's rollout counts and times to this one's (a search that used both)."""
+        self.rollouts += other.rollouts
+        self.steps += other.steps
+        self.rollout_seconds += other.rollout_seconds
+        self.eval_seconds += other.eval_seconds
+
     def models(self, values: np.ndarray) -> list[mujoco.MjModel]:
         """Models for (K, P) physical parameter vectors."""
         return [apply_to_model(self.base, self.params, row, data=self._data) for row in np.atleast_2d(values)]

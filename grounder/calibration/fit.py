@@ -327,7 +327,16 @@ def calibrate(
             start = np.sqrt(np.maximum(ev.loss_of_values(prob.values(prob.x0[None]))[0], 0.0))
             prob = replace(prob, robust_c=max(options.robust_scale * float(np.median(start)), 1e-9))
         groups = body_groups(params) if options.separate_bodies else None
-        best_u, history = _search(prob, options, report, groups)
+        global_prob = None
+        limit = options.global_search_trajectories
+        if limit is not None and limit < len(fit_trajs) and options.generations > 0:
+            few = set(training_subset(fit_names, limit, options.seed))
+            global_ev = Evaluator(base, params, [t for t in fit_trajs if t.name in few], **common)
+            global_prob = replace(prob, ev=global_ev)
+            extra["global_search_trajectories"] = sorted(few, key=_natural_key)
+        best_u, history = _search(prob, options, report, groups, global_prob)
+        if global_prob is not None:
+            ev.absorb_counts(global_prob.ev)
         values, fits = _raw_fits(prob, params, best_u, options, report)
 
     calibrated_spec = apply_to_spec(spec, base, params, values)

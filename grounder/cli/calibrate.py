@@ -29,6 +29,7 @@ _FLAG_OF_OPTION = {
     "validation_fraction": "--validation-fraction",
     "split_seed": "--split-seed",
     "max_train_trajectories": "--max-train",
+    "global_search_trajectories": "--global-search-trajectories",
     "generations": "--generations",
     "popsize": "--popsize",
     "local_iterations": "--local-iterations",
@@ -85,6 +86,13 @@ def _add_calibrate(app: typer.Typer) -> None:
         max_train: Annotated[
             int | None, typer.Option(help="Fit on at most this many training trajectories (seeded subset).")
         ] = None,
+        global_search_trajectories: Annotated[
+            int,
+            typer.Option(
+                help="The global search scores candidates on a seeded subset of this many fitting trajectories; "
+                "the local refinement uses them all (0: all throughout)."
+            ),
+        ] = 48,
         generations: Annotated[
             int, typer.Option(help="Differential-evolution generations (0: no global search).")
         ] = 20,
@@ -140,6 +148,7 @@ def _add_calibrate(app: typer.Typer) -> None:
                     validation_fraction=validation_fraction,
                     split_seed=split_seed,
                     max_train_trajectories=max_train,
+                    global_search_trajectories=global_search_trajectories or None,
                     generations=generations,
                     popsize=popsize,
                     local_iterations=local_iterations,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -217,6 +218,30 @@ def test_calibration_recovers_known_parameters(synthetic, tmp_path: Path) -> Non
     )
     report = (out / "report.html").read_text()
     assert report.count("data:image/png;base64,") >= 3 and "cube.friction.sliding" in report
+
+
+def test_global_search_on_a_subset_then_refinement_on_all(synthetic) -> None:
+    """The global search scores candidates on a seeded subset of the training tosses, the refinement on all of them:
+    the known parameters are still recovered, and the record names the subset."""
+    trajs, truth = synthetic
+    options = CalibrateOptions(
+        params=tuple(truth),
+        popsize=5,
+        generations=6,
+        local_iterations=6,
+        validation_fraction=0.3,
+        nthread=2,
+        global_search_trajectories=3,
+    )
+    result = calibrate(CUBE_XML, trajs, options=options)
+    subset = result.extra["global_search_trajectories"]
+    assert len(subset) == 3 and set(subset) < set(result.train_names), subset
+    for name, true_value in truth.items():
+        assert result.values[name] == pytest.approx(true_value, rel=0.05), (name, result.values)
+    # Fewer rollouts than the whole training split throughout: 6 generations x 10 candidates x 4 tosses fewer.
+    whole = calibrate(CUBE_XML, trajs, options=replace(options, global_search_trajectories=None))
+    assert "global_search_trajectories" not in whole.extra
+    assert result.evaluations < whole.evaluations - 6 * 10 * 4, (result.evaluations, whole.evaluations)
 
 
 def test_a_copy_of_a_toss_is_named_and_kept_with_it(
