@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -11,6 +13,7 @@ import numpy as np
 
 from image2sim_common.progress import ProgressFn, no_progress
 from reconstruction import _dense, _objects, _segment, _silhouette, _world
+from reconstruction._parallel import ordered_ahead, usable_cores
 from reconstruction._types import CameraIntrinsics, ObjectInstance, ReconstructionResult, TexturedMesh
 from reconstruction.errors import ReconstructionError
 
@@ -135,69 +138,62 @@ def _cluster_top_m(points: np.ndarray) -> float:
 
 
 def find_objects(
-    result: ReconstructionResult, options: ObjectsOptions | None = None, progress: ProgressFn | None = None
+    result: ReconstructionResult,
+    options: ObjectsOptions | None = None,
+    progress: ProgressFn | None = None,
+    seconds: dict[str, float] | None = None,
 ) -> SceneObjects:
     """Segment and mesh every object on the table of a reconstruction (world frame, table top z = 0).
 
     Each object's mesh is watertight, expressed in its own frame (origin at its bounding-box centre, axes
-    parallel to the world's), with `world_from_object` its pose. Meshes are not textured here.
+    parallel to the world's), with `world_from_object` its pose. Meshes are not textured here. With ``seconds``,
+    the wall time of its steps is added there: ``dense`` (stereo and fusion), ``segment``, ``mesh``, ``silhouettes``.
 
     Raises:
         SegmentationError: no object, or an object that cannot be closed.
     """
     options = options or ObjectsOptions()
     report = progress or no_progress
+    timing: dict[str, float] = {} if seconds is None else seconds
     views = load_views(result)
     roi = region_of_interest(result, options.roi_margin_fraction)
     k, _ = _dense._opencv_k(result.intrinsics, 1.0)
     voxel = _dense.voxel_size(views, roi, options.dense)
     hull_region = _hull_region(result, roi)  # of the region from the sparse points, before any raise
-    dense, segments, roi = _fused_and_segmented(views, result.intrinsics, roi, k, voxel, options, report)
+    dense, segments, roi = _fused_and_segmented(views, result.intrinsics, roi, k, voxel, options, report, timing)
+    tick = time.perf_counter()
     cam_centres = np.array([v.world_from_cam[:3, 3] for v in views])
     instances: list[ObjectInstance] = []
-    for index, segment in enumerate(segments):
-        report("meshing objects", index, len(segments))
-        quality, reason = "full", None
+
+    def meshed(segment: _segment.ObjectSegment) -> tuple[_objects.WatertightMesh | None, Exception | None]:
         try:
-            mesh = _objects.mesh_object(dense, segment, cam_centres, options.mesh)
-        except Exception as exc:  # one object's failure must not lose the scene: a coarser surface made another way
-            if segment.cut_at_neck:  # stereo smear cut off an object's footprint: the object itself was meshed
-                log.info("a part cut off at a footprint's neck has no solid of its own: dropped (%s)", exc)
-                continue
-            reason = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
-            if _objects.standing_sheet(segment.points_world, options.min_fallback_aspect):
-                log.warning("dropped a sheet of fused points standing on edge that could not be meshed (%s)", reason)
-                continue
-            mesh = _objects.fallback_mesh(segment)  # SegmentationError where even that cannot be closed
-            quality = "fallback"
-        volume = _mesh_volume(mesh.vertices_world, mesh.faces)
-        if volume < (options.min_object_voxels * dense.voxel_size) ** 3:
-            # A cluster whose solid the depth maps see through almost entirely (a shadow, a reflection): not an object.
-            log.warning("dropped a candidate object of %.2g m^3: too small to be an object", volume)
-            continue
-        own_mesh, world_from_object = _in_own_frame(mesh.vertices_world, mesh.faces)
-        instances.append(
-            ObjectInstance(
-                name=f"object_{len(instances)}",
-                mesh=own_mesh,
-                world_from_object=world_from_object,
-                num_views=segment.num_views,
-                closed_bottom=mesh.closed_bottom,
-                warnings=(
-                    *segment.warnings,
-                    *(() if reason is None else (f"meshed as the convex hull of its points ({reason})",)),
-                ),
-                mesh_quality=quality,
-                mesh_reason=reason,
-                at_region_edge=segment.at_region_edge,
-            )
-        )
+            return _objects.mesh_object(dense, segment, cam_centres, options.mesh), None
+        except Exception as exc:  # handled in order below
+            return None, exc
+
+    # Objects are meshed side by side, one per core (NumPy, libigl, scikit-image and Open3D let go of the GIL for
+    # most of it), and taken in order: the same objects, names and warnings as one after the other.
+    cores = usable_cores()
+    pool = ThreadPoolExecutor(max_workers=cores, thread_name_prefix="mesh")
+    try:
+        results = ordered_ahead(pool, meshed, segments, ahead=cores)
+        for index, (segment, (made, error)) in enumerate(zip(segments, results, strict=True)):
+            report("meshing objects", index, len(segments))
+            instance = _instance_of(segment, made, error, dense, options, len(instances))
+            if instance is not None:
+                instances.append(instance)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    report("meshing objects", len(segments), len(segments))
     report("meshing objects", len(segments), len(segments))
     instances = _resting(instances, options.max_float_voxels * dense.voxel_size)
+    _add_seconds(timing, "mesh", tick)
     if options.silhouettes is not None:
+        tick = time.perf_counter()
         report("silhouettes", 0, 1)
         instances = _with_silhouettes(instances, views, k, hull_region, dense.voxel_size, options.silhouettes)
         report("silhouettes", 1, 1)
+        _add_seconds(timing, "silhouettes", tick)
     if not instances:
         raise _segment.SegmentationError(
             "no object found: every cluster above the table meshed to almost nothing; film the objects from more sides"
@@ -212,6 +208,51 @@ def find_objects(
     )
 
 
+def _instance_of(
+    segment: _segment.ObjectSegment,
+    made: _objects.WatertightMesh | None,
+    error: Exception | None,
+    dense: _dense.DenseResult,
+    options: ObjectsOptions,
+    number: int,
+) -> ObjectInstance | None:
+    """The object a segment's mesh (or its meshing's ``error``) makes, named ``object_<number>``; None where the
+    segment is no object (a part cut off at a neck, a standing sheet, too small a solid)."""
+    quality, reason = "full", None
+    mesh = made
+    if error is not None:  # one object's failure must not lose the scene: a coarser surface made another way
+        if segment.cut_at_neck:  # stereo smear cut off an object's footprint: the object itself was meshed
+            log.info("a part cut off at a footprint's neck has no solid of its own: dropped (%s)", error)
+            return None
+        reason = f"{type(error).__name__}: {' '.join(str(error).split())}"
+        if _objects.standing_sheet(segment.points_world, options.min_fallback_aspect):
+            log.warning("dropped a sheet of fused points standing on edge that could not be meshed (%s)", reason)
+            return None
+        mesh = _objects.fallback_mesh(segment)  # SegmentationError where even that cannot be closed
+        quality = "fallback"
+    assert mesh is not None
+    volume = _mesh_volume(mesh.vertices_world, mesh.faces)
+    if volume < (options.min_object_voxels * dense.voxel_size) ** 3:
+        # A cluster whose solid the depth maps see through almost entirely (a shadow, a reflection): not an object.
+        log.warning("dropped a candidate object of %.2g m^3: too small to be an object", volume)
+        return None
+    own_mesh, world_from_object = _in_own_frame(mesh.vertices_world, mesh.faces)
+    return ObjectInstance(
+        name=f"object_{number}",
+        mesh=own_mesh,
+        world_from_object=world_from_object,
+        num_views=segment.num_views,
+        closed_bottom=mesh.closed_bottom,
+        warnings=(
+            *segment.warnings,
+            *(() if reason is None else (f"meshed as the convex hull of its points ({reason})",)),
+        ),
+        mesh_quality=quality,
+        mesh_reason=reason,
+        at_region_edge=segment.at_region_edge,
+    )
+
+
 def _fused_and_segmented(
     views: list[_dense.StereoView],
     intrinsics: CameraIntrinsics,
@@ -220,6 +261,7 @@ def _fused_and_segmented(
     voxel: float,
     options: ObjectsOptions,
     report: ProgressFn,
+    timing: dict[str, float],
 ) -> tuple[_dense.DenseResult, list[_segment.ObjectSegment], _dense.RegionOfInterest]:
     """The fused surface inside `roi`, its objects, and the region they were fused in: raised and fused again while
     an object reaches its top, up to `max_roi_raises` times (`_grown`).
@@ -231,6 +273,7 @@ def _fused_and_segmented(
     cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
     distance = _dense.camera_distance(views, roi)
     for attempt in range(options.max_roi_raises + 1):
+        tick = time.perf_counter()
         dense = _dense.fuse_views(
             views,
             intrinsics,
@@ -239,8 +282,11 @@ def _fused_and_segmented(
             progress=lambda done, total: report("dense stereo", done, total),
             voxel_m=voxel,
         )
+        _add_seconds(timing, "dense", tick)
+        tick = time.perf_counter()
         report("segmenting objects", 0, 1)
         segments = _segment.segment_objects(dense, roi, cams_from_world, k, size, options.segment)
+        _add_seconds(timing, "segment", tick)
         grown = _grown(roi, segments, voxel, distance, options)
         if attempt == options.max_roi_raises or grown is None:
             break
@@ -251,6 +297,10 @@ def _fused_and_segmented(
         )
         roi = grown
     return dense, segments, roi
+
+
+def _add_seconds(timing: dict[str, float], step: str, since: float) -> None:
+    timing[step] = timing.get(step, 0.0) + time.perf_counter() - since
 
 
 def _grown(

@@ -16,7 +16,6 @@ fused surface found nothing, or only a fragment of the piece (`reconstruction._s
 from __future__ import annotations
 
 import logging
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -25,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 
 from reconstruction._dense import RegionOfInterest, StereoView
-from reconstruction._texture import _sample_bilinear
+from reconstruction._texture import _sample_bilinear, nanmedian_first_axis
 
 log = logging.getLogger(__name__)
 
@@ -161,9 +160,7 @@ def table_drawing(
         ok = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
         if ok.any():
             samples[slot, ok] = _sample_bilinear(images_lab[i], uv[ok, 0], uv[ok, 1])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # texels no frame saw: NaN
-        colour = np.nanmedian(samples, axis=0)
+    colour = nanmedian_first_axis(samples)  # texels no frame saw: NaN
     return TableDrawing(image_lab=colour.reshape(rows, cols, 3), origin_world=origin, step_m=step_m)
 
 
@@ -239,11 +236,14 @@ def _label_counts(
     foreground = np.zeros(len(centres), np.int32)
     for label, view in zip(labels, views, strict=True):
         h, w = label.shape
-        uv, depth = _project(centres, view.world_from_cam, k)
-        with np.errstate(invalid="ignore"):
-            col = np.round(uv[:, 0])
-            row = np.round(uv[:, 1])
-            inside = np.flatnonzero((depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
+        # K [R | t] in one product per point (the grid holds up to a few million cells, seen by every frame)
+        pix_from_world = k @ np.linalg.inv(view.world_from_cam)[:3]
+        homogeneous = centres @ pix_from_world[:, :3].T + pix_from_world[:, 3]
+        depth = homogeneous[:, 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            col = np.round(homogeneous[:, 0] / depth)
+            row = np.round(homogeneous[:, 1] / depth)
+            inside = np.flatnonzero((depth > 1e-9) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
         seen = label[row[inside].astype(int), col[inside].astype(int)]
         background[inside[seen == 1]] += 1
         foreground[inside[seen == 2]] += 1

@@ -556,6 +556,20 @@ def _view_weights(
     return weight, col, row
 
 
+def nanmedian_first_axis(samples: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(samples, axis=0)`` (NaN where a column has no number), value for value, without the warning.
+
+    NumPy takes the median of a few rows over many columns through masked arrays: 3.6 s of the tabletop sample's
+    grounding for its table drawing and texture, against 0.2 s sorted once here (NaN sorts last).
+    """
+    ordered = np.sort(samples, axis=0)
+    counts = np.sum(~np.isnan(samples), axis=0)
+    low = np.take_along_axis(ordered, np.maximum((counts - 1) // 2, 0)[None], axis=0)[0]
+    high = np.take_along_axis(ordered, (counts // 2)[None], axis=0)[0]
+    middle = (low + high) / 2
+    return np.where(counts > 0, middle, np.nan).astype(samples.dtype, copy=False)
+
+
 def _sample_bilinear(image_bgr: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     """(N, 3) float32 bilinear samples at array coordinates (cv2.remap wants 2D maps of bounded width)."""
     n = len(col)
@@ -724,6 +738,6 @@ def bake_table_texture(
     colour = np.zeros((len(texels), 3), np.float32)
     observed = counts > 0
     if observed.any():
-        colour[observed] = np.nanmedian(samples[:, observed], axis=0)
+        colour[observed] = nanmedian_first_axis(samples[:, observed])
         colour[~observed] = np.median(colour[observed], axis=0)
     return np.clip(colour, 0, 255).round().astype(np.uint8).reshape(rows, cols, 3)

@@ -7,7 +7,8 @@ regenerated alone. `--small` draws the cheap scenes the default tests ground (64
 Seed ranges (keep them apart, so that figures are measured on scenes no test or tuning has seen):
 - 0-99: development and tuning;
 - 100-199: the default tests (`tests/samples/test_make_scene_family.py`);
-- 1000 and up: `benchmarks/scene_family.py` (held out).
+- 1000-1999: `benchmarks/scene_family.py` (held out);
+- 2000 and up: `benchmarks/speed.py` (its side-by-side inputs: held out from tests and tuning too).
 
 Each scene draws 1-6 objects from these classes (`_family_shapes.py`): boxes (cubes, flat book-like, 3 cm small
 ones, cartons), cans and tall thin cylinders, necked bottles, bowls, plates (under 2 cm high), cups and mugs with

@@ -323,6 +323,8 @@ def _ground_staged(
 ) -> GroundResult:
     """`ground`'s work; `warm_up` collects the warm-up thread, which stops at its next step once `stop_warm_up`."""
     seconds: dict[str, float] = {}
+    # the same time by the steps a user would name (frames ... mapping, world frame, dense, segment, mesh, ...)
+    detail: dict[str, float] = {}
     warnings: list[str] = []
     with staged_output_dir(Path(out_dir), overwrite=overwrite, inputs=(source,), error=InputError) as stage:
         tick = time.perf_counter()
@@ -334,12 +336,13 @@ def _ground_staged(
             on_mapping=lambda: warm_up.append(_start_warm_up(options, stop_warm_up)),
         )
         seconds["reconstruct"] = time.perf_counter() - tick
+        detail.update(rec.stage_seconds)
         rec = replace(rec, out_dir=stage / "reconstruction")
         if rec.world.scale_source == ScaleSource.UNKNOWN:
             warnings.append("scale unknown: pass --aruco-size or --known-extent for a metric scene")
 
         tick = time.perf_counter()
-        scene = find_objects(rec, options.objects, progress=report)
+        scene = find_objects(rec, options.objects, progress=report, seconds=detail)
         seconds["dense_segment_mesh"] = time.perf_counter() - tick
         scale_note = None
         if rec.world.scale_source == ScaleSource.KNOWN_EXTENT and options.reconstruct.known_extent_m:
@@ -349,7 +352,7 @@ def _ground_staged(
                 nonlocal reconstruction
                 note = f"known extent on a first segmentation: scale x {factor:.4f}"
                 _, reconstruction = _rescale(scene, reconstruction, factor, note)
-                return find_objects(reconstruction, options.objects, progress=report)
+                return find_objects(reconstruction, options.objects, progress=report, seconds=detail)
 
             refined = _refine_known_extent(
                 scene, options.reconstruct.known_extent_m, rec.world.scale_provisional, resegment
@@ -432,6 +435,8 @@ def _ground_staged(
         manifest_path.write_text(json.dumps(manifest, indent=1) + "\n")
         seconds["export"] = time.perf_counter() - tick
         manifest["stage_seconds"] = {k: round(v, 2) for k, v in seconds.items()}
+        detail.update((k, seconds[k]) for k in ("texture", "properties", "collision", "export") if k in seconds)
+        manifest["stage_seconds_detail"] = {k: round(v, 2) for k, v in detail.items()}
         manifest_path.write_text(json.dumps(manifest, indent=1) + "\n")
     for warning in warnings:
         log.warning(warning)

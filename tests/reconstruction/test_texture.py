@@ -24,6 +24,7 @@ from reconstruction._texture import (
     TextureView,
     bake_texture,
     bake_texture_report,
+    nanmedian_first_axis,
     texture_coverage,
 )
 from reconstruction._types import CameraIntrinsics, TexturedMesh
@@ -474,3 +475,18 @@ def test_many_views_are_thinned_to_a_spread(tabletop: _Tabletop) -> None:
     azimuth = np.sort(np.degrees(np.arctan2(offsets[:, 1], offsets[:, 0])))
     gaps = np.diff(np.r_[azimuth, azimuth[0] + 360])
     assert gaps.max() < 70, gaps
+
+
+def test_nanmedian_first_axis_is_numpys_nanmedian() -> None:
+    """Value for value NumPy's nanmedian over the first axis: odd and even counts, lone numbers, all-NaN columns."""
+    rng = np.random.default_rng(3)
+    samples = rng.normal(size=(7, 500, 3)).astype(np.float32) * 50
+    samples[1:][rng.random(samples[1:].shape) < 0.45] = np.nan  # the first row stays: every column seen once at least
+    samples[:, :5] = np.nan  # never seen
+    samples[1:, 5:10] = np.nan  # seen once
+    with np.errstate(all="ignore"), pytest.warns(RuntimeWarning):
+        expected = np.nanmedian(samples, axis=0)
+    got = nanmedian_first_axis(samples)
+    assert got.dtype == samples.dtype and got.shape == expected.shape
+    np.testing.assert_array_equal(got, expected)
+    assert np.isnan(got[:5]).all() and not np.isnan(got[5:]).any()
