@@ -63,7 +63,7 @@ def family_inputs(scenes: Path) -> list[tuple[str, Path, list[str], Path]]:
     picked: list[tuple[str, Path, list[str], Path]] = []
     videos = photos = 0
     for seed in range(FIRST_SEED, FIRST_SEED + 40):
-        scene = scenes / f"scene_{seed}"
+        scene = scenes / f"scene_{seed:05d}"
         if not (scene / "truth" / "family.json").exists():
             cmd = [sys.executable, str(REPO / "samples" / "make_scene_family.py"), str(scenes), "--seed", str(seed)]
             subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=ENV)
