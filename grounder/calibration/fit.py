@@ -27,8 +27,10 @@ How it fits (raw mode):
    & Posa (RA-L 2022) when ``rotation_weight = 0``.
 3. Global search (contact losses have many local minima): SciPy's differential evolution in the unit box (log scale
    for time constants, masses, gains), seeded, with the scene's own values in the first population. Each
-   generation is one batched `mujoco.rollout` call over (candidate models x training trajectories).
-4. Local refinement: `mujoco.minimize.least_squares` from the best candidate, residual per trajectory
+   generation is one batched `mujoco.rollout` call over (candidate models x training trajectories), on a seeded
+   subset of at most ``global_search_trajectories`` of them (it only has to find the basin).
+4. Local refinement on every fitting trajectory: `mujoco.minimize.least_squares` from the best candidate (scored
+   again on all of them), residual per trajectory
    ``sqrt(loss)`` (so the sum of squares is the objective), finite differences batched in one rollout per
    Jacobian. The better of the two is kept.
 5. Intervals: Gauss-Newton (Laplace) approximation at the optimum, as in ``mujoco.sysid.calculate_intervals``:

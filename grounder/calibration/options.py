@@ -34,9 +34,9 @@ class CalibrateOptions:
         global_search_trajectories: The global search (differential evolution) scores its candidates on a seeded
             subset of at most this many of the fitting trajectories; the local refinement, the intervals and the
             distribution use them all. None: all. The global search only has to land in the right basin, which a few
-            dozen trajectories locate as well as a few hundred: on the 280 real training tosses, 48 for the global
-            search then all 280 for the refinement fit in 2.4x less time than all 280 throughout, at the same held-out
-            error (`benchmarks/speed.py`, docs/results/speed.md).
+            dozen trajectories locate as well as a few hundred: on the 280 real training tosses, 48 here and all 280 in
+            the refinement took 242 s at 13.1% held out, all 280 throughout 12 min at 13.3% (another day's machine;
+            docs/results/speed.md).
         popsize: Differential-evolution population per parameter (SciPy's ``popsize``).
         generations: Differential-evolution generations (0 skips the global search).
         local_iterations: `mujoco.minimize.least_squares` iterations (0 skips the local refinement).
