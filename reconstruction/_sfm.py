@@ -24,6 +24,7 @@ from typing import TypeVar
 import numpy as np
 
 from image2sim_common.outdir import require_free_space
+from reconstruction import _opencv_sift
 from reconstruction._colmap import pycolmap
 from reconstruction._frames import image_size
 from reconstruction._parallel import run_jobs_reporting, usable_cores
@@ -60,7 +61,8 @@ def extract_features(
 ) -> None:
     """SIFT features for every image into a new COLMAP database, all images sharing one camera.
 
-    With one extraction thread (reproducible) the frames are cut, in order, into a few chunks per worker
+    ``options.sift`` "opencv" (the default): OpenCV's SIFT (`reconstruction._opencv_sift`). "colmap": with one
+    extraction thread (reproducible) the frames are cut, in order, into a few chunks per worker
     (`EXTRACTION_CHUNKS_PER_WORKER`), run by ``extraction_workers`` threads (0: one per usable core), each chunk by
     pycolmap's single-threaded extraction into a database of its own; the chunks are then merged in frame order
     (`merge_feature_databases`), which gives the database one thread would write, every table row for row and byte
@@ -77,6 +79,11 @@ def extract_features(
         error=InputError,
     )
     first_octave = sift_first_octave(image_dir, image_names, options)
+    if options.sift == "opencv":
+        _opencv_sift.extract(database_path, image_dir, image_names, options, first_octave, progress)
+        return
+    if options.sift != "colmap":
+        raise InputError(f"SfmOptions.sift must be 'opencv' or 'colmap', got {options.sift!r}")
     workers = options.extraction_workers if options.extraction_workers > 0 else usable_cores()
     if options.extraction_threads != 1 or len(image_names) < 2:
         _extract_share(database_path, image_dir, image_names, options, first_octave)

@@ -6,6 +6,7 @@ directions within 0.5 deg, in the marker frame directly, with no alignment to th
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import subprocess
@@ -246,10 +247,10 @@ def _sample_frames(images: Path, indices: Sequence[int], smaller_from: int | Non
 
 
 def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(tmp_path: Path) -> None:
-    """Seven frames of the sample, extracted by one pycolmap call, and in chunks (merged in order) by one thread
-    (four chunks) and by three (seven): the COLMAP databases are the same to the last byte of every table, so
-    neither the speed-up nor the chunks that give progress can change any reconstruction. Progress comes as chunks
-    finish."""
+    """COLMAP's SIFT (`SfmOptions.sift` "colmap"): seven frames of the sample, extracted by one pycolmap call, and
+    in chunks (merged in order) by one thread (four chunks) and by three (seven): the COLMAP databases are the same
+    to the last byte of every table, so neither the speed-up nor the chunks that give progress can change any
+    reconstruction. Progress comes as chunks finish."""
     import sqlite3
 
     from reconstruction._sfm import EXTRACTION_CHUNKS_PER_WORKER, _extract_share, extract_features, sift_first_octave
@@ -263,7 +264,7 @@ def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(
     for workers in (1, 3):
         database = tmp_path / f"workers{workers}.db"
         seen: list[int] = []
-        extract_features(database, images, names, SfmOptions(extraction_workers=workers), seen.append)
+        extract_features(database, images, names, SfmOptions(sift="colmap", extraction_workers=workers), seen.append)
         dumps.append(list(sqlite3.connect(database).iterdump()))
         chunks = min(len(names), workers * EXTRACTION_CHUNKS_PER_WORKER)  # 4 and 7 chunks
         assert seen == sorted(seen) and seen[-1] == len(names) and len(seen) == chunks, seen
@@ -273,8 +274,8 @@ def test_feature_extraction_shared_among_threads_writes_the_one_thread_database(
 
 
 def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path) -> None:
-    """Frames of two sizes (the shares' cameras disagree): the shares are not merged; one thread extracts them, and
-    the database is the one thread's."""
+    """COLMAP's SIFT, frames of two sizes (the shares' cameras disagree): the shares are not merged; one thread
+    extracts them, and the database is the one thread's."""
     import sqlite3
 
     from reconstruction._sfm import (
@@ -289,7 +290,7 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
     images = tmp_path / "images"
     names = _sample_frames(images, (0, 10, 20, 30), smaller_from=2)
     for name, share in (("a.db", names[:2]), ("b.db", names[2:])):
-        extract_features(tmp_path / name, images, share, SfmOptions(extraction_workers=1))
+        extract_features(tmp_path / name, images, share, SfmOptions(sift="colmap", extraction_workers=1))
     with pytest.raises(UnmergeableSharesError, match="cameras"):
         merge_feature_databases([tmp_path / "a.db", tmp_path / "b.db"], tmp_path / "merged.db")
     one_call = tmp_path / "one_call.db"
@@ -297,10 +298,70 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
     dumps = [list(sqlite3.connect(one_call).iterdump())]
     for workers in (1, 2):
         database = tmp_path / f"workers{workers}.db"
-        extract_features(database, images, names, SfmOptions(extraction_workers=workers))
+        extract_features(database, images, names, SfmOptions(sift="colmap", extraction_workers=workers))
         dumps.append(list(sqlite3.connect(database).iterdump()))
     assert dumps[0] == dumps[1] == dumps[2]
     assert not list(tmp_path.glob("*.share*"))
+
+
+def test_opencv_sift_writes_the_same_database_on_any_number_of_threads(tmp_path: Path) -> None:
+    """OpenCV's SIFT (the default): seven frames of the sample extracted by one thread and by three give the same
+    database, every table; one camera, every frame, a few hundred keypoints each in COLMAP's pixels, RootSIFT
+    descriptors (unit length once divided by 512, up to the rounding); progress frame by frame."""
+    import sqlite3
+
+    import pycolmap
+
+    from reconstruction._sfm import extract_features
+    from reconstruction._types import SfmOptions
+
+    images = tmp_path / "images"
+    names = _sample_frames(images, range(0, 70, 10))
+    dumps = []
+    for workers in (1, 3):
+        database = tmp_path / f"workers{workers}.db"
+        seen: list[int] = []
+        extract_features(database, images, names, SfmOptions(extraction_workers=workers), seen.append)
+        assert seen == list(range(1, len(names) + 1))
+        dumps.append(list(sqlite3.connect(database).iterdump()))
+    assert any('INSERT INTO "keypoints"' in line for line in dumps[0])
+    assert dumps[0] == dumps[1]
+    with contextlib.closing(pycolmap.Database.open(tmp_path / "workers1.db")) as db:
+        assert db.num_cameras() == 1 and sorted(i.name for i in db.read_all_images()) == names
+        for image in db.read_all_images():
+            keypoints = db.read_keypoints(image.image_id)
+            descriptors = db.read_descriptors(image.image_id).data.astype(float) / 512
+            assert 200 < len(keypoints) <= SfmOptions().max_num_features
+            assert keypoints[:, 0].min() >= 0 and keypoints[:, 0].max() <= 640
+            assert keypoints[:, 1].min() >= 0 and keypoints[:, 1].max() <= 480
+            np.testing.assert_allclose(np.linalg.norm(descriptors, axis=1), 1.0, atol=0.03)
+
+
+@pytest.mark.parametrize(("size", "max_px", "octave"), [((640, 480), 1024, -1), ((1296, 972), 1024, 0)])
+def test_opencv_sift_puts_a_blob_where_colmap_would(
+    tmp_path: Path, size: tuple[int, int], max_px: int, octave: int
+) -> None:
+    """A dark Gaussian blob on a light frame, centred at (301.5, 207.5) in COLMAP's pixels (the centre of pixel
+    (301, 207)): a keypoint sits on it within a tenth of a pixel at the frame's size, whether SIFT saw the frame
+    doubled (a small frame) or scaled down to `max_image_size_px` and not doubled (a phone frame). (OpenCV's default
+    upscaling put it 0.24 px off, down and to the right: hence its precise upscaling.)"""
+    import cv2
+
+    from reconstruction._opencv_sift import frame_features
+    from reconstruction._types import SfmOptions
+
+    width, height = size
+    scale = width / 640
+    centre_cv = (301.0 * scale + 0.5 * (scale - 1), 207.0 * scale + 0.5 * (scale - 1))  # pixel (301, 207)'s centre
+    grid_y, grid_x = np.mgrid[0:height, 0:width]
+    squared = (grid_x - centre_cv[0]) ** 2 + (grid_y - centre_cv[1]) ** 2
+    frame = np.round(220 - 180 * np.exp(-squared / (2 * (4 * scale) ** 2))).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "blob.png"), frame)
+    points, descriptors = frame_features(tmp_path / "blob.png", SfmOptions(max_image_size_px=max_px), octave)
+    assert len(points) >= 1 and descriptors.shape == (len(points), 128) and descriptors.dtype == np.uint8
+    expected = np.array([centre_cv[0] + 0.5, centre_cv[1] + 0.5])
+    nearest = points[np.argmin(np.linalg.norm(points[:, :2] - expected, axis=1))]
+    assert np.linalg.norm(nearest[:2] - expected) < 0.1 * scale, (nearest, expected)
 
 
 @pytest.mark.parametrize(("frames", "sequential"), [(range(0, 60, 3), True), (range(0, 60, 10), False)])
