@@ -52,6 +52,23 @@ def user_errors_exit_2() -> Iterator[None]:
         fail(str(exc))
 
 
+def eta_column() -> Any:
+    """A progress column: "ETA m:ss" while a stage of several steps runs (rich's estimate from the steps done so
+    far), nothing before its first step, for a one-step stage, or once it is done (its elapsed time says it all)."""
+    from rich.progress import ProgressColumn, Task
+    from rich.text import Text
+
+    class EtaColumn(ProgressColumn):
+        def render(self, task: Task) -> Text:
+            remaining = task.time_remaining
+            if task.finished or not task.total or task.total <= 1 or not task.completed or remaining is None:
+                return Text("")
+            seconds = round(remaining)
+            return Text(f"ETA {seconds // 60}:{seconds % 60:02d}", style="progress.remaining")
+
+    return EtaColumn()
+
+
 @contextmanager
 def stage_progress() -> Iterator[ProgressFn]:
     """A rich progress line per stage, on stderr so stdout stays machine-readable."""
@@ -64,6 +81,7 @@ def stage_progress() -> Iterator[ProgressFn]:
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
+        eta_column(),
         console=console,
         transient=False,
         disable=not console.is_terminal and "CI" in os.environ,

@@ -461,3 +461,26 @@ def test_input_refused_at_the_first_stage_leaves_no_progress_line(
     proc = cli("reconstruct", str(frames), "-o", str(tmp_path / "rec"), "--aruco-size", "0.1")
     assert_one_line_error(proc, "0001.png is not a readable image", alone=True)
     assert not (tmp_path / "rec").exists()
+
+
+def test_progress_shows_an_eta_while_a_stage_of_many_steps_runs() -> None:
+    """The ETA column: rich's estimate while a stage of several steps runs, nothing before its first step, for a
+    one-step stage, or once the stage is done."""
+    from rich.progress import Progress
+
+    from grounder.cli.common import eta_column
+
+    clock = [0.0]
+    progress = Progress(get_time=lambda: clock[0])
+    column = eta_column()
+    frames = progress.add_task("extracting SIFT features", total=66)
+    single = progress.add_task("world frame", total=1)
+    assert str(column.render(progress.tasks[frames])) == ""  # no step done: no estimate
+    for step in range(1, 23):  # a step every half second
+        clock[0] = 0.5 * step
+        progress.update(frames, completed=step)
+    assert str(column.render(progress.tasks[frames])) == "ETA 0:22"  # 44 steps left at 2 a second
+    progress.update(single, completed=0)
+    assert str(column.render(progress.tasks[single])) == ""
+    progress.update(frames, completed=66)
+    assert str(column.render(progress.tasks[frames])) == ""
