@@ -261,7 +261,7 @@ def _fused_and_segmented(
     voxel: float,
     options: ObjectsOptions,
     report: ProgressFn,
-    timing: dict[str, float],
+    timing: dict[str, float] | None = None,
 ) -> tuple[_dense.DenseResult, list[_segment.ObjectSegment], _dense.RegionOfInterest]:
     """The fused surface inside `roi`, its objects, and the region they were fused in: raised and fused again while
     an object reaches its top, up to `max_roi_raises` times (`_grown`).
@@ -269,6 +269,7 @@ def _fused_and_segmented(
     The region's top comes from the sparse points, which on a tall, thin or plain object may stop well below its
     top (tuning seed 1: a thin can cut at three quarters of its height, so the known extent scaled the scene
     x 1.34); the silhouettes need not catch it (the can's orange band reads as the cork table)."""
+    timing = {} if timing is None else timing
     size = (intrinsics.width_px, intrinsics.height_px)
     cams_from_world = [np.linalg.inv(v.world_from_cam) for v in views]
     distance = _dense.camera_distance(views, roi)

@@ -61,7 +61,7 @@ def extract_features(
 ) -> None:
     """SIFT features for every image into a new COLMAP database, all images sharing one camera.
 
-    ``options.sift`` "opencv" (the default): OpenCV's SIFT (`reconstruction._opencv_sift`). "colmap": with one
+    ``options.sift`` "opencv": OpenCV's SIFT (`reconstruction._opencv_sift`). "colmap" (the default): with one
     extraction thread (reproducible) the frames are cut, in order, into a few chunks per worker
     (`EXTRACTION_CHUNKS_PER_WORKER`), run by ``extraction_workers`` threads (0: one per usable core), each chunk by
     pycolmap's single-threaded extraction into a database of its own; the chunks are then merged in frame order

@@ -305,9 +305,9 @@ def test_feature_shares_that_cannot_merge_fall_back_to_one_thread(tmp_path: Path
 
 
 def test_opencv_sift_writes_the_same_database_on_any_number_of_threads(tmp_path: Path) -> None:
-    """OpenCV's SIFT (the default): seven frames of the sample extracted by one thread and by three give the same
-    database, every table; one camera, every frame, a few hundred keypoints each in COLMAP's pixels, RootSIFT
-    descriptors (unit length once divided by 512, up to the rounding); progress frame by frame."""
+    """OpenCV's SIFT (`SfmOptions.sift` "opencv"): seven frames of the sample extracted by one thread and by three
+    give the same database, every table; one camera, every frame, a few hundred keypoints each in COLMAP's pixels,
+    RootSIFT descriptors (unit length once divided by 512, up to the rounding); progress frame by frame."""
     import sqlite3
 
     import pycolmap
@@ -321,7 +321,7 @@ def test_opencv_sift_writes_the_same_database_on_any_number_of_threads(tmp_path:
     for workers in (1, 3):
         database = tmp_path / f"workers{workers}.db"
         seen: list[int] = []
-        extract_features(database, images, names, SfmOptions(extraction_workers=workers), seen.append)
+        extract_features(database, images, names, SfmOptions(sift="opencv", extraction_workers=workers), seen.append)
         assert seen == list(range(1, len(names) + 1))
         dumps.append(list(sqlite3.connect(database).iterdump()))
     assert any('INSERT INTO "keypoints"' in line for line in dumps[0])
