@@ -24,6 +24,7 @@ import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -210,8 +211,6 @@ def calibrate_tosses(work: Path) -> dict[str, object]:
             capture_output=True,
         )
     if out.exists():
-        import shutil
-
         shutil.rmtree(out)
     cmd = [CLI, "calibrate", str(CUBE_XML), str(trajs), "-o", str(out)]
     for name in DEFAULT_PARAMS:

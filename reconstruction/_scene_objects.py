@@ -185,7 +185,6 @@ def find_objects(
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
     report("meshing objects", len(segments), len(segments))
-    report("meshing objects", len(segments), len(segments))
     instances = _resting(instances, options.max_float_voxels * dense.voxel_size)
     _add_seconds(timing, "mesh", tick)
     if options.silhouettes is not None:

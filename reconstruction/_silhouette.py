@@ -128,13 +128,13 @@ def _lab(image_bgr: np.ndarray, blur_px: float) -> np.ndarray:
 
 
 def _project(points_world: np.ndarray, world_from_cam: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 2) OpenCV pixel coordinates and (N,) depth of world points."""
-    cam_from_world = np.linalg.inv(world_from_cam)
-    in_cam = points_world @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    depth = in_cam[:, 2]
+    """(N, 2) OpenCV pixel coordinates (NaN for points at or behind the camera) and (N,) depth of world points."""
+    # K [R | t] in one product per point (the visual hull's grid holds up to a few million cells, seen by every frame)
+    pix_from_world = k @ np.linalg.inv(world_from_cam)[:3]
+    homogeneous = points_world @ pix_from_world[:, :3].T + pix_from_world[:, 3]
+    depth = homogeneous[:, 2]
     safe = np.where(depth > 1e-9, depth, np.nan)
-    uv = (in_cam[:, :2] / safe[:, None]) * np.array([k[0, 0], k[1, 1]]) + np.array([k[0, 2], k[1, 2]])
-    return uv, depth
+    return homogeneous[:, :2] / safe[:, None], depth
 
 
 def table_drawing(
@@ -236,14 +236,11 @@ def _label_counts(
     foreground = np.zeros(len(centres), np.int32)
     for label, view in zip(labels, views, strict=True):
         h, w = label.shape
-        # K [R | t] in one product per point (the grid holds up to a few million cells, seen by every frame)
-        pix_from_world = k @ np.linalg.inv(view.world_from_cam)[:3]
-        homogeneous = centres @ pix_from_world[:, :3].T + pix_from_world[:, 3]
-        depth = homogeneous[:, 2]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            col = np.round(homogeneous[:, 0] / depth)
-            row = np.round(homogeneous[:, 1] / depth)
-            inside = np.flatnonzero((depth > 1e-9) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
+        uv, depth = _project(centres, view.world_from_cam, k)
+        with np.errstate(invalid="ignore"):
+            col = np.round(uv[:, 0])
+            row = np.round(uv[:, 1])
+            inside = np.flatnonzero((depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
         seen = label[row[inside].astype(int), col[inside].astype(int)]
         background[inside[seen == 1]] += 1
         foreground[inside[seen == 2]] += 1
