@@ -10,8 +10,19 @@ Scenarios (nominal models built inline, 2 ms timestep, recorded at 100 Hz):
 - ``pendulum``: a hinged rod released from random angles;
 - ``arm``: a two-link arm in a vertical plane driven by two motors with random multi-sine controls.
 
-Hidden effects are library effects with known values, plus effects outside the library: ``periodic_push`` (a
-horizontal force oscillating at 3 Hz, e.g. a vibrating table) acts only on the true system.
+Multi-object scenarios (issue 64: effects on one body, on one contact pair, or on all):
+
+- ``two_boxes``: two boxes pushed apart along the plane (sliding, then resting);
+- ``stack``: a small box sliding on top of a larger one that slides on the plane, and a third box sliding alone
+  (contact pairs box_a|floor, box_a|box_b, box_c|floor);
+- ``three_boxes``: three boxes tossed side by side in their own lanes;
+- ``collide``: a box pushed into a second, resting one (the momentum exchange shows their mass ratio);
+- ``two_balls``: two light balls thrown through the air in their own lanes.
+
+Hidden effects are library effects with known values, acting everywhere or, with ``target``, on one body
+(``box_a``) or one contact pair (``box_a|box_b``), plus effects outside the library: ``periodic_push`` (a
+horizontal force oscillating at 3 Hz, e.g. a vibrating table; on the body ``target`` names, else the first) acts
+only on the true system.
 Sensor noise: positions 0.5 mm, orientations 0.3 deg, joint angles 2 mrad; linear velocities 1 cm/s, angular
 velocities 0.05 rad/s (Gaussian, seeded).
 """
@@ -24,7 +35,8 @@ import mujoco
 import numpy as np
 
 from grounder.core.trajectory import Trajectory
-from grounder.diagnosis.effects import LIBRARY, AppliedEffect, apply_effects
+from grounder.diagnosis.effects import LIBRARY, AppliedEffect, apply_effects, parse_target
+from grounder.diagnosis.targets import Layout, moving_body_names, possible_pairs, prepared_spec
 from grounder.errors import GrounderError
 
 TIMESTEP_S = 0.002
@@ -40,6 +52,25 @@ def _free_scene(body_geom: str, mu: float = 0.5, condim: int = 3, extra_option: 
   <worldbody>
     {_PLANE.format(mu=mu, condim=condim)}
     <body name="object" pos="0 0 0.5"><freejoint name="object"/>{body_geom}</body>
+  </worldbody>
+</mujoco>"""
+
+
+def _boxes(*boxes: tuple[str, float, float]) -> str:
+    """Free boxes (name, half size m, mass kg), placed by the initial state."""
+    return "".join(
+        f'<body name="{n}" pos="0 0 0.5"><freejoint name="{n}"/><geom name="{n}" type="box" size="{h} {h} {h}" '
+        f'mass="{m}" friction="0.5 0.005 0.0001"/></body>'
+        for n, h, m in boxes
+    )
+
+
+def _multi_scene(bodies: str, mu: float = 0.5) -> str:
+    return f"""<mujoco model="case">
+  <option timestep="{TIMESTEP_S}"/>
+  <worldbody>
+    {_PLANE.format(mu=mu, condim=3)}
+    {bodies}
   </worldbody>
 </mujoco>"""
 
@@ -85,7 +116,19 @@ SCENES: dict[str, str] = {
     <motor name="elbow" joint="elbow" gear="1" ctrlrange="-1.5 1.5" ctrllimited="true"/>
   </actuator>
 </mujoco>""",
+    "two_boxes": _multi_scene(_boxes(("box_a", 0.05, 0.5), ("box_b", 0.04, 0.3))),
+    "stack": _multi_scene(_boxes(("box_a", 0.08, 1.0), ("box_b", 0.03, 0.2), ("box_c", 0.04, 0.3))),
+    "three_boxes": _multi_scene(_boxes(("box_a", 0.05, 0.5), ("box_b", 0.04, 0.3), ("box_c", 0.045, 0.4))),
+    "collide": _multi_scene(_boxes(("box_a", 0.05, 0.5), ("box_b", 0.04, 0.4))),
+    "two_balls": _multi_scene(
+        "".join(
+            f'<body name="{n}" pos="0 0 0.5"><freejoint name="{n}"/><geom name="{n}" type="sphere" size="0.05" '
+            'mass="0.06" friction="0.5 0.005 0.0001"/></body>'
+            for n in ("ball_a", "ball_b")
+        )
+    ),
 }
+MULTI_BODY_SCENARIOS = ("two_boxes", "stack", "three_boxes", "collide", "two_balls")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -95,6 +138,12 @@ class HiddenEffect:
     name: str
     values: dict[str, float]
     in_library: bool = True
+    target: str = ""  # "" = everywhere; a body ("box_a") or a contact pair ("box_a|box_b")
+
+    @property
+    def key(self) -> str:
+        """As the diagnosis names it: ``name`` or ``name@target``."""
+        return f"{self.name}@{self.target}" if self.target else self.name
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -117,8 +166,8 @@ class Case:
         return all(h.in_library for h in self.spec.hidden)
 
 
-def _h(name: str, **values: float) -> HiddenEffect:
-    return HiddenEffect(name=name, values=values, in_library=name in LIBRARY)
+def _h(name: str, target: str = "", **values: float) -> HiddenEffect:
+    return HiddenEffect(name=name, values=values, in_library=name in LIBRARY, target=target)
 
 
 BENCHMARK: tuple[CaseSpec, ...] = (
@@ -152,6 +201,42 @@ BENCHMARK: tuple[CaseSpec, ...] = (
     ),
 )
 """The withheld-effect benchmark: 14 single in-library effects, one pair, one effect outside the library."""
+
+MULTI_BODY: tuple[CaseSpec, ...] = (
+    CaseSpec(
+        name="two_boxes/sliding_friction@box_a",
+        scenario="two_boxes",
+        hidden=(_h("sliding_friction", target="box_a", mu=0.25),),
+    ),
+    CaseSpec(name="two_boxes/sliding_friction", scenario="two_boxes", hidden=(_h("sliding_friction", mu=0.3),)),
+    CaseSpec(
+        name="stack/sliding_friction@box_a|box_b",
+        scenario="stack",
+        hidden=(_h("sliding_friction", target="box_a|box_b", mu=0.2),),
+    ),
+    CaseSpec(
+        name="three_boxes/restitution@box_c",
+        scenario="three_boxes",
+        hidden=(_h("restitution", target="box_c", dampratio=0.15),),
+    ),
+    CaseSpec(name="three_boxes/restitution", scenario="three_boxes", hidden=(_h("restitution", dampratio=0.2),)),
+    CaseSpec(name="collide/mass@box_b", scenario="collide", hidden=(_h("mass", target="box_b", scale=2.0),)),
+    CaseSpec(
+        name="two_balls/air_drag@ball_b",
+        scenario="two_balls",
+        hidden=(_h("air_drag", target="ball_b", density_kg_m3=4.0),),
+    ),
+    CaseSpec(name="collide/no_gap", scenario="collide", hidden=()),
+    CaseSpec(
+        name="two_boxes/periodic_push@box_b",
+        scenario="two_boxes",
+        hidden=(_h("periodic_push", target="box_b", amplitude_n=1.5, freq_hz=3.0),),
+    ),
+)
+"""Multi-object cases (issue 64): effects on one body, on one contact pair and on all bodies, with two and three
+bodies; a case with no gap; one effect outside the library on one body."""
+ALL_CASES: tuple[CaseSpec, ...] = BENCHMARK + MULTI_BODY
+"""Every case `diagnose-benchmark` runs by default."""
 
 
 def _initial_state(scenario: str, model: mujoco.MjModel, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -188,6 +273,8 @@ def _initial_state(scenario: str, model: mujoco.MjModel, rng: np.random.Generato
             heading = rng.uniform(-np.pi, np.pi)
             qvel[:3] = [3.5 * np.cos(heading), 3.5 * np.sin(heading), rng.uniform(2.0, 4.0)]
             qvel[3:6] = rng.uniform(-5, 5, 3)
+    elif scenario in MULTI_BODY_SCENARIOS:
+        _multi_initial_state(scenario, qpos, qvel, rng)
     elif scenario == "pendulum":
         qpos[0] = rng.uniform(-2.2, 2.2)
         qvel[0] = rng.uniform(-2, 2)
@@ -196,6 +283,58 @@ def _initial_state(scenario: str, model: mujoco.MjModel, rng: np.random.Generato
     else:
         raise GrounderError(f"unknown scenario '{scenario}'")
     return qpos, qvel
+
+
+def _place(
+    qpos: np.ndarray,
+    qvel: np.ndarray,
+    i: int,
+    pos: list[float],
+    yaw: float,
+    vel: list[float] | np.ndarray,
+    omega_body: list[float] | np.ndarray,
+) -> None:
+    """Free body ``i``: world position, yaw about the vertical, world linear velocity, body angular velocity."""
+    qpos[7 * i : 7 * i + 7] = [*pos, np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)]
+    qvel[6 * i : 6 * i + 6] = [*vel, *omega_body]
+
+
+def _heading(angle: float, speed: float) -> list[float]:
+    return [speed * np.cos(angle), speed * np.sin(angle), 0.0]
+
+
+def _multi_initial_state(scenario: str, qpos: np.ndarray, qvel: np.ndarray, rng: np.random.Generator) -> None:
+    u = rng.uniform
+    if scenario == "two_boxes":
+        # Pushed away from each other: they rarely touch.
+        for i, (x, half, away) in enumerate(((-0.25, 0.05, np.pi), (0.25, 0.04, 0.0))):
+            _place(qpos, qvel, i, [x + u(-0.05, 0.05), u(-0.1, 0.1), half - 1e-4], u(-np.pi, np.pi),
+                   _heading(away + u(-1.0, 1.0), u(1.0, 2.5)), [0, 0, u(-4, 4)])  # fmt: skip
+    elif scenario == "stack":
+        # box_b rides on box_a and slips on it (its own velocity differs a little); box_c slides alone.
+        va = np.array(_heading(u(-np.pi, np.pi), u(0.0, 0.15)))
+        slip = np.array(_heading(u(-np.pi, np.pi), u(0.2, 0.45)))
+        x, y = u(-0.1, 0.05), u(-0.15, 0.15)
+        back = -0.03 * (va + slip) / np.linalg.norm(va + slip)  # room ahead on box_a's top
+        _place(qpos, qvel, 0, [x, y, 0.08 - 1e-4], u(-0.3, 0.3), va, [0, 0, 0])
+        _place(qpos, qvel, 1, [x + back[0], y + back[1], 0.19 - 2e-4], u(-0.5, 0.5), va + slip, [0, 0, u(-1, 1)])
+        _place(qpos, qvel, 2, [0.4 + u(-0.05, 0.05), u(-0.1, 0.1), 0.04 - 1e-4], u(-np.pi, np.pi),
+               _heading(u(-1.0, 1.0), u(1.0, 2.0)), [0, 0, u(-4, 4)])  # fmt: skip
+    elif scenario == "three_boxes":
+        for i, lane in enumerate((-0.45, 0.0, 0.45)):
+            q = rng.normal(size=4)
+            qpos[7 * i : 7 * i + 7] = [u(-0.1, 0.1), lane + u(-0.05, 0.05), u(0.3, 0.5), *(q / np.linalg.norm(q))]
+            qvel[6 * i : 6 * i + 6] = [u(-1.0, 1.0), u(-0.4, 0.4), u(-0.5, 1.5), *u(-8, 8, 3)]
+    elif scenario == "collide":
+        y = u(-0.1, 0.1)
+        _place(qpos, qvel, 0, [-0.22, y, 0.05 - 1e-4], u(-0.2, 0.2), _heading(u(-0.15, 0.15), u(1.8, 2.5)),
+               [0, 0, 0])  # fmt: skip
+        _place(qpos, qvel, 1, [0.0, y + u(-0.03, 0.03), 0.04 - 1e-4], u(-0.3, 0.3), [0, 0, 0], [0, 0, 0])
+    elif scenario == "two_balls":
+        for i, lane in enumerate((-0.4, 0.4)):
+            heading = u(-0.6, 0.6) + (np.pi if i == 0 else 0.0)
+            qpos[7 * i : 7 * i + 7] = [u(-0.1, 0.1), lane, u(0.3, 0.5), 1.0, 0.0, 0.0, 0.0]
+            qvel[6 * i : 6 * i + 6] = [3.5 * np.cos(heading), 3.5 * np.sin(heading), u(2.0, 4.0), *u(-5, 5, 3)]
 
 
 def _controls(scenario: str, model: mujoco.MjModel, times: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -240,9 +379,22 @@ def make_case(spec: CaseSpec, num_trajectories: int = 16, seed: int = 0, duratio
     """Simulates the true system of a case and records noisy trajectories (deterministic for a seed)."""
     xml = SCENES[spec.scenario]
     nominal = mujoco.MjModel.from_xml_string(xml)
-    library = [AppliedEffect(effect=LIBRARY[h.name], values=h.values) for h in spec.hidden if h.in_library]
-    true_model, transforms = apply_effects(nominal, library)
+    base = nominal
+    if any(h.target for h in spec.hidden if h.in_library):
+        # Contact pairs with their own parameters, every pair that can touch (what the diagnosis prepares).
+        layout = Layout(bodies=tuple(moving_body_names(nominal)), pairs=possible_pairs(nominal))
+        base = prepared_spec(mujoco.MjSpec.from_string(xml), nominal, layout).compile()
+    library = [
+        AppliedEffect(effect=LIBRARY[h.name].at(parse_target(base, h.target)) if h.target else LIBRARY[h.name],
+                      values=h.values)
+        for h in spec.hidden
+        if h.in_library
+    ]  # fmt: skip
+    true_model, transforms = apply_effects(base, library)
     push = next((h for h in spec.hidden if h.name == "periodic_push"), None)
+    push_body = (
+        1 if push is None or not push.target else int(mujoco.mj_name2id(nominal, mujoco.mjtObj.mjOBJ_BODY, push.target))
+    )
     unknown = [h.name for h in spec.hidden if not h.in_library and h.name != "periodic_push"]
     if unknown:
         raise GrounderError(f"unknown hidden effect(s) {unknown}")
@@ -276,7 +428,7 @@ def make_case(spec: CaseSpec, num_trajectories: int = 16, seed: int = 0, duratio
                     data.ctrl[:] = ctrl[src]
                 if push is not None:
                     f = push.values["amplitude_n"] * np.sin(2 * np.pi * push.values["freq_hz"] * step * dt)
-                    data.xfrc_applied[1, :2] = f * push_dir
+                    data.xfrc_applied[push_body, :2] = f * push_dir
                 mujoco.mj_step(true_model, data)
         if transforms.length_scale != 1.0:
             for j in range(nominal.njnt):

@@ -22,6 +22,13 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 
+from grounder.diagnosis.targets import (
+    ALL,
+    Target,
+    body_id,
+    pair_rows,
+    target_geoms,
+)
 from grounder.errors import GrounderError
 
 # Plain ints: numpy ints compare equal to mjtJoint members but `in` on a tuple of them fails.
@@ -75,6 +82,26 @@ class Effect:
     applicable: Callable[[mujoco.MjModel], bool]
     kind_of: Callable[[mujoco.MjModel], str] = field(default=lambda m: "new_effect")
     in_mjcf: bool = True
+    target: Target = ALL
+    scopes: tuple[str, ...] = ()  # "body", "pair": where a localised variant can act
+    localize: Callable[[Target], Effect] | None = field(default=None, repr=False)
+
+    @property
+    def key(self) -> str:
+        """The effect's name, with ``@`` and its body or contact pair when localised (``sliding_friction@box_a``)."""
+        return self.name if self.target.kind == "all" else f"{self.name}@{self.target.label}"
+
+    def at(self, target: Target) -> Effect:
+        """This effect acting on ``target`` only.
+
+        Raises:
+            GrounderError: the effect cannot be localised there.
+        """
+        if target.kind == "all":
+            return LIBRARY[self.name]
+        if self.localize is None or target.kind not in self.scopes:
+            raise GrounderError(f"effect '{self.name}' cannot act on one {target.kind} ('{target.label}')")
+        return self.localize(target)
 
 
 # ---------------------------------------------------------------------------------------------------------- helpers
@@ -143,22 +170,51 @@ def _mean(values: np.ndarray, default: float = 0.0) -> float:
 
 
 # ---------------------------------------------------------------------------------------------------------- effects
-def _friction_effect(name: str, column: int, lo: float, hi: float, what: str) -> Effect:
+# Geom friction columns (sliding, torsional, rolling) -> columns of an explicit pair's 5 friction coefficients.
+_PAIR_FRICTION_COLUMNS = {0: [0, 1], 1: [2], 2: [3, 4]}
+
+
+def _raise_priority(model: mujoco.MjModel, geoms: np.ndarray) -> None:
+    """Lets a body's own contact values win over its partners' (MuJoCo takes the higher-priority geom's values)."""
+    others = np.setdiff1d(np.arange(model.ngeom), geoms)
+    top = int(model.geom_priority[others].max()) if len(others) else 0
+    if len(geoms) and int(model.geom_priority[geoms].min()) <= top:
+        model.geom_priority[geoms] = top + 1
+
+
+def _where(target: Target) -> str:
+    if target.kind == "all":
+        return "every colliding geom"
+    if target.kind == "body":
+        return f"body '{target.label}' (its geoms and its contact pairs)"
+    return f"the contact pair {target.parties[0]} / {target.parties[1]}"
+
+
+def _friction_effect(name: str, column: int, lo: float, hi: float, what: str, target: Target = ALL) -> Effect:
     def params(model: mujoco.MjModel) -> tuple[Param, ...]:
         return (Param(name="mu", lo=lo, hi=hi),)
 
     def nominal(model: mujoco.MjModel) -> dict[str, float]:
-        geoms = contact_geoms(model)
+        rows = pair_rows(model, target)
+        if target.kind != "all" and len(rows):
+            return {"mu": float(np.max(model.pair_friction[rows][:, _PAIR_FRICTION_COLUMNS[column]]))}
+        geoms = target_geoms(model, target) if target.kind != "pair" else contact_geoms(model)
         # MuJoCo takes the larger coefficient of the two geoms in contact.
         return {"mu": float(np.max(model.geom_friction[geoms, column])) if len(geoms) else 0.0}
 
     def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
-        geoms = contact_geoms(model)
+        geoms = target_geoms(model, target)
         model.geom_friction[geoms, column] = values["mu"]
+        rows = pair_rows(model, target)
+        for c in _PAIR_FRICTION_COLUMNS[column]:
+            model.pair_friction[rows, c] = values["mu"]
+        if target.kind == "body":
+            _raise_priority(model, geoms)
         if column > 0:
             # Torsional friction needs condim >= 4 and rolling friction condim 6.
             need = 4 if column == 1 else 6
             model.geom_condim[geoms] = np.maximum(model.geom_condim[geoms], need)
+            model.pair_dim[rows] = np.maximum(model.pair_dim[rows], need)
 
     def kind(model: mujoco.MjModel) -> str:
         geoms = contact_geoms(model)
@@ -167,16 +223,19 @@ def _friction_effect(name: str, column: int, lo: float, hi: float, what: str) ->
 
     return Effect(
         name=name,
-        description=f"{what} coefficient of every colliding geom",
+        description=f"{what} coefficient of {_where(target)}",
         params_of=params,
         nominal_of=nominal,
         apply=apply,
         applicable=_has_contacts,
         kind_of=kind,
+        target=target,
+        scopes=("body", "pair"),
+        localize=lambda t: _friction_effect(name, column, lo, hi, what, t),
     )
 
 
-def _solref_effect(name: str, column: int) -> Effect:
+def _solref_effect(name: str, column: int, target: Target = ALL) -> Effect:
     def params(model: mujoco.MjModel) -> tuple[Param, ...]:
         if column == 0:
             return (Param(name="timeconst_s", lo=2.0 * model.opt.timestep, hi=0.1),)
@@ -185,15 +244,23 @@ def _solref_effect(name: str, column: int) -> Effect:
     key = "timeconst_s" if column == 0 else "dampratio"
 
     def nominal(model: mujoco.MjModel) -> dict[str, float]:
-        geoms = contact_geoms(model)
+        rows = pair_rows(model, target)
+        if target.kind != "all" and len(rows):
+            return {key: _mean(model.pair_solref[rows, column])}
+        geoms = target_geoms(model, target) if target.kind != "pair" else contact_geoms(model)
         return {key: _mean(model.geom_solref[geoms, column], 0.02 if column == 0 else 1.0)}
 
     def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
-        geoms = contact_geoms(model)
+        geoms = target_geoms(model, target)
+        rows = pair_rows(model, target)
         model.geom_solref[geoms, column] = values[key]
+        model.pair_solref[rows, column] = values[key]
+        if target.kind == "body":
+            _raise_priority(model, geoms)
         if column == 0:
             # Stiffness alone: the default contact stiffness also depends on solimp; keep it.
             model.geom_solref[geoms, 1] = np.maximum(model.geom_solref[geoms, 1], 1e-3)
+            model.pair_solref[rows, 1] = np.maximum(model.pair_solref[rows, 1], 1e-3)
 
     what = (
         "contact time constant (solref[0]; larger = softer)"
@@ -202,12 +269,15 @@ def _solref_effect(name: str, column: int) -> Effect:
     )
     return Effect(
         name=name,
-        description=what,
+        description=what if target.kind == "all" else f"{what} of {_where(target)}",
         params_of=params,
         nominal_of=nominal,
         apply=apply,
         applicable=_has_contacts,
         kind_of=lambda m: "recalibration",
+        target=target,
+        scopes=("body", "pair"),
+        localize=lambda t: _solref_effect(name, column, t),
     )
 
 
@@ -243,19 +313,40 @@ def _dof_effect(name: str, attr: str, what: str) -> Effect:
     )
 
 
-def _air_drag() -> Effect:
+def _air_drag(target: Target = ALL) -> Effect:
     def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
-        # MuJoCo's inertia-box fluid model: quadratic drag proportional to the medium density.
+        # MuJoCo's fluid model: quadratic drag proportional to the medium density (inertia-box model, or the
+        # ellipsoid model per geom where the diagnosis prepared the scene for drag per body).
         model.opt.density = values["density_kg_m3"]
+        if target.kind == "body":
+            # The other bodies keep the ellipsoid model (the inertia-box one would drag them too) with every
+            # coefficient, drag, lift and added mass, at zero: no fluid force on them.
+            body = body_id(model, target.parties[0])
+            others = np.flatnonzero((model.geom_bodyid != body) & (model.geom_fluid[:, 0] > 0))
+            model.geom_fluid[others, 1:] = 0.0
+
+    def applicable(model: mujoco.MjModel) -> bool:
+        if target.kind == "body":
+            body = body_id(model, target.parties[0])
+            # Per body needs the ellipsoid model on the body's geoms; the diagnosis prepares it when the medium is
+            # still (density and viscosity zero).
+            ellipsoid = bool(np.any(model.geom_fluid[model.geom_bodyid == body, 0] > 0))
+            still = model.opt.density == 0 and model.opt.viscosity == 0
+            return body > 0 and (ellipsoid or still)
+        return len(moving_bodies(model)) > 0
 
     return Effect(
         name="air_drag",
-        description="quadratic aerodynamic drag (MuJoCo fluid model, medium density)",
+        description="quadratic aerodynamic drag (MuJoCo fluid model, medium density)"
+        + ("" if target.kind == "all" else f" on body '{target.label}' only"),
         params_of=lambda m: (Param(name="density_kg_m3", lo=0.05, hi=500.0),),
         nominal_of=lambda m: {"density_kg_m3": float(m.opt.density)},
         apply=apply,
-        applicable=lambda m: len(moving_bodies(m)) > 0,
+        applicable=applicable,
         kind_of=lambda m: "recalibration" if m.opt.density > 0 else "new_effect",
+        target=target,
+        scopes=("body",),
+        localize=_air_drag,
     )
 
 
@@ -289,30 +380,44 @@ def _actuator_gain() -> Effect:
     )
 
 
-def _mass() -> Effect:
+def _bodies_of(model: mujoco.MjModel, target: Target) -> list[int]:
+    return moving_bodies(model) if target.kind == "all" else [body_id(model, target.parties[0])]
+
+
+def _mass(target: Target = ALL) -> Effect:
     def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
-        for b in moving_bodies(model):
+        for b in _bodies_of(model, target):
             model.body_mass[b] *= values["scale"]
             model.body_inertia[b] *= values["scale"]
 
     return Effect(
         name="mass",
-        description="mass (and inertia, same density) of every moving body scaled",
+        description=(
+            "mass (and inertia, same density) of every moving body scaled"
+            if target.kind == "all"
+            else f"mass (and inertia, same density) of body '{target.label}' scaled"
+        ),
         params_of=lambda m: (Param(name="scale", lo=0.25, hi=4.0),),
         nominal_of=lambda m: {"scale": 1.0},
         apply=apply,
-        applicable=lambda m: len(moving_bodies(m)) > 0,
+        applicable=lambda m: len(moving_bodies(m)) > 0 and all(b > 0 for b in _bodies_of(m, target)),
         kind_of=lambda m: "recalibration",
+        target=target,
+        scopes=("body",),
+        localize=_mass,
     )
 
 
-def _com_offset() -> Effect:
+def _com_offset(target: Target = ALL) -> Effect:
+    def body_of(model: mujoco.MjModel) -> int:
+        return leaf_body(model) if target.kind == "all" else body_id(model, target.parties[0])
+
     def params(model: mujoco.MjModel) -> tuple[Param, ...]:
-        half = 0.5 * _body_size_m(model, leaf_body(model))
+        half = 0.5 * _body_size_m(model, body_of(model))
         return tuple(Param(name=f"d{axis}_m", lo=-half, hi=half, log=False) for axis in "xyz")
 
     def apply(model: mujoco.MjModel, values: dict[str, float], _: dict[str, float]) -> None:
-        body = leaf_body(model)
+        body = body_of(model)
         model.body_ipos[body] += [values["dx_m"], values["dy_m"], values["dz_m"]]
         # The compiler marks bodies whose inertial frame is their body frame and then skips the offset.
         model.body_sameframe[body] = 0
@@ -322,12 +427,19 @@ def _com_offset() -> Effect:
 
     return Effect(
         name="com_offset",
-        description="centre of mass of the distal (last) moving body shifted, in its body frame",
+        description=(
+            "centre of mass of the distal (last) moving body shifted, in its body frame"
+            if target.kind == "all"
+            else f"centre of mass of body '{target.label}' shifted, in its body frame"
+        ),
         params_of=params,
         nominal_of=lambda m: {"dx_m": 0.0, "dy_m": 0.0, "dz_m": 0.0},
         apply=apply,
-        applicable=lambda m: len(moving_bodies(m)) > 0,
+        applicable=lambda m: len(moving_bodies(m)) > 0 and body_of(m) > 0,
         kind_of=lambda m: "recalibration",
+        target=target,
+        scopes=("body",),
+        localize=_com_offset,
     )
 
 
@@ -405,8 +517,35 @@ EFFECT_NAMES: tuple[str, ...] = tuple(LIBRARY)
 """Every effect name the diagnosis knows, in library order."""
 
 
+def parse_target(model: mujoco.MjModel, label: str) -> Target:
+    """``box_a`` (a body) or ``box_a|floor`` (a contact pair: two bodies, or a body and a static geom).
+
+    Raises:
+        GrounderError: a name that is neither a moving body nor, in a pair, a static geom or body.
+    """
+    from grounder.diagnosis.targets import body_target, moving_body_names, pair_target, party_geoms
+
+    parts = [p.strip() for p in label.split("|")]
+    bodies = moving_body_names(model)
+    if len(parts) == 1:
+        if parts[0] not in bodies:
+            raise GrounderError(f"'@{label}' names no moving body; moving bodies: {', '.join(bodies) or 'none'}")
+        return body_target(parts[0])
+    if len(parts) != 2 or parts[0] == parts[1]:
+        raise GrounderError(f"'@{label}' is not a contact pair; write two different names: body_a|floor")
+    for part in parts:
+        if not len(party_geoms(model, part)):
+            raise GrounderError(
+                f"'@{label}': '{part}' is not a body or geom that collides; moving bodies: {', '.join(bodies)}"
+            )
+    if not set(parts) & set(bodies):
+        raise GrounderError(f"'@{label}': neither side moves; name at least one moving body")
+    return pair_target(parts[0], parts[1])
+
+
 def resolve_effects(names: list[str] | tuple[str, ...] | None, model: mujoco.MjModel) -> list[Effect]:
-    """The named effects (all applicable ones when ``names`` is None).
+    """The named effects (all applicable ones when ``names`` is None); ``name@body`` or ``name@body|other`` acts on
+    one body or one contact pair only.
 
     Raises:
         GrounderError: an unknown name, or a named effect that cannot act on this model.
@@ -414,13 +553,16 @@ def resolve_effects(names: list[str] | tuple[str, ...] | None, model: mujoco.MjM
     if names is None:
         return [e for e in LIBRARY.values() if e.applicable(model)]
     out = []
-    for name in names:
+    for entry in names:
+        name, _, where = entry.partition("@")
         if name not in LIBRARY:
             raise GrounderError(f"unknown effect '{name}'; available: {', '.join(EFFECT_NAMES)}")
         effect = LIBRARY[name]
+        if where:
+            effect = effect.at(parse_target(model, where))
         if not effect.applicable(model):
             raise GrounderError(
-                f"effect '{name}' cannot act on this model (no actuator, joint or contact it applies to); "
+                f"effect '{entry}' cannot act on this model (no actuator, joint or contact it applies to); "
                 f"leave it out of --effects"
             )
         out.append(effect)

@@ -32,7 +32,6 @@ import numpy as np
 from grounder.core.repeats import describe_repeated_indices, repeated_motion_indices, split_keeping_together
 from grounder.core.trajectory import Trajectory, load_trajectories, validate_against_model
 from grounder.diagnosis.effects import (
-    LIBRARY,
     AppliedEffect,
     Effect,
     apply_effects,
@@ -54,6 +53,7 @@ from grounder.diagnosis.noise import add_noise, estimate_noise
 from grounder.diagnosis.outputs import write_outputs
 from grounder.diagnosis.phases import PHASES, detect_phases, phase_reductions, window_labels
 from grounder.diagnosis.result import Diagnosis, EffectResult
+from grounder.diagnosis.targets import Layout, Target, body_target, contacts_at_samples, pair_target, prepare
 from grounder.errors import GrounderError
 from grounder.sim.rollout import default_nthread
 from grounder.sim.scene_files import load_scene_model
@@ -61,6 +61,10 @@ from image2sim_common.progress import ProgressFn, no_progress
 from reconstruction import check_output_dir
 
 log = logging.getLogger(__name__)
+
+LOCALISE_MIN_REDUCTION = 0.02
+"""An effect family is tried on single bodies and contact pairs when its global variant cuts the held-out gap by at
+least this much (a change on one body also shows, diluted, as a change on all)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -82,6 +86,9 @@ class DiagnoseOptions:
         noise_stop_ratio: no effect is added after the first once the held-out gap is within this factor of the
             noise floor (the gap a perfect model shows at the recording's estimated noise level).
         shortlist: effects re-fitted in each greedy step after the first (best of the first ranking).
+        localise: in a scene of several bodies or contact pairs, also fit each contact and body effect on the
+            bodies and contact pairs where the gap is largest (``local_bodies`` and ``local_pairs`` of them); a
+            localised variant pays ``complexity_penalty`` once more than the global one (the choice of where).
         nthread: rollout threads (default: the CPU cores this process may use).
     """
 
@@ -97,6 +104,9 @@ class DiagnoseOptions:
     n_bootstrap: int = 1000
     noise_stop_ratio: float = 1.3
     shortlist: int = 5
+    localise: bool = True
+    local_bodies: int = 1
+    local_pairs: int = 1
     nthread: int | None = None
 
 
@@ -281,8 +291,15 @@ def _lower_bound(before: np.ndarray, after: np.ndarray, rng: np.random.Generator
 
 
 # ----------------------------------------------------------------------------------------------------- breakdowns
-def _breakdown(engine: _Engine, trajs: list[Trajectory], applied: list[AppliedEffect]) -> dict[str, Any]:
-    """Gap of a model on trajectories: total, by body, by coordinate group, by phase, over time; both measures."""
+def _breakdown(
+    engine: _Engine,
+    trajs: list[Trajectory],
+    applied: list[AppliedEffect],
+    contacts: Sequence[list[frozenset[tuple[str, str]]]],
+    layout: Layout,
+) -> dict[str, Any]:
+    """Gap of a model on trajectories: total, by body, by contact pair, by coordinate group, by phase, over time;
+    both measures."""
     model = engine.model
     out: dict[str, Any] = {}
     phases = [detect_phases(model, t) for t in trajs]
@@ -300,6 +317,7 @@ def _breakdown(engine: _Engine, trajs: list[Trajectory], applied: list[AppliedEf
         for k, g in enumerate(engine.groups):
             bodies.setdefault(g.body, []).append(k)
         entry["by_body"] = {b: float(np.sqrt(sq[..., ks].mean(axis=-1)[mask].mean())) for b, ks in bodies.items()}
+        entry["by_pair"] = pair_gaps(engine.groups, mask, sq, window_contacts(windows, contacts), layout.pairs)
         entry["by_coordinate"] = by_group
         per_sample = sq.mean(axis=-1)
         labels = np.empty(mask.shape, dtype=object)
@@ -329,12 +347,120 @@ def _breakdown(engine: _Engine, trajs: list[Trajectory], applied: list[AppliedEf
     return out
 
 
+# ------------------------------------------------------------------------------------------------------------ where
+def body_gaps(groups: Sequence[Group], mask: np.ndarray, sq: np.ndarray) -> dict[str, float]:
+    """RMS gap per body over the scored slots (``sq``: (W, S, G) squared errors of one model)."""
+    bodies: dict[str, list[int]] = {}
+    for k, g in enumerate(groups):
+        bodies.setdefault(g.body, []).append(k)
+    return {
+        b: float(np.sqrt(sq[..., ks].mean(axis=-1)[mask].mean())) if mask.any() else 0.0 for b, ks in bodies.items()
+    }
+
+
+def body_reductions(
+    groups: Sequence[Group], mask: np.ndarray, before: np.ndarray, after: np.ndarray
+) -> dict[str, dict[str, float]]:
+    """Per body: gap before and after a change, and the reduction (``before``, ``after``: (W, S, G))."""
+    b0, b1 = body_gaps(groups, mask, before), body_gaps(groups, mask, after)
+    return {b: {"before": b0[b], "after": b1[b], "reduction": 1.0 - b1[b] / max(b0[b], 1e-300)} for b in b0}
+
+
+def window_contacts(windows: Windows, contacts: Sequence[list[frozenset[tuple[str, str]]]]) -> np.ndarray:
+    """(W, S) the contact pairs touching at each window slot's recorded state."""
+    out = np.empty(windows.mask.shape, dtype=object)
+    for w in range(len(windows.traj_index)):
+        per = contacts[int(windows.traj_index[w])]
+        for k, sample in enumerate(windows.sample_index[w]):
+            out[w, k] = per[int(sample)]
+    return out
+
+
+def pair_gaps(
+    groups: Sequence[Group],
+    mask: np.ndarray,
+    sq: np.ndarray,
+    labels: np.ndarray,
+    pairs: Sequence[tuple[str, str]],
+) -> dict[str, dict[str, float]]:
+    """Per contact pair "a|b": the RMS gap of its moving bodies' coordinates over the slots where the pair touches
+    at the recorded state, and the share of scored slots that is."""
+    n = max(int(mask.sum()), 1)
+    out = {}
+    for pair in pairs:
+        ks = [k for k, g in enumerate(groups) if g.body in pair]
+        if not ks:
+            continue
+        touching = np.vectorize(lambda c, p=pair: p in c, otypes=[bool])(labels) & mask
+        if touching.any():
+            out["|".join(pair)] = {
+                "gap": float(np.sqrt(sq[..., ks].mean(axis=-1)[touching].mean())),
+                "share": float(touching.sum() / n),
+            }
+    return out
+
+
+def _where_targets(
+    engine: _Engine, layout: Layout, contacts_train: Sequence[list[frozenset[tuple[str, str]]]]
+) -> list[Target]:
+    """Bodies and contact pairs where the nominal model's training gap is largest (what localised effects try)."""
+    options = engine.options
+    if not (options.localise and layout.localised):
+        return []
+    sq = engine.scores([[]], engine.train_w, len(engine.train)).sq[0]
+    mask = engine.train_w.mask
+    targets: list[Target] = []
+    if len(layout.bodies) > 1:
+        gaps = body_gaps(engine.groups, mask, sq)
+        ranked = sorted((b for b in layout.bodies if b in gaps), key=lambda b: -gaps[b])
+        targets += [body_target(b) for b in ranked[: options.local_bodies]]
+    if layout.explicit and len(layout.pairs) > 1:
+        labels = window_contacts(engine.train_w, contacts_train)
+        gaps_p = pair_gaps(engine.groups, mask, sq, labels, layout.pairs)
+        ranked_p = sorted(gaps_p, key=lambda p: -gaps_p[p]["gap"])
+        targets += [pair_target(*p.split("|")) for p in ranked_p[: options.local_pairs]]
+    return targets
+
+
+def _localised(
+    effects: Sequence[Effect], targets: Sequence[Target], model: mujoco.MjModel, globals_: dict[str, EffectResult]
+) -> list[Effect]:
+    """Each effect that can act on one body or pair, at each target, when its global variant shows it might help
+    there: it cuts the held-out gap by ``LOCALISE_MIN_REDUCTION`` overall or on one of the target's bodies (a change
+    that helps one body may hurt the others when made everywhere), or it is ``mass`` (scaling every mass alike leaves
+    free bodies' motion as it is, so its global variant shows nothing)."""
+    out = []
+    for effect in effects:
+        if effect.target.kind != "all":
+            continue
+        result = globals_.get(effect.name)
+        for target in targets:
+            if target.kind not in effect.scopes:
+                continue
+            helps = effect.name == "mass" or (
+                result is not None
+                and (
+                    result.heldout_reduction >= LOCALISE_MIN_REDUCTION
+                    or any(
+                        result.heldout_by_body.get(b, {}).get("reduction", 0.0) >= LOCALISE_MIN_REDUCTION
+                        for b in target.parties
+                    )
+                )
+            )
+            local = effect.at(target)
+            if helps and local.applicable(model):
+                out.append(local)
+    return out
+
+
 # -------------------------------------------------------------------------------------------------------- diagnose
 def diagnose(
     model: mujoco.MjModel,
     trajs: Sequence[Trajectory],
     options: DiagnoseOptions | None = None,
     progress: ProgressFn | None = None,
+    *,
+    spec: mujoco.MjSpec | None = None,
 ) -> Diagnosis:
     """Diagnoses the gap between ``model`` and recorded ``trajs`` (see the module docstring).
 
@@ -343,9 +469,12 @@ def diagnose(
         trajs: recorded trajectories in the model's joint order.
         options: the setting; defaults to :class:`DiagnoseOptions`.
         progress: optional callback ``(stage, done, total)``.
+        spec: the model's MjSpec (from its MJCF). With it, a scene of several bodies or contact pairs is prepared
+            so that each contact pair can carry its own parameters (`grounder.diagnosis.targets`); without it,
+            effects are localised to bodies only.
 
     Raises:
-        GrounderError: see :func:`check_inputs`.
+        GrounderError: see :func:`check_inputs`; a contact-pair effect named without ``spec``.
     """
     import time
 
@@ -353,8 +482,12 @@ def diagnose(
     options = options or DiagnoseOptions()
     trajs = list(trajs)
     check_inputs(model, trajs, options)
-    effects = resolve_effects(list(options.effects) if options.effects is not None else None, model)
     report = progress or no_progress
+    contacts = [contacts_at_samples(model, t) for t in trajs]
+    nominal = model
+    model, layout, _ = prepare(nominal, spec, trajs, contacts)
+    effects = resolve_effects(list(options.effects) if options.effects is not None else None, model)
+    _check_localised(effects, model, layout)
     rng = np.random.default_rng(options.seed)
     held_idx, train_idx = _holdout_split(model, trajs, rng.permutation(len(trajs)).tolist(), options)
     held = [trajs[i] for i in sorted(held_idx)]
@@ -367,27 +500,51 @@ def diagnose(
         base_held = base_scores.per_traj[0]
         gap_before = rms(base_held, held_count)
         results = _rank_effects(engine, effects, base_scores, held_count, held_phases, gap_before, rng, report)
+        if options.effects is None:
+            # Where the gap is largest, each effect family that explains some of it as a global change (or whose
+            # global change cannot show: scaling every mass alike leaves free bodies' motion as it is).
+            targets = _where_targets(engine, layout, [contacts[i] for i in sorted(train_idx)])
+            local = _localised(effects, targets, model, {r.effect: r for r in results})
+            results += _rank_effects(
+                engine, local, base_scores, held_count, held_phases, gap_before, rng, report, "fitting local effects"
+            )
+            results.sort(key=lambda r: -r.score)
+            effects = effects + local
+        by_key = {e.key: e for e in effects}
         measurement = _measurement_check(engine, effects, held_phases, options, rng)
         noise = estimate_noise(model, trajs)
         floor_nominal = _noise_floor(engine, held, [], noise, options.seed)
-        applied, current, steps = _select_effects(engine, results, base_held, held_count, floor_nominal, rng, report)
+        applied, current, steps = _select_effects(
+            engine, results, base_held, held_count, floor_nominal, rng, report, by_key
+        )
         applied, current = _refine_jointly(engine, applied, current, held_count)
+        _step_reductions_by_body(engine, applied, steps)
         gap_after = rms(current, held_count)
         floor = _noise_floor(engine, held, applied, noise, options.seed)
         report("breaking the gap down", 0, 2)
-        gap_all = _breakdown(engine, trajs, [])
-        gap_diag = _breakdown(engine, trajs, applied)
+        gap_all = _breakdown(engine, trajs, [], contacts, layout)
+        gap_diag = _breakdown(engine, trajs, applied, contacts, layout)
         report("breaking the gap down", 2, 2)
         figures = _figure_data(engine, held, applied)
     finally:
         engine.close()
     held_ol_before = gap_all["open_loop"]["total"]
     reduction = 1.0 - gap_after / max(gap_before, 1e-300)
+    by_body = {
+        b: {
+            "before": gap_all["short_horizon"]["by_body"][b],
+            "after": gap_diag["short_horizon"]["by_body"][b],
+            "unexplained_fraction": float(
+                min(1.0, gap_diag["short_horizon"]["by_body"][b] / max(gap_all["short_horizon"]["by_body"][b], 1e-300))
+            ),
+        }
+        for b in gap_all["short_horizon"]["by_body"]
+    }
     return Diagnosis(
         gap_metric=_metric_text(options),
         gap=_gap_summary(gap_all, gap_diag),
         effects=results,
-        selected=[a.effect.name for a in applied],
+        selected=[a.effect.key for a in applied],
         steps=steps,
         heldout={
             "gap_before": gap_before,
@@ -405,7 +562,41 @@ def diagnose(
         applied=applied,
         figures=figures,
         seconds=time.perf_counter() - t0,
+        layout=layout,
+        unexplained_by_body=by_body,
+        model=model,
     )
+
+
+def _check_localised(effects: Sequence[Effect], model: mujoco.MjModel, layout: Layout) -> None:
+    """Named localised effects that the prepared model cannot carry.
+
+    Raises:
+        GrounderError: a contact-pair effect without explicit pairs, or air drag on one body without the
+            ellipsoid fluid model.
+    """
+    for e in effects:
+        if e.target.kind == "pair" and not layout.explicit:
+            raise GrounderError(
+                f"effect '{e.key}' needs contact pairs with their own parameters: pass the scene's MJCF (the CLI "
+                "does), and a scene whose pair touches in the recordings"
+            )
+        if e.target.kind == "body" and e.name == "air_drag" and not layout.fluid_per_body:
+            raise GrounderError(
+                f"effect '{e.key}' needs the ellipsoid fluid model per body: pass the scene's MJCF and a still medium "
+                "(density and viscosity 0)"
+            )
+
+
+def _step_reductions_by_body(engine: _Engine, applied: list[AppliedEffect], steps: list[dict[str, Any]]) -> None:
+    """Adds to each accepted step its held-out gap by body before and after it (after the joint refinement)."""
+    accepted = [s for s in steps if s.get("accepted")]
+    if not accepted or len(accepted) != len(applied):
+        return
+    prefixes = [applied[:k] for k in range(len(applied) + 1)]
+    sq = engine.scores(prefixes, engine.held_w, len(engine.held)).sq
+    for k, step in enumerate(accepted):
+        step["heldout_by_body"] = body_reductions(engine.groups, engine.held_w.mask, sq[k], sq[k + 1])
 
 
 def _rank_effects(
@@ -417,6 +608,7 @@ def _rank_effects(
     gap_before: float,
     rng: np.random.Generator,
     report: ProgressFn,
+    stage: str = "fitting effects",
 ) -> list[EffectResult]:
     """Which: every effect alone on the nominal model, fitted on the training windows and scored on the held-out
     ones (``base_scores``: the nominal model's held-out scores), best score first."""
@@ -424,15 +616,16 @@ def _rank_effects(
     base_held = base_scores.per_traj[0]
     results: list[EffectResult] = []
     for i, effect in enumerate(effects):
-        report("fitting effects", i, len(effects))
+        report(stage, i, len(effects))
         fitted, train_gap = engine.fit([], [effect])
         after_scores = engine.scores([fitted], engine.held_w, len(held))
         after = after_scores.per_traj[0]
         result = _result(effect, fitted[-1], model, train_gap, base_held, after, held_count, options, rng)
         by_phase = phase_reductions(base_scores, after_scores, engine.held_w, held_phases)
-        results.append(replace(result, heldout_by_phase=by_phase))
-        log.info("%s: held-out %.4f -> %.4f", effect.name, gap_before, results[-1].heldout_gap_after)
-    report("fitting effects", len(effects), len(effects))
+        by_body = body_reductions(engine.groups, engine.held_w.mask, base_scores.sq[0], after_scores.sq[0])
+        results.append(replace(result, heldout_by_phase=by_phase, heldout_by_body=by_body))
+        log.info("%s: held-out %.4f -> %.4f", effect.key, gap_before, results[-1].heldout_gap_after)
+    report(stage, len(effects), len(effects))
     results.sort(key=lambda r: -r.score)
     return results
 
@@ -445,6 +638,7 @@ def _select_effects(
     floor_nominal: float,
     rng: np.random.Generator,
     report: ProgressFn,
+    by_key: dict[str, Effect],
 ) -> tuple[list[AppliedEffect], np.ndarray, list[dict[str, Any]]]:
     """How far: greedy forward selection from the nominal model (held-out per-trajectory gap ``base_held``), each
     step's effect re-fitted on top of those already selected, while the held-out gap keeps falling by ``min_gain``
@@ -457,7 +651,7 @@ def _select_effects(
     applied: list[AppliedEffect] = []
     current = base_held
     steps: list[dict[str, Any]] = []
-    candidates = {r.effect: r for r in results}
+    candidates = {r.key: r for r in results}
     for step in range(options.max_effects):
         report("selecting effects", step, options.max_effects)
         if step > 0 and rms(current, held_count) <= options.noise_stop_ratio * floor_nominal:
@@ -466,31 +660,33 @@ def _select_effects(
             )
             break
         if step == 0:
-            best_name = results[0].effect if results else None
-            trial = [AppliedEffect(effect=LIBRARY[best_name], values=candidates[best_name].params)] if best_name else []
+            best_name = results[0].key if results else None
+            trial = [AppliedEffect(effect=by_key[best_name], values=candidates[best_name].params)] if best_name else []
             after = candidates[best_name].per_traj_after if best_name else current
         else:
-            pool = [r.effect for r in results if r.effect not in {a.effect.name for a in applied}]
+            taken = {a.effect.name for a in applied}
+            pool = [r.key for r in results if r.effect not in taken]
             pool = pool[: options.shortlist]
             best_name, trial, after = None, [], current
             best_score = -np.inf
             for name in pool:
-                fitted, _ = engine.fit(applied, [LIBRARY[name]])
+                fitted, _ = engine.fit(applied, [by_key[name]])
                 per = engine.per_traj([fitted], engine.held_w, len(held))[0]
                 gain = 1.0 - rms(per, held_count) / max(rms(current, held_count), 1e-300)
-                s = gain - options.complexity_penalty * len(LIBRARY[name].params_of(model))
+                s = gain - penalty_of(by_key[name], model, options)
                 if s > best_score:
                     best_score, best_name, trial, after = s, name, fitted, per
         if best_name is None:
             break
         gap_cur, gap_new = rms(current, held_count), rms(after, held_count)
         gain = 1.0 - gap_new / max(gap_cur, 1e-300)
-        penalty = options.complexity_penalty * len(LIBRARY[best_name].params_of(model))
+        penalty = penalty_of(by_key[best_name], model, options)
         lower = _lower_bound(current, after, rng, options.n_bootstrap)
         accepted = gain - penalty >= options.min_gain and lower > 0
         steps.append(
             {
                 "effect": best_name,
+                "target": by_key[best_name].target.to_json(),
                 "params": trial[-1].values if trial else {},
                 "heldout_gap_before": gap_cur,
                 "heldout_gap_after": gap_new,
@@ -525,6 +721,7 @@ def _gap_summary(gap_all: dict[str, Any], gap_diag: dict[str, Any]) -> dict[str,
     return {
         "total": short["total"],
         "by_body": short["by_body"],
+        "by_pair": short["by_pair"],
         "by_phase": short["by_phase"],
         "by_coordinate": short["by_coordinate"],
         "by_time": short["by_time"],
@@ -532,6 +729,11 @@ def _gap_summary(gap_all: dict[str, Any], gap_diag: dict[str, Any]) -> dict[str,
         "open_loop": gap_all["open_loop"],
         "after_selected": gap_diag,
     }
+
+
+def penalty_of(effect: Effect, model: mujoco.MjModel, options: DiagnoseOptions) -> float:
+    """Complexity penalty: per fitted parameter, and once more for a localised effect (where it acts is a choice)."""
+    return options.complexity_penalty * (len(effect.params_of(model)) + (effect.target.kind != "all"))
 
 
 def _result(
@@ -547,9 +749,9 @@ def _result(
 ) -> EffectResult:
     g0, g1 = rms(before, count), rms(after, count)
     reduction = 1.0 - g1 / max(g0, 1e-300)
-    n_params = len(effect.params_of(model))
     return EffectResult(
         effect=effect.name,
+        target=effect.target,
         kind=effect.kind_of(model),
         params=fitted.values,
         nominal_params=effect.nominal_of(model),
@@ -558,7 +760,7 @@ def _result(
         heldout_gap_after=g1,
         heldout_reduction=reduction,
         ci=_bootstrap_reduction(before, after, rng, options.n_bootstrap),
-        score=reduction - options.complexity_penalty * n_params,
+        score=reduction - penalty_of(effect, model, options),
         per_traj_after=after,
     )
 
@@ -716,6 +918,6 @@ def diagnose_files(
     options = options or DiagnoseOptions()
     out_dir = Path(out_dir)
     check_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml, traj_dir))
-    diag = diagnose(model, trajs, options, progress)
+    diag = diagnose(model, trajs, options, progress, spec=mujoco.MjSpec.from_file(str(scene_xml)))
     write_outputs(diag, scene_xml, model, out_dir, overwrite=overwrite)
     return diag

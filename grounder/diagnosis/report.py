@@ -44,10 +44,14 @@ def render_report(diag: Diagnosis) -> str:
 
     gap, after = diag.gap, diag.gap["after_selected"]["short_horizon"]
     figs = []
-    fig, axes = plt.subplots(1, 3, figsize=(15, 3.8))
+    pairs = {k: v["gap"] for k, v in gap.get("by_pair", {}).items()}
+    pairs_after = {k: v["gap"] for k, v in after.get("by_pair", {}).items()}
+    fig, axes = plt.subplots(1, 4 if pairs else 3, figsize=(20 if pairs else 15, 3.8))
     _bars(axes[0], gap["by_body"], after["by_body"], "gap by body (short horizon)")
     _bars(axes[1], gap["by_coordinate"], after["by_coordinate"], "gap by coordinate")
     _bars(axes[2], gap["by_phase"], after["by_phase"], "gap by phase")
+    if pairs:
+        _bars(axes[3], pairs, pairs_after, "gap by contact pair (while touching)")
     figs.append(_png(fig))
 
     fig, ax = plt.subplots(figsize=(7, 3.5))
@@ -72,10 +76,10 @@ def render_report(diag: Diagnosis) -> str:
         red = np.array([e.heldout_reduction for e in effects])
         lo = np.array([e.ci[0] for e in effects])
         hi = np.array([e.ci[1] for e in effects])
-        colors = ["tab:green" if e.effect in diag.selected else "tab:gray" for e in effects]
+        colors = ["tab:green" if e.key in diag.selected else "tab:gray" for e in effects]
         ax.barh(y, red, color=colors)
         ax.errorbar(red, y, xerr=[red - lo, hi - red], fmt="none", ecolor="black", capsize=3)
-        ax.set_yticks(y, [f"{e.effect} ({e.kind})" for e in effects])
+        ax.set_yticks(y, [f"{e.key} ({e.kind})" for e in effects])
         ax.axvline(0, color="black", lw=0.8)
         ax.set_xlabel("held-out gap reduction, alone (95% bootstrap interval); green = selected")
         ax.set_title("effect ranking")
@@ -101,7 +105,7 @@ def render_report(diag: Diagnosis) -> str:
         figs.append(_png(fig))
 
     rows = "".join(
-        f"<tr><td>{html.escape(e.effect)}</td><td>{html.escape(e.kind)}</td>"
+        f"<tr><td>{html.escape(e.key)}</td><td>{html.escape(e.kind)}</td>"
         f"<td>{html.escape(', '.join(f'{k}={v:.4g}' for k, v in e.params.items()))}</td>"
         f"<td>{e.heldout_gap_before:.4f}</td><td>{e.heldout_gap_after:.4f}</td>"
         f"<td>{e.heldout_reduction:.1%}</td><td>[{e.ci[0]:.1%}, {e.ci[1]:.1%}]</td></tr>"
@@ -109,6 +113,18 @@ def render_report(diag: Diagnosis) -> str:
     )
     held = diag.heldout
     summary = diag.to_json()["finding"]
+    by_body = "".join(
+        f"<tr><td>{html.escape(str(step['effect']))}</td><td>{html.escape(body)}</td><td>{v['before']:.4f}</td>"
+        f"<td>{v['after']:.4f}</td><td>{v['reduction']:.1%}</td></tr>"
+        for step in diag.steps
+        for body, v in step.get("heldout_by_body", {}).items()
+    )
+    per_body = (
+        "<h2>Reduction per body (held-out, each selected effect)</h2><table><tr><th>effect</th><th>body</th>"
+        f"<th>before</th><th>after</th><th>reduction</th></tr>{by_body}</table>"
+        if by_body and len(diag.gap["by_body"]) > 1
+        else ""
+    )
     return f"""<!doctype html><html><head><meta charset="utf-8"><title>Gap diagnosis</title>
 <style>body{{font-family:sans-serif;max-width:1400px;margin:auto}}td,th{{padding:2px 8px;text-align:right}}</style>
 </head><body>
@@ -122,5 +138,6 @@ def render_report(diag: Diagnosis) -> str:
 <table><tr><th>effect</th><th>kind</th><th>params</th><th>before</th><th>after</th><th>reduction</th>
 <th>95% CI</th></tr>
 {rows}</table>
+{per_body}
 <h2>Real vs simulated (held-out, open loop)</h2>{"".join(figs[3:])}
 </body></html>"""

@@ -6,9 +6,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import mujoco
 import numpy as np
 
 from grounder.diagnosis.effects import AppliedEffect
+from grounder.diagnosis.targets import ALL, Layout, Target
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -27,6 +29,13 @@ class EffectResult:
     score: float  # reduction minus the complexity penalty
     per_traj_after: np.ndarray = field(repr=False)
     heldout_by_phase: dict[str, dict[str, float]] = field(default_factory=dict)
+    heldout_by_body: dict[str, dict[str, float]] = field(default_factory=dict)
+    target: Target = ALL
+
+    @property
+    def key(self) -> str:
+        """``effect``, or ``effect@body`` / ``effect@a|b`` when localised (as in ``Diagnosis.selected``)."""
+        return self.effect if self.target.kind == "all" else f"{self.effect}@{self.target.label}"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -46,6 +55,9 @@ class Diagnosis:
     measurement_check: dict[str, Any] = field(default_factory=dict)
     figures: dict[str, Any] = field(repr=False, default_factory=dict)
     seconds: float = 0.0
+    layout: Layout | None = None
+    unexplained_by_body: dict[str, dict[str, float]] = field(default_factory=dict)
+    model: mujoco.MjModel | None = field(repr=False, default=None)  # the model diagnosed (explicit pairs, if any)
 
     def to_json(self) -> dict[str, Any]:
         best = self.effects[0] if self.effects else None
@@ -56,6 +68,8 @@ class Diagnosis:
             "effects": [
                 {
                     "effect": e.effect,
+                    "key": e.key,
+                    "target": e.target.to_json(),
                     "kind": e.kind,
                     "meaning": _meaning(e),
                     "params": e.params,
@@ -67,6 +81,7 @@ class Diagnosis:
                     "score": e.score,
                     "train_gap_after": e.train_gap_after,
                     "heldout_by_phase": e.heldout_by_phase,
+                    "heldout_by_body": e.heldout_by_body,
                 }
                 for e in self.effects
             ],
@@ -82,6 +97,16 @@ class Diagnosis:
             "noise": self.noise,
             "measurement_check": self.measurement_check,
             "seconds": self.seconds,
+            "layout": None
+            if self.layout is None
+            else {
+                "bodies": list(self.layout.bodies),
+                "contact_pairs": ["|".join(p) for p in self.layout.pairs],
+                "contact_pair_samples": {"|".join(p): n for p, n in self.layout.pair_samples.items()},
+                "pairs_with_own_parameters": self.layout.explicit,
+                "air_drag_per_body": self.layout.fluid_per_body,
+            },
+            "unexplained_by_body": self.unexplained_by_body,
         }
 
 
@@ -95,6 +120,16 @@ def _meaning(e: EffectResult) -> str:
 
 def _finding(diag: Diagnosis) -> str:
     text = _finding_main(diag)
+    bodies = diag.unexplained_by_body
+    if len(bodies) > 1:
+        worst = max(v["before"] for v in bodies.values())
+        left = [
+            f"{b} ({v['unexplained_fraction']:.0%} remains)"
+            for b, v in bodies.items()
+            if v["unexplained_fraction"] > 0.5 and v["before"] >= 0.5 * worst
+        ]
+        if left:
+            text += f"; largely unexplained on body {', '.join(left)}"
     check = diag.measurement_check
     if check.get("selected"):
         named = ", ".join(
