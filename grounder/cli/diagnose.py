@@ -32,11 +32,21 @@ def register(app: typer.Typer) -> None:
         scene: Annotated[
             Path, typer.Argument(help="The nominal scene you believe: its MJCF, or a scene folder with scene.xml.")
         ],
-        traj_dir: Annotated[Path, typer.Argument(help="Folder of recorded trajectories (.npz, project format).")],
+        traj_dir: Annotated[
+            Path,
+            typer.Argument(
+                help="Folder of recorded trajectories (.npz, project format), or the folder `image2sim track` wrote "
+                "(its segments; the tracker's smoothing is counted in the noise floor)."
+            ),
+        ],
         out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (created; must be new or empty).")],
         effects: Annotated[
             list[str] | None,
-            typer.Option(help="Effects to test, comma-separated or repeated (default: every applicable one)."),
+            typer.Option(
+                help="Effects to test, comma-separated or repeated (default: every applicable one, and on the bodies "
+                "and contact pairs where the gap is largest); NAME@BODY or NAME@BODY|OTHER acts on one body or "
+                "contact pair only."
+            ),
         ] = None,
         holdout: Annotated[float, typer.Option(help="Share of trajectories held out for scoring.")] = 0.3,
         horizon: Annotated[float, typer.Option(help="Short-horizon window length (s).")] = 0.25,

@@ -6,7 +6,9 @@ Recording noise is estimated from the data itself, per coordinate kind:
   with constant acceleration and leave 20 sigma^2 of white noise; a robust spread (MAD) ignores the rare impacts;
 - orientations: the same on the integrated body-frame rotation increments;
 - velocities: third differences of the recorded velocities, the same way (a velocity that was smoothed when it was
-  recorded shows less noise than it has, so the floor is then a lower bound).
+  recorded shows less noise than it has, so the floor is then a lower bound). For tracked video (`image2sim track`
+  writes velocities as a Savitzky-Golay derivative of the positions over ``w`` frames) the velocity noise is at
+  least what that derivative makes of the position noise: ``sigma_p / (dt sqrt(sum k^2))``, k = -(w-1)/2 .. (w-1)/2.
 
 The floor is then measured by simulation: the model's own open-loop trajectories from the recorded initial states,
 given noise of those sizes, are scored against the same model with the same short-horizon windows.
@@ -41,9 +43,23 @@ def _rotvec_increments(quat_wxyz: np.ndarray) -> np.ndarray:
     return out
 
 
-def estimate_noise(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> dict[str, float]:
+def derivative_noise_gain(window_frames: int, dt_s: float) -> float:
+    """Noise of a Savitzky-Golay first derivative (polynomial order 1 or 2, ``window_frames`` odd) per unit of white
+    noise on the positions, 1/s: the fit's slope is sum(k x_k) / (dt sum(k^2))."""
+    half = (window_frames - 1) // 2
+    return 1.0 / (dt_s * float(np.sqrt(sum(k * k for k in range(-half, half + 1)))))
+
+
+def estimate_noise(
+    model: mujoco.MjModel, trajs: Sequence[Trajectory], velocity_smoothing_frames: int | None = None
+) -> dict[str, float]:
     """Noise standard deviations per kind: ``position_m``, ``angle_rad`` (joints), ``rotation_rad``, ``velocity_m_s``,
-    ``angular_velocity_rad_s``, ``joint_velocity_rad_s``."""
+    ``angular_velocity_rad_s``, ``joint_velocity_rad_s``.
+
+    Args:
+        velocity_smoothing_frames: the recorded velocities are a Savitzky-Golay derivative of the positions over
+            this many frames (tracked video): velocity noise is then at least the position noise through it.
+    """
     pos3, rot3, jnt3, vel, angvel, jvel = [], [], [], [], [], []
     for traj in trajs:
         if traj.num_steps < 5:
@@ -68,6 +84,10 @@ def estimate_noise(model: mujoco.MjModel, trajs: Sequence[Trajectory]) -> dict[s
     pos_sigma = [_robust_std(np.concatenate(x)) / np.sqrt(20) if x else 0.0 for x in (pos3, rot3, jnt3)]
     vel_sigma = [_robust_std(np.concatenate(x)) / np.sqrt(20) if x else 0.0 for x in (vel, angvel, jvel)]
     sigma_p, sigma_r, sigma_j = pos_sigma
+    if velocity_smoothing_frames and velocity_smoothing_frames >= 3 and trajs:
+        dt = float(np.median(np.concatenate([np.diff(t.time_s) for t in trajs if t.num_steps > 1])))
+        gain = derivative_noise_gain(velocity_smoothing_frames, dt)
+        vel_sigma = [max(v, p * gain) for v, p in zip(vel_sigma, pos_sigma, strict=True)]
     return {
         "position_m": sigma_p,
         "rotation_rad": sigma_r,

@@ -89,6 +89,9 @@ class DiagnoseOptions:
         localise: in a scene of several bodies or contact pairs, also fit each contact and body effect on the
             bodies and contact pairs where the gap is largest (``local_bodies`` and ``local_pairs`` of them); a
             localised variant pays ``complexity_penalty`` once more than the global one (the choice of where).
+        velocity_smoothing_frames: the recorded velocities are a Savitzky-Golay derivative of the positions over
+            this many frames (tracked video; set from ``track.json`` by `diagnose_files`): the noise floor then
+            counts the position noise that derivative carries into them (`grounder.diagnosis.noise`).
         nthread: rollout threads (default: the CPU cores this process may use).
     """
 
@@ -107,6 +110,7 @@ class DiagnoseOptions:
     localise: bool = True
     local_bodies: int = 1
     local_pairs: int = 1
+    velocity_smoothing_frames: int | None = None
     nthread: int | None = None
 
 
@@ -512,7 +516,7 @@ def diagnose(
             effects = effects + local
         by_key = {e.key: e for e in effects}
         measurement = _measurement_check(engine, effects, held_phases, options, rng)
-        noise = estimate_noise(model, trajs)
+        noise = estimate_noise(model, trajs, options.velocity_smoothing_frames)
         floor_nominal = _noise_floor(engine, held, [], noise, options.seed)
         applied, current, steps = _select_effects(
             engine, results, base_held, held_count, floor_nominal, rng, report, by_key
@@ -903,6 +907,53 @@ def _figure_data(engine: _Engine, held: list[Trajectory], applied: list[AppliedE
 
 
 # ------------------------------------------------------------------------------------------------------------ output
+MIN_SEGMENT_SAMPLES = 3
+"""Tracked segments shorter than this (frames) are left out: a window needs a start and a sample to score, and the
+noise estimate third differences."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrackedInput:
+    """What ``track.json`` says about a folder `image2sim track` wrote: its frame rate, the tracker's velocity
+    smoothing window, the fraction of frames each object was tracked in, and the segments it cut."""
+
+    fps: float
+    smoothing_frames: int
+    tracked_fraction: dict[str, float]
+    segments: tuple[str, ...]
+
+
+def read_track_folder(traj_dir: Path) -> TrackedInput | None:
+    """``traj_dir``'s ``track.json`` (None when there is none: trajectories recorded some other way).
+
+    Raises:
+        GrounderError: a ``track.json`` that is not one `image2sim track` wrote.
+    """
+    import json
+
+    from grounder.tracking.options import TRACK_JSON
+
+    path = Path(traj_dir) / TRACK_JSON
+    if not path.is_file():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+        if doc.get("format") != "image2sim.track/1":
+            raise ValueError(f"format {doc.get('format')!r}")
+        smoothing = doc.get("options", {}).get("smoothing", {})
+        return TrackedInput(
+            fps=float(doc["fps"]),
+            smoothing_frames=int(smoothing.get("window_frames", 7)),
+            tracked_fraction={k: float(v["tracked_fraction"]) for k, v in doc.get("objects", {}).items()},
+            segments=tuple(str(seg["name"]) for seg in doc.get("segments", [])),
+        )
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise GrounderError(
+            f"{path}: not a track.json that image2sim track wrote ({exc}); pass the folder track wrote, or remove "
+            "the file to use the trajectories as recorded"
+        ) from exc
+
+
 def diagnose_files(
     scene_xml: Path,
     traj_dir: Path,
@@ -912,12 +963,36 @@ def diagnose_files(
     overwrite: bool = False,
     progress: ProgressFn | None = None,
 ) -> Diagnosis:
-    """Loads the scene and trajectories, diagnoses, and writes ``out_dir`` (the CLI's ``diagnose``)."""
+    """Loads the scene (an MJCF or a scene folder such as `ground` writes) and the trajectories (a folder of
+    ``.npz``, or the folder `image2sim track` wrote: its segments, with the tracker's smoothing counted in the noise
+    floor), diagnoses, and writes ``out_dir`` (the CLI's ``diagnose``)."""
     scene_xml, model = load_scene_model(scene_xml)
     trajs = load_trajectories(traj_dir, model)
     options = options or DiagnoseOptions()
+    tracked = read_track_folder(traj_dir)
+    if tracked is not None:
+        short = [t.name for t in trajs if t.num_steps < MIN_SEGMENT_SAMPLES]
+        if short:
+            log.warning(
+                "%d tracked segment(s) shorter than %d frames left out (%s): the objects were lost around them",
+                len(short),
+                MIN_SEGMENT_SAMPLES,
+                ", ".join(short[:5]) + (" ..." if len(short) > 5 else ""),
+            )
+        trajs = [t for t in trajs if t.num_steps >= MIN_SEGMENT_SAMPLES]
+        if options.velocity_smoothing_frames is None:
+            options = replace(options, velocity_smoothing_frames=tracked.smoothing_frames)
+        lost = {k: 1.0 - v for k, v in tracked.tracked_fraction.items() if v < 1.0}
+        if lost:
+            log.info("frames lost by the tracker (left out): %s", ", ".join(f"{k} {v:.0%}" for k, v in lost.items()))
     out_dir = Path(out_dir)
     check_output_dir(out_dir, overwrite=overwrite, error=GrounderError, inputs=(scene_xml, traj_dir))
     diag = diagnose(model, trajs, options, progress, spec=mujoco.MjSpec.from_file(str(scene_xml)))
+    if tracked is not None:
+        diag = replace(
+            diag,
+            noise={**diag.noise, "velocity_smoothing_frames": float(options.velocity_smoothing_frames or 0)},
+            split={**diag.split, "tracked_segments_used": [t.name for t in trajs]},
+        )
     write_outputs(diag, scene_xml, model, out_dir, overwrite=overwrite)
     return diag
