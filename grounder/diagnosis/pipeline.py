@@ -81,7 +81,8 @@ class DiagnoseOptions:
         min_gain: an effect is added only if it cuts the current held-out gap by at least this fraction (after
             the complexity penalty).
         complexity_penalty: subtracted from a held-out reduction per fitted parameter.
-        search_rounds: refinement rounds of the batched parameter search after the initial grid.
+        search_rounds: refinement rounds of the batched parameter search after the initial grid (two fewer for
+            a single parameter, whose rounds shrink four-fold from the grid's spacing).
         n_bootstrap: bootstrap resamples of the held-out trajectories.
         noise_stop_ratio: no effect is added after the first once the held-out gap is within this factor of the
             noise floor (the gap a perfect model shows at the recording's estimated noise level).
@@ -216,8 +217,8 @@ class _Engine:
         """Fits the parameters of ``effects`` jointly on top of ``base`` (fixed) on the training windows.
 
         A batched shrinking search in the unit box of the parameters: a grid (or Sobol points) over the whole box
-        with the nominal point, then ``search_rounds`` rounds of points around the best so far, each round one
-        ``mujoco.rollout`` call.
+        with the nominal point, then rounds of points around the best so far (``search_rounds`` halving ones; for
+        one parameter ``search_rounds - 2`` quartering ones), each round one ``mujoco.rollout`` call.
         """
         params = [(e, p) for e in effects for p in e.params_of(self.model)]
         dim = len(params)
@@ -259,8 +260,12 @@ class _Engine:
                 )
                 grid = np.vstack([grid, np.full((1, dim), 0.5)])
             points = np.vstack([start[None], grid])
-            radii = [0.25 / 2**k for k in range(self.options.search_rounds)]
-            radii = [r * (1.0 if dim == 1 else 1.5) for r in radii]
+            if dim == 1:
+                # The grid's spacing is 1/8, so the best grid point is within 1/16 of the optimum: each round looks
+                # at +-r and +-r/2 and the next r is a quarter (resolution 1/512 after three rounds).
+                radii = [0.0625 / 4**k for k in range(max(1, self.options.search_rounds - 2))]
+            else:
+                radii = [1.5 * 0.25 / 2**k for k in range(self.options.search_rounds)]
         vals = losses(points)
         best_u, best = points[int(np.argmin(vals))], float(np.min(vals))
         for r in radii:
@@ -421,35 +426,41 @@ def _where_targets(
     if layout.explicit and len(layout.pairs) > 1:
         labels = window_contacts(engine.train_w, contacts_train)
         gaps_p = pair_gaps(engine.groups, mask, sq, labels, layout.pairs)
-        ranked_p = sorted(gaps_p, key=lambda p: -gaps_p[p]["gap"])
+
+        def same_as_a_body(pair: str) -> bool:  # the only contact pair of a body tried already: the same place
+            return any([p for p in layout.pairs if t.parties[0] in p] == [tuple(pair.split("|"))] for t in targets)
+
+        ranked_p = sorted((p for p in gaps_p if not same_as_a_body(p)), key=lambda p: -gaps_p[p]["gap"])
         targets += [pair_target(*p.split("|")) for p in ranked_p[: options.local_pairs]]
     return targets
 
 
+CHEAP_LOCAL = ("sliding_friction", "torsional_friction", "rolling_friction", "restitution", "contact_stiffness", "mass")
+"""One-parameter effects tried on the body with the largest gap whatever their global variant showed: a change on
+one body, made everywhere, also changes the bodies the model already gets right, so the global fit may show nothing
+(scaling every mass alike leaves free bodies' motion as it is)."""
+
+
 def _localised(
-    effects: Sequence[Effect], targets: Sequence[Target], model: mujoco.MjModel, globals_: dict[str, EffectResult]
+    effects: Sequence[Effect], targets: Sequence[Target], model: mujoco.MjModel, fitted: Sequence[EffectResult]
 ) -> list[Effect]:
-    """Each effect that can act on one body or pair, at each target, when its global variant shows it might help
-    there: it cuts the held-out gap by ``LOCALISE_MIN_REDUCTION`` overall or on one of the target's bodies (a change
-    that helps one body may hurt the others when made everywhere), or it is ``mass`` (scaling every mass alike leaves
-    free bodies' motion as it is, so its global variant shows nothing)."""
+    """Each effect that can act on one body or pair, at each target, when it is cheap (`CHEAP_LOCAL`, bodies only)
+    or when a variant already fitted shows it might help there: it cuts the held-out gap by
+    ``LOCALISE_MIN_REDUCTION`` overall, or on one of the target's bodies."""
     out = []
     for effect in effects:
         if effect.target.kind != "all":
             continue
-        result = globals_.get(effect.name)
+        tried = [r for r in fitted if r.effect == effect.name]
         for target in targets:
             if target.kind not in effect.scopes:
                 continue
-            helps = effect.name == "mass" or (
-                result is not None
-                and (
-                    result.heldout_reduction >= LOCALISE_MIN_REDUCTION
-                    or any(
-                        result.heldout_by_body.get(b, {}).get("reduction", 0.0) >= LOCALISE_MIN_REDUCTION
-                        for b in target.parties
-                    )
+            helps = (target.kind == "body" and effect.name in CHEAP_LOCAL) or any(
+                r.heldout_reduction >= LOCALISE_MIN_REDUCTION
+                or any(
+                    r.heldout_by_body.get(b, {}).get("reduction", 0.0) >= LOCALISE_MIN_REDUCTION for b in target.parties
                 )
+                for r in tried
             )
             local = effect.at(target)
             if helps and local.applicable(model):
@@ -508,12 +519,21 @@ def diagnose(
             # Where the gap is largest, each effect family that explains some of it as a global change (or whose
             # global change cannot show: scaling every mass alike leaves free bodies' motion as it is).
             targets = _where_targets(engine, layout, [contacts[i] for i in sorted(train_idx)])
-            local = _localised(effects, targets, model, {r.effect: r for r in results})
-            results += _rank_effects(
-                engine, local, base_scores, held_count, held_phases, gap_before, rng, report, "fitting local effects"
-            )
+            for kind in ("body", "pair"):  # pairs after bodies: a pair is tried where its body's variant helped
+                local = _localised(effects, [t for t in targets if t.kind == kind], model, results)
+                results += _rank_effects(
+                    engine,
+                    local,
+                    base_scores,
+                    held_count,
+                    held_phases,
+                    gap_before,
+                    rng,
+                    report,
+                    f"fitting {kind} effects",
+                )
+                effects = effects + local
             results.sort(key=lambda r: -r.score)
-            effects = effects + local
         by_key = {e.key: e for e in effects}
         measurement = _measurement_check(engine, effects, held_phases, options, rng)
         noise = estimate_noise(model, trajs, options.velocity_smoothing_frames)
@@ -804,9 +824,11 @@ def _measurement_check(
     np.add.at(count, engine.held_w.traj_index, held_mask.sum(axis=1))
     before = masked_per_traj(engine.scores([[]], engine.held_w, n_held).sq[0])
     out: list[dict[str, Any]] = []
+    alone: dict[str, tuple[list[AppliedEffect], np.ndarray]] = {}
     for effect in candidates:
         fitted, _ = engine.fit([], [effect], slot_mask=train_mask)
         after = masked_per_traj(engine.scores([fitted], engine.held_w, n_held).sq[0])
+        alone[effect.key] = (fitted, after)
         g0, g1 = rms(before, count), rms(after, count)
         lo, hi = _bootstrap_reduction(before, after, rng, options.n_bootstrap)
         out.append(
@@ -830,8 +852,11 @@ def _measurement_check(
     while remaining:
         trials = []
         for effect in remaining:
-            fitted, _ = engine.fit(applied, [effect], slot_mask=train_mask)
-            after = masked_per_traj(engine.scores([fitted], engine.held_w, n_held).sq[0])
+            if applied:
+                fitted, _ = engine.fit(applied, [effect], slot_mask=train_mask)
+                after = masked_per_traj(engine.scores([fitted], engine.held_w, n_held).sq[0])
+            else:  # the first round is each bias alone, fitted above
+                fitted, after = alone[effect.key]
             trials.append((rms(after, count), effect, fitted, after))
         gap_new, effect, fitted, after = min(trials, key=lambda t: t[0])
         gain = 1.0 - gap_new / max(rms(current, count), 1e-300)
