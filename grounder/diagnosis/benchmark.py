@@ -13,7 +13,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from grounder.diagnosis.cases import ALL_CASES, CaseSpec, make_case
+from grounder.diagnosis.cases import ALL_CASES, MULTI_BODY_SCENARIOS, CaseSpec, make_case
 from grounder.diagnosis.pipeline import DiagnoseOptions, diagnose
 from grounder.errors import GrounderError, integer_in
 from image2sim_common.outdir import write_text_atomic
@@ -63,6 +63,7 @@ class BenchResult:
     contact_pairs: tuple[str, ...] = ()
     bodies: tuple[str, ...] = ()
     unexplained_by_body: dict[str, float] = field(default_factory=dict)
+    multi_object: bool = False  # one of the multi-object cases (`cases.MULTI_BODY`)
 
     @property
     def no_gap(self) -> bool:
@@ -121,6 +122,7 @@ class BenchResult:
             "fit_error": None if np.isnan(self.fit_error) else self.fit_error,
             "contact_pairs": list(self.contact_pairs),
             "unexplained_by_body": self.unexplained_by_body,
+            "multi_object": self.multi_object,
         }
 
 
@@ -170,6 +172,7 @@ def run_case(
         contact_pairs=tuple("|".join(p) for p in layout.pairs) if layout else (),
         bodies=layout.bodies if layout else (),
         unexplained_by_body={b: v["unexplained_fraction"] for b, v in diag.unexplained_by_body.items()},
+        multi_object=spec.scenario in MULTI_BODY_SCENARIOS,
         top1=top.effect,
         top1_params=top.params,
         selected=tuple(diag.selected),
@@ -271,6 +274,11 @@ def _multi_summary(multi: Sequence[BenchResult]) -> list[str]:
     return lines
 
 
+def _cell(text: str) -> str:
+    """Table cell text: a contact pair's "a|b" would end a markdown cell."""
+    return text.replace("|", "\\|")
+
+
 def _fmt_params(values: dict[str, float]) -> str:
     return ", ".join(f"{k}={v:.3g}" for k, v in values.items())
 
@@ -293,12 +301,12 @@ def format_table(results: Sequence[BenchResult]) -> str:
         mark = "ok" if r.correct else "WRONG"
         top = r.top1 + (f"@{r.top1_target}" if r.top1_target else "")
         lines.append(
-            f"| {r.case} | {hidden} | {top} ({_fmt_params(r.top1_params)}) "
-            f"| {', '.join(r.selected) or 'none'} | {r.gap_before:.4f} -> {r.gap_after:.4f} "
+            f"| {_cell(r.case)} | {_cell(hidden)} | {_cell(top)} ({_fmt_params(r.top1_params)}) "
+            f"| {_cell(', '.join(r.selected) or 'none')} | {r.gap_before:.4f} -> {r.gap_after:.4f} "
             f"| {r.reduction:.0%} | {r.reduction_above_noise:.0%} | {mark} | {r.seconds:.0f} |"
         )
-    one_body = [r for r in results if len(r.bodies) <= 1]
-    multi = [r for r in results if len(r.bodies) > 1]
+    one_body = [r for r in results if not r.multi_object]
+    multi = [r for r in results if r.multi_object]
     single = [r for r in one_body if r.in_library and len(r.hidden) == 1]
     outside = [r for r in one_body if not r.in_library]
     lines.append("")
@@ -329,7 +337,7 @@ def format_table(results: Sequence[BenchResult]) -> str:
     preds = list(dict.fromkeys([*(r.selected[0] if r.selected else "none" for r in results)]))
     lines.append("")
     lines.append("confusion matrix (rows: hidden effect(s); columns: first selected effect)")
-    lines.append("| hidden \\ selected | " + " | ".join(preds) + " |")
+    lines.append("| hidden \\ selected | " + " | ".join(_cell(p) for p in preds) + " |")
     lines.append("|---|" + "---|" * len(preds))
     for t in truths:
         counts = [
