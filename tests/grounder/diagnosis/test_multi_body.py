@@ -52,7 +52,7 @@ def test_friction_withheld_on_one_body_is_found_on_that_body() -> None:
 @pytest.fixture(scope="module")
 def stack_case(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     root = tmp_path_factory.mktemp("stack")
-    case = make_case(_spec("stack/sliding_friction@box_a|box_b"), num_trajectories=8, seed=4, duration_s=0.6)
+    case = make_case(_spec("stack/sliding_friction@box_a|box_b"), num_trajectories=6, seed=4, duration_s=0.5)
     scene = root / "scene.xml"
     scene.write_text(case.scene_xml)
     save_trajectories(case.trajectories, root / "trajs")
@@ -84,7 +84,7 @@ def test_cli_writes_a_contact_pair_effect_as_a_pair(
 
 def _track_folder(root: Path, smoothing_frames: int = 7) -> Path:
     """A folder shaped like `image2sim track`'s output: segment trajectories and track.json."""
-    case = make_case(_spec("two_boxes/sliding_friction@box_a"), num_trajectories=8, seed=5, duration_s=0.6)
+    case = make_case(_spec("two_boxes/sliding_friction@box_a"), num_trajectories=6, seed=5, duration_s=0.5)
     folder = root / "tracks"
     save_trajectories(case.trajectories, folder)
     doc = {
@@ -110,7 +110,7 @@ def test_cli_diagnoses_a_track_folder_with_the_tracker_smoothing_in_the_noise(
     noise = doc["noise"]
     assert noise["velocity_smoothing_frames"] == 7
     assert noise["velocity_m_s"] >= noise["position_m"] * derivative_noise_gain(7, 0.01) * (1 - 1e-9)
-    assert len(doc["split"]["tracked_segments_used"]) == 8
+    assert len(doc["split"]["tracked_segments_used"]) == 6
 
 
 def test_cli_refuses_a_track_json_it_did_not_write(tmp_path: Path, cli: Callable[..., CliRun]) -> None:
