@@ -258,6 +258,11 @@ def _check_localised(effects: Sequence[Effect], model: mujoco.MjModel, layout: L
             ellipsoid fluid model.
     """
     for e in effects:
+        if e.target.kind == "pair" and layout.explicit and tuple(e.target.parties) not in layout.pairs:
+            raise GrounderError(
+                f"effect '{e.key}': {' and '.join(e.target.parties)} never touch in the recordings; contact pairs "
+                f"that do: {', '.join('|'.join(p) for p in layout.pairs) or 'none'}"
+            )
         if e.target.kind == "pair" and not layout.explicit:
             raise GrounderError(
                 f"effect '{e.key}' needs contact pairs with their own parameters: pass the scene's MJCF (the CLI "

@@ -130,3 +130,21 @@ def test_derivative_noise_gain_matches_a_savitzky_golay_fit() -> None:
     noise = rng.normal(size=200_000)
     slope = savgol_filter(noise, 7, 2, deriv=1, delta=0.01)
     assert np.std(slope[10:-10]) == pytest.approx(derivative_noise_gain(7, 0.01), rel=0.02)
+
+
+@pytest.mark.parametrize(
+    ("effect", "needle"),
+    [
+        ("sliding_friction@box_b|box_c", "box_b and box_c never touch in the recordings"),
+        ("mass@box_a|box_b", "effect 'mass' cannot act on one pair"),
+        ("restitution@nobody", "'@nobody' names no moving body"),
+    ],
+)
+def test_cli_refuses_a_place_an_effect_cannot_act_on(
+    effect: str, needle: str, stack_case: tuple[Path, Path], tmp_path: Path, cli: Callable[..., CliRun]
+) -> None:
+    scene, trajs = stack_case
+    out = tmp_path / "out"
+    proc = cli("diagnose", str(scene), str(trajs), "-o", str(out), "--effects", effect)
+    assert_one_line_error(proc, needle)
+    assert not out.exists()
