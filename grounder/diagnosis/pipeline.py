@@ -59,7 +59,7 @@ from grounder.diagnosis.phases import detect_phases, phase_reductions, window_la
 from grounder.diagnosis.result import Diagnosis, EffectResult
 from grounder.diagnosis.targets import Layout, contacts_at_samples, prepare
 from grounder.diagnosis.tracked import MIN_SEGMENT_SAMPLES, read_track_folder
-from grounder.diagnosis.where import body_reductions, breakdown, gap_summary, localised, where_targets
+from grounder.diagnosis.where import body_gaps, body_reductions, breakdown, gap_summary, localised, where_targets
 from grounder.errors import GrounderError
 from grounder.sim.scene_files import load_scene_model
 from image2sim_common.progress import ProgressFn, no_progress
@@ -202,7 +202,9 @@ def diagnose(
         applied, current = _refine_jointly(engine, applied, current, held_count)
         _step_reductions_by_body(engine, applied, steps)
         gap_after = rms(current, held_count)
-        floor = _noise_floor(engine, held, applied, noise, options.seed)
+        floor, floor_by_body = _noise_floors(engine, held, applied, noise, options.seed)
+        held_sq = engine.scores([[], applied], engine.held_w, len(held)).sq
+        held_by_body = [body_gaps(engine.groups, engine.held_w.mask, sq) for sq in held_sq]
         report("breaking the gap down", 0, 2)
         gap_all = breakdown(engine, trajs, [], contacts, layout)
         gap_diag = breakdown(engine, trajs, applied, contacts, layout)
@@ -214,13 +216,12 @@ def diagnose(
     reduction = 1.0 - gap_after / max(gap_before, 1e-300)
     by_body = {
         b: {
-            "before": gap_all["short_horizon"]["by_body"][b],
-            "after": gap_diag["short_horizon"]["by_body"][b],
-            "unexplained_fraction": float(
-                min(1.0, gap_diag["short_horizon"]["by_body"][b] / max(gap_all["short_horizon"]["by_body"][b], 1e-300))
-            ),
+            "before": held_by_body[0][b],
+            "after": held_by_body[1][b],
+            "unexplained_fraction": float(min(1.0, held_by_body[1][b] / max(held_by_body[0][b], 1e-300))),
+            "noise_floor": floor_by_body.get(b, 0.0),
         }
-        for b in gap_all["short_horizon"]["by_body"]
+        for b in held_by_body[0]
     }
     return Diagnosis(
         gap_metric=_metric_text(options),
@@ -420,6 +421,13 @@ def _noise_floor(
     engine: Engine, held: list[Trajectory], applied: list[AppliedEffect], noise: dict[str, float], seed: int
 ) -> float:
     """Short-horizon gap of the diagnosed model against its own simulations of the held-out starts, plus noise."""
+    return _noise_floors(engine, held, applied, noise, seed)[0]
+
+
+def _noise_floors(
+    engine: Engine, held: list[Trajectory], applied: list[AppliedEffect], noise: dict[str, float], seed: int
+) -> tuple[float, dict[str, float]]:
+    """`_noise_floor`, and the same by body."""
     from grounder.diagnosis.effects import Transforms
     from grounder.sim.rollout import simulate
 
@@ -431,7 +439,7 @@ def _noise_floor(
     windows = make_windows(floor_model, noisy, engine.options.horizon_s)
     pred = predict([(floor_model, Transforms())], windows, engine.runner, engine.nthread)
     sc = score(pred, windows, engine.groups, len(noisy), engine.options.robust_scale)
-    return float(sc.gap[0])
+    return float(sc.gap[0]), body_gaps(engine.groups, windows.mask, sc.sq[0])
 
 
 def _figure_data(engine: Engine, held: list[Trajectory], applied: list[AppliedEffect]) -> dict[str, Any]:

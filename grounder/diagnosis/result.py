@@ -126,7 +126,10 @@ def _finding(diag: Diagnosis) -> str:
         left = [
             f"{b} ({v['unexplained_fraction']:.0%} remains)"
             for b, v in bodies.items()
-            if v["unexplained_fraction"] > 0.5 and v["before"] >= 0.5 * worst
+            # Largely unexplained, a large share of the gap, and above what the recording's noise leaves there.
+            if v["unexplained_fraction"] > 0.5
+            and v["before"] >= 0.5 * worst
+            and v["after"] > 1.25 * v.get("noise_floor", 0)
         ]
         if left:
             text += f"; largely unexplained on body {', '.join(left)}"

@@ -47,6 +47,9 @@ def test_friction_withheld_on_one_body_is_found_on_that_body() -> None:
     assert step["box_a"]["reduction"] > 0.5
     assert abs(step["box_b"]["reduction"]) < 0.05
     assert set(diag.gap["by_pair"]) >= {"box_a|floor", "box_b|floor"}
+    # box_b's remaining gap is the recording's noise there: not reported as unexplained.
+    assert diag.unexplained_by_body["box_b"]["after"] <= 1.25 * diag.unexplained_by_body["box_b"]["noise_floor"]
+    assert "largely unexplained" not in diag.to_json()["finding"]
 
 
 @pytest.fixture(scope="module")
