@@ -174,8 +174,8 @@ def diagnose(
         gap_before = rms(base_held, held_count)
         results = _rank_effects(engine, effects, base_scores, held_count, held_phases, gap_before, rng, report)
         if options.effects is None:
-            # Where the gap is largest, each effect family that explains some of it as a global change (or whose
-            # global change cannot show: scaling every mass alike leaves free bodies' motion as it is).
+            # Where the gap is largest: the cheap one-parameter effects on the body, then on the contact pair each
+            # family that helped globally or on a body (`localised`).
             targets = where_targets(engine, layout, [contacts[i] for i in sorted(train_idx)])
             for kind in ("body", "pair"):  # pairs after bodies: a pair is tried where its body's variant helped
                 local = localised(effects, [t for t in targets if t.kind == kind], model, results)
