@@ -140,11 +140,6 @@ class HiddenEffect:
     in_library: bool = True
     target: str = ""  # "" = everywhere; a body ("box_a") or a contact pair ("box_a|box_b")
 
-    @property
-    def key(self) -> str:
-        """As the diagnosis names it: ``name`` or ``name@target``."""
-        return f"{self.name}@{self.target}" if self.target else self.name
-
 
 @dataclass(frozen=True, kw_only=True)
 class CaseSpec:

@@ -26,6 +26,8 @@ from grounder.diagnosis.targets import (
     ALL,
     Target,
     body_id,
+    contact_geoms,
+    moving_bodies,
     pair_rows,
     target_geoms,
 )
@@ -89,7 +91,7 @@ class Effect:
     @property
     def key(self) -> str:
         """The effect's name, with ``@`` and its body or contact pair when localised (``sliding_friction@box_a``)."""
-        return self.name if self.target.kind == "all" else f"{self.name}@{self.target.label}"
+        return self.target.key(self.name)
 
     def at(self, target: Target) -> Effect:
         """This effect acting on ``target`` only.
@@ -105,16 +107,6 @@ class Effect:
 
 
 # ---------------------------------------------------------------------------------------------------------- helpers
-def moving_bodies(model: mujoco.MjModel) -> list[int]:
-    """Bodies with at least one degree of freedom above them (not welded to the world)."""
-    return [b for b in range(1, model.nbody) if model.body_weldid[b] != 0]
-
-
-def contact_geoms(model: mujoco.MjModel) -> np.ndarray:
-    """Geoms that take part in collisions."""
-    return np.flatnonzero((model.geom_contype != 0) | (model.geom_conaffinity != 0))
-
-
 def _has_free(model: mujoco.MjModel) -> bool:
     return bool(np.any(model.jnt_type == _FREE))
 

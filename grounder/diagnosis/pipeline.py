@@ -157,8 +157,7 @@ def diagnose(
     check_inputs(model, trajs, options)
     report = progress or no_progress
     contacts = [contacts_at_samples(model, t) for t in trajs]
-    nominal = model
-    model, layout, _ = prepare(nominal, spec, trajs, contacts)
+    model, layout = prepare(model, spec, trajs, contacts)
     effects = resolve_effects(list(options.effects) if options.effects is not None else None, model)
     _check_localised(effects, model, layout)
     rng = np.random.default_rng(options.seed)
@@ -195,14 +194,14 @@ def diagnose(
         by_key = {e.key: e for e in effects}
         measurement = measurement_check(engine, effects, held_phases, options, rng)
         noise = estimate_noise(model, trajs, options.velocity_smoothing_frames)
-        floor_nominal = _noise_floor(engine, held, [], noise, options.seed)
+        floor_nominal, _ = _noise_floor(engine, held, [], noise, options.seed)
         applied, current, steps = _select_effects(
             engine, results, base_held, held_count, floor_nominal, rng, report, by_key
         )
         applied, current = _refine_jointly(engine, applied, current, held_count)
         _step_reductions_by_body(engine, applied, steps)
         gap_after = rms(current, held_count)
-        floor, floor_by_body = _noise_floors(engine, held, applied, noise, options.seed)
+        floor, floor_by_body = _noise_floor(engine, held, applied, noise, options.seed)
         held_sq = engine.scores([[], applied], engine.held_w, len(held)).sq
         held_by_body = [body_gaps(engine.groups, engine.held_w.mask, sq) for sq in held_sq]
         report("breaking the gap down", 0, 2)
@@ -419,15 +418,9 @@ def _above_noise(before: float, after: float, floor: float) -> float:
 
 def _noise_floor(
     engine: Engine, held: list[Trajectory], applied: list[AppliedEffect], noise: dict[str, float], seed: int
-) -> float:
-    """Short-horizon gap of the diagnosed model against its own simulations of the held-out starts, plus noise."""
-    return _noise_floors(engine, held, applied, noise, seed)[0]
-
-
-def _noise_floors(
-    engine: Engine, held: list[Trajectory], applied: list[AppliedEffect], noise: dict[str, float], seed: int
 ) -> tuple[float, dict[str, float]]:
-    """`_noise_floor`, and the same by body."""
+    """Short-horizon gap of the diagnosed model against its own simulations of the held-out starts, plus noise; and
+    the same by body."""
     from grounder.diagnosis.effects import Transforms
     from grounder.sim.rollout import simulate
 

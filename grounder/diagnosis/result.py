@@ -35,7 +35,7 @@ class EffectResult:
     @property
     def key(self) -> str:
         """``effect``, or ``effect@body`` / ``effect@a|b`` when localised (as in ``Diagnosis.selected``)."""
-        return self.effect if self.target.kind == "all" else f"{self.effect}@{self.target.label}"
+        return self.target.key(self.effect)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -49,6 +49,10 @@ class Target:
         """ "all", the body's name, or "a|b" for a contact pair."""
         return "all" if self.kind == "all" else "|".join(self.parties)
 
+    def key(self, effect: str) -> str:
+        """How the diagnosis names an effect acting here: ``effect``, ``effect@body`` or ``effect@a|b``."""
+        return effect if self.kind == "all" else f"{effect}@{self.label}"
+
     def to_json(self) -> dict[str, object]:
         return {"kind": self.kind, "label": self.label, "parties": list(self.parties)}
 
@@ -81,13 +85,19 @@ def party_of_geom(model: mujoco.MjModel, geom: int) -> str:
     return _name(model, mujoco.mjtObj.mjOBJ_GEOM, geom, "geom")
 
 
-def colliding_geoms(model: mujoco.MjModel) -> np.ndarray:
+def contact_geoms(model: mujoco.MjModel) -> np.ndarray:
+    """Geoms that take part in collisions."""
     return np.flatnonzero((model.geom_contype != 0) | (model.geom_conaffinity != 0))
+
+
+def moving_bodies(model: mujoco.MjModel) -> list[int]:
+    """Bodies with at least one degree of freedom above them (not welded to the world)."""
+    return [b for b in range(1, model.nbody) if model.body_weldid[b] != 0]
 
 
 def party_geoms(model: mujoco.MjModel, party: str) -> np.ndarray:
     """Colliding geoms of a party (empty when the name is not one)."""
-    return np.array([g for g in colliding_geoms(model) if party_of_geom(model, int(g)) == party], dtype=np.int64)
+    return np.array([g for g in contact_geoms(model) if party_of_geom(model, int(g)) == party], dtype=np.int64)
 
 
 def pair_rows(model: mujoco.MjModel, target: Target) -> np.ndarray:
@@ -111,14 +121,14 @@ def target_geoms(model: mujoco.MjModel, target: Target) -> np.ndarray:
     """Geoms whose own contact parameters a target changes: all colliding geoms, or the body's ("pair": none, the
     explicit pair rows carry it)."""
     if target.kind == "all":
-        return colliding_geoms(model)
+        return contact_geoms(model)
     if target.kind == "body":
         return party_geoms(model, target.parties[0])
     return np.zeros(0, np.int64)
 
 
 def moving_body_names(model: mujoco.MjModel) -> list[str]:
-    return [body_name(model, b) for b in range(1, model.nbody) if model.body_weldid[b] != 0]
+    return [body_name(model, b) for b in moving_bodies(model)]
 
 
 def body_id(model: mujoco.MjModel, name: str) -> int:
@@ -131,7 +141,7 @@ def contacts_at_samples(model: mujoco.MjModel, traj: Trajectory) -> list[frozens
     m = copy.copy(model)
     m.geom_margin[:] = np.maximum(m.geom_margin, DETECTION_MARGIN_M)
     data = mujoco.MjData(m)
-    parties = {int(g): party_of_geom(model, int(g)) for g in colliding_geoms(model)}
+    parties = {int(g): party_of_geom(model, int(g)) for g in contact_geoms(model)}
     out = []
     for k in range(traj.num_steps):
         data.qpos[:] = traj.qpos[k]
@@ -185,7 +195,7 @@ def find_layout(model: mujoco.MjModel, contacts: Sequence[list[frozenset[tuple[s
 
 def possible_pairs(model: mujoco.MjModel) -> tuple[tuple[str, str], ...]:
     """Every pair of parties, at least one moving, with geoms that can collide (contype/conaffinity)."""
-    geoms = colliding_geoms(model)
+    geoms = contact_geoms(model)
     moving = set(moving_body_names(model))
     out: set[tuple[str, str]] = set()
     for i, g1 in enumerate(geoms):
@@ -294,18 +304,18 @@ def prepare(
     spec: mujoco.MjSpec | None,
     trajs: Sequence[Trajectory],
     contacts: Sequence[list[frozenset[tuple[str, str]]]],
-) -> tuple[mujoco.MjModel, Layout, mujoco.MjSpec | None]:
-    """The model the diagnosis works on, the scene's layout (``contacts``: `contacts_at_samples` of each
-    trajectory), and the spec of the prepared model (None when the nominal model is used as it is)."""
+) -> tuple[mujoco.MjModel, Layout]:
+    """The model the diagnosis works on and the scene's layout (``contacts``: `contacts_at_samples` of each
+    trajectory); ``layout.explicit`` says whether contact pairs got their own parameters."""
     layout = find_layout(model, contacts)
     if spec is None or not layout.localised:
-        return model, layout, None
+        return model, layout
     try:
         out_spec = prepared_spec(spec, model, layout)
         prepared = out_spec.compile()
     except Exception as exc:  # an MJCF feature the copy cannot carry: diagnose on the nominal model
         log.warning("could not give contact pairs their own parameters (%s); localising by body only", exc)
-        return model, layout, None
+        return model, layout
     same = (prepared.nq, prepared.nv, prepared.nu, prepared.ngeom, prepared.nbody) == (
         model.nq,
         model.nv,
@@ -319,6 +329,6 @@ def prepare(
             "explicit contact pairs do not reproduce the scene's contacts (%.3g after 0.1 s); localising by body only",
             diff,
         )
-        return model, layout, None
+        return model, layout
     fluid = bool(prepared.opt.density == 0 and prepared.opt.viscosity == 0 and np.any(prepared.geom_fluid[:, 0] > 0))
-    return prepared, replace(layout, explicit=True, fluid_per_body=fluid), out_spec
+    return prepared, replace(layout, explicit=True, fluid_per_body=fluid)

@@ -32,8 +32,9 @@ from grounder.diagnosis.result import EffectResult
 from grounder.diagnosis.targets import Layout, Target, body_target, pair_target
 
 LOCALISE_MIN_REDUCTION = 0.02
-"""An effect family is tried on single bodies and contact pairs when its global variant cuts the held-out gap by at
-least this much (a change on one body also shows, diluted, as a change on all)."""
+"""An effect family is tried on a contact pair (and, beyond `CHEAP_LOCAL`, on a body) when a variant already fitted
+cuts the held-out gap by at least this much, overall or on one of the place's bodies (a change on one body also
+shows, diluted, as a change on all)."""
 
 
 def breakdown(
@@ -58,10 +59,7 @@ def breakdown(
         n = max(int(mask.sum()), 1)
         entry: dict[str, Any] = {"total": float(np.sqrt(sq.mean(axis=-1)[mask].sum() / n))}
         by_group = {g.label: float(np.sqrt(sq[..., k][mask].mean())) for k, g in enumerate(engine.groups)}
-        bodies: dict[str, list[int]] = {}
-        for k, g in enumerate(engine.groups):
-            bodies.setdefault(g.body, []).append(k)
-        entry["by_body"] = {b: float(np.sqrt(sq[..., ks].mean(axis=-1)[mask].mean())) for b, ks in bodies.items()}
+        entry["by_body"] = body_gaps(engine.groups, mask, sq)
         entry["by_pair"] = pair_gaps(engine.groups, mask, sq, window_contacts(windows, contacts), layout.pairs)
         entry["by_coordinate"] = by_group
         per_sample = sq.mean(axis=-1)
@@ -198,8 +196,10 @@ def localised(
                 )
                 for r in tried
             )
+            if not helps:
+                continue
             local = effect.at(target)
-            if helps and local.applicable(model):
+            if local.applicable(model):
                 out.append(local)
     return out
 

@@ -155,8 +155,8 @@ def test_prepare_keeps_a_single_body_scene_as_it_is() -> None:
         qvel=case.trajectories[0].qvel[:, :6],
         name="one",
     )
-    prepared, layout, spec = prepare(model, mujoco.MjSpec.from_string(xml), [one], [contacts_at_samples(model, one)])
-    assert prepared is model and spec is None and not layout.localised
+    prepared, layout = prepare(model, mujoco.MjSpec.from_string(xml), [one], [contacts_at_samples(model, one)])
+    assert prepared is model and not layout.explicit and not layout.localised
 
 
 def test_same_place_counts_a_body_with_one_contact_pair_as_that_pair() -> None:
