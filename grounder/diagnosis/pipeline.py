@@ -202,8 +202,8 @@ def diagnose(
         _step_reductions_by_body(engine, applied, steps)
         gap_after = rms(current, held_count)
         floor, floor_by_body = _noise_floor(engine, held, applied, noise, options.seed)
-        held_sq = engine.scores([[], applied], engine.held_w, len(held)).sq
-        held_by_body = [body_gaps(engine.groups, engine.held_w.mask, sq) for sq in held_sq]
+        after_sq = engine.scores([applied], engine.held_w, len(held)).sq[0] if applied else base_scores.sq[0]
+        held_by_body = [body_gaps(engine.groups, engine.held_w.mask, sq) for sq in (base_scores.sq[0], after_sq)]
         report("breaking the gap down", 0, 2)
         gap_all = breakdown(engine, trajs, [], contacts, layout)
         gap_diag = breakdown(engine, trajs, applied, contacts, layout)
