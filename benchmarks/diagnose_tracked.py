@@ -13,6 +13,8 @@ low-texture (the tracker finds objects by their texture), else skipped):
 3. `image2sim track clip/video.mp4 --scene scene -o tracks --scan-features` (the clip is filmed with the scan's
    camera, so the tracker also learns each object's look from the scan's frames);
 4. `image2sim diagnose scene tracks -o diagnosis`.
+5. the control: `image2sim diagnose` of the clip's true throws (no tracking) against the clip's true scene with the
+   withheld value put back (no scan error): whether the clip makes the effect identifiable at all.
 Scored: the withheld effect and its object (or that object's only contact pair) named; the fitted value against the
 clip's; the held-out gap reduction above the noise floor; the share left unexplained per body; wall time per stage.
 Stages already done in `--work` are reused (delete a folder to redo it).
@@ -27,6 +29,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -45,13 +48,20 @@ def _run(cmd: list[str], log: Path) -> float:
     return time.perf_counter() - start
 
 
-def one_scene(seed: int, work: Path) -> dict[str, object] | None:
+def one_scene(seed: int, work: Path) -> dict[str, Any] | None:
     """Grounds, films, tracks and diagnoses scene `seed`; None when the scene does not qualify."""
     family = work / "family"
     scene_dir = family / f"scene_{seed:05d}"
     if not scene_dir.exists():
         subprocess.run(
-            [sys.executable, str(REPO / "samples" / "make_scene_family.py"), str(family), "--seed", str(seed), "--small"],
+            [
+                sys.executable,
+                str(REPO / "samples" / "make_scene_family.py"),
+                str(family),
+                "--seed",
+                str(seed),
+                "--small",
+            ],
             check=True,
             stdout=subprocess.DEVNULL,
             env={**os.environ, "MUJOCO_GL": "osmesa"},
@@ -68,60 +78,112 @@ def one_scene(seed: int, work: Path) -> dict[str, object] | None:
     grounded = case / "scene"
     if not (grounded / "scene.xml").is_file():
         source = scene_dir / record["source"]
-        seconds["ground"] = _run([IMAGE2SIM, "ground", str(source), "-o", str(grounded), *record["ground_args"]], case / "ground.log")
+        seconds["ground"] = _run(
+            [IMAGE2SIM, "ground", str(source), "-o", str(grounded), *record["ground_args"]], case / "ground.log"
+        )
     clip = case / "clip"
     if not (clip / "video.mp4").is_file():
         seconds["clip"] = _run(
-            [sys.executable, str(REPO / "samples" / "make_family_clip.py"), str(scene_dir), "--scene", str(grounded),
-             "-o", str(clip), "--seed", str(seed)],
+            [
+                sys.executable,
+                str(REPO / "samples" / "make_family_clip.py"),
+                str(scene_dir),
+                "--scene",
+                str(grounded),
+                "-o",
+                str(clip),
+                "--seed",
+                str(seed),
+            ],
             case / "clip.log",
         )
     withheld = json.loads((clip / "truth" / "withheld.json").read_text())
-    tracks = case / "tracks"
-    if not (tracks / "track.json").is_file():
-        seconds["track"] = _run(
-            [IMAGE2SIM, "track", str(clip / "video.mp4"), "--scene", str(grounded), "-o", str(tracks), "--scan-features"],
-            case / "track.log",
+    control = case / "control"
+    if not (control / "diagnosis.json").is_file():
+        nominal = clip / "truth" / "nominal.xml"
+        write_nominal(clip / "truth" / "scene.xml", withheld, nominal)
+        seconds["control"] = _run(
+            [IMAGE2SIM, "diagnose", str(nominal), str(clip / "truth" / "throws"), "-o", str(control)],
+            case / "control.log",
         )
-    diag = case / "diagnosis"
-    if not (diag / "diagnosis.json").is_file():
-        seconds["diagnose"] = _run([IMAGE2SIM, "diagnose", str(grounded), str(tracks), "-o", str(diag)], case / "diagnose.log")
-    return score(seed, record, withheld, json.loads((tracks / "track.json").read_text()),
-                 json.loads((diag / "diagnosis.json").read_text()), seconds)
+    truth_named = {**withheld, "grounded_body": withheld["truth_object"]}
+    control_doc = json.loads((control / "diagnosis.json").read_text())
+    control_result = score(seed, record, truth_named, {"objects": {}}, control_doc, {})
+    keys = ("selected", "named", "fitted", "fitted_error", "reduction_above_noise")
+    control_scores = {k: control_result[k] for k in keys}
+    tracks, diag = case / "tracks", case / "diagnosis"
+    try:
+        if not (tracks / "track.json").is_file():
+            cmd = [IMAGE2SIM, "track", str(clip / "video.mp4"), "--scene", str(grounded), "-o", str(tracks)]
+            seconds["track"] = _run([*cmd, "--scan-features"], case / "track.log")
+        if not (diag / "diagnosis.json").is_file():
+            cmd = [IMAGE2SIM, "diagnose", str(grounded), str(tracks), "-o", str(diag)]
+            seconds["diagnose"] = _run(cmd, case / "diagnose.log")
+    except RuntimeError as exc:  # a stage that fails is a result too: which one, and why
+        track_doc = json.loads((tracks / "track.json").read_text()) if (tracks / "track.json").is_file() else {}
+        return {
+            "seed": seed,
+            "objects": record["objects"],
+            "withheld": withheld,
+            "error": str(exc),
+            "named": False,
+            "tracked_fraction": {k: v["tracked_fraction"] for k, v in track_doc.get("objects", {}).items()},
+            "seconds": seconds,
+            "control": control_scores,
+        }
+    track_doc = json.loads((tracks / "track.json").read_text())
+    result = score(seed, record, withheld, track_doc, json.loads((diag / "diagnosis.json").read_text()), seconds)
+    result["control"] = control_scores
+    return result
+
+
+def write_nominal(clip_scene: Path, withheld: dict[str, Any], out: Path) -> None:
+    """The clip's true scene with the withheld value put back: what the diagnosis would be given with a perfect
+    scan (the control: true geometry, true states, nothing tracked)."""
+    import mujoco
+
+    spec = mujoco.MjSpec.from_file(str(clip_scene))
+    geom = spec.geom(f"{withheld['truth_object']}_geom")
+    friction = list(geom.friction)
+    friction[0] = float(withheld["scene_value"])
+    geom.friction = friction
+    out.write_text(spec.to_xml())
 
 
 def score(
     seed: int,
-    record: dict[str, object],
-    withheld: dict[str, object],
-    track: dict[str, object],
-    diagnosis: dict[str, object],
+    record: dict[str, Any],
+    withheld: dict[str, Any],
+    track: dict[str, Any],
+    diagnosis: dict[str, Any],
     seconds: dict[str, float],
-) -> dict[str, object]:
+) -> dict[str, Any]:
     from grounder.diagnosis.benchmark import same_place
 
     body = str(withheld["grounded_body"])
-    pairs = list(diagnosis["layout"]["contact_pairs"])  # type: ignore[index]
-    selected = list(diagnosis["selected"])  # type: ignore[call-overload]
-    first = next((e for e in diagnosis["effects"] if e["key"] == selected[0]), None) if selected else None  # type: ignore[attr-defined]
-    named = bool(first) and first["effect"] == withheld["effect"] and same_place(body, first["target"]["label"], pairs)  # type: ignore[index]
-    fitted = float(first["params"]["mu"]) if named and "mu" in first["params"] else None  # type: ignore[index]
-    if named and fitted is None:
-        fitted = float(next(iter(first["params"].values())))  # type: ignore[index]
-    clip_value = float(withheld["clip_value"])  # type: ignore[arg-type]
-    heldout = diagnosis["heldout"]  # type: ignore[index]
+    pairs = list(diagnosis["layout"]["contact_pairs"])
+    selected = list(diagnosis["selected"])
+    # The first selected effect (the one that explains most) must be the withheld one, at its object or that
+    # object's only contact pair.
+    first = next((e for e in diagnosis["effects"] if e["key"] == selected[0]), None) if selected else None
+    named = first is not None and first["effect"] == withheld["effect"]
+    named = named and first is not None and same_place(body, first["target"]["label"], pairs)
+    fitted = float(next(iter(first["params"].values()))) if named and first is not None else None
+    clip_value = float(withheld["clip_value"])
+    heldout = diagnosis["heldout"]
     return {
         "seed": seed,
         "objects": record["objects"],
-        "withheld": f"{withheld['effect']}@{body} ({withheld['truth_object']}) {float(withheld['scene_value']):.3f} -> {clip_value:.3f}",  # type: ignore[arg-type]
-        "tracked_fraction": {k: v["tracked_fraction"] for k, v in track["objects"].items()},  # type: ignore[attr-defined]
-        "segments": len(track.get("segments", [])),  # type: ignore[arg-type]
+        "withheld": f"{withheld['effect']}@{body} ({withheld['truth_object']}) "
+        f"{float(withheld['scene_value']):.3f} -> {clip_value:.3f}",
+        "tracked_fraction": {k: v["tracked_fraction"] for k, v in track["objects"].items()},
+        "segments": len(track.get("segments", [])),
         "selected": selected,
         "named": named,
         "fitted": fitted,
         "fitted_error": None if fitted is None else abs(fitted - clip_value) / clip_value,
-        "reduction_above_noise": heldout["reduction_above_noise"],  # type: ignore[index]
-        "unexplained_by_body": {k: v["unexplained_fraction"] for k, v in diagnosis["unexplained_by_body"].items()},  # type: ignore[attr-defined]
+        "reduction_above_noise": heldout["reduction_above_noise"],
+        "unexplained_by_body": {k: v["unexplained_fraction"] for k, v in diagnosis["unexplained_by_body"].items()},
         "finding": diagnosis["finding"],
         "seconds": seconds,
     }
@@ -135,7 +197,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=REPO / "out" / "diagnose_tracked")
     parser.add_argument("--json", type=Path, help="write the per-scene results here")
     args = parser.parse_args()
-    results: list[dict[str, object]] = []
+    results: list[dict[str, Any]] = []
     for seed in range(args.seed, args.seed + args.max_seeds):
         if len(results) >= args.count:
             break
@@ -143,7 +205,8 @@ def main() -> None:
             result = one_scene(seed, args.work)
         except RuntimeError as exc:
             result = {"seed": seed, "error": str(exc), "named": False}
-            print(f"seed {seed}: FAILED {exc}", flush=True)
+        if result is not None and "error" in result:
+            print(f"seed {seed}: FAILED {result['error']}; control: {result.get('control')}", flush=True)
         if result is None:
             continue
         results.append(result)
@@ -151,7 +214,8 @@ def main() -> None:
             print(
                 f"seed {seed}: withheld {result['withheld']}; selected {result['selected']}; named {result['named']}; "
                 f"fitted {result['fitted']}; held-out reduction above noise {result['reduction_above_noise']:.0%}; "
-                f"tracked {result['tracked_fraction']}, {result['segments']} segments; {result['seconds']}",
+                f"tracked {result['tracked_fraction']}, {result['segments']} segments; {result['seconds']}; "
+                f"control (true scene and states): {result['control']}",
                 flush=True,
             )
     named = sum(bool(r["named"]) for r in results)

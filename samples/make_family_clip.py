@@ -33,6 +33,7 @@ import shutil
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 
@@ -59,14 +60,14 @@ MAX_DRAWS = 400
 PHYSICS = ExportOptions()
 
 
-# ------------------------------------------------------------------------------------------ the grounded scene's beliefs
-def grounded_bodies(scene_xml: Path) -> dict[str, dict[str, object]]:
+# ------------------------------------------------------------------------------------ the grounded scene's beliefs
+def grounded_bodies(scene_xml: Path) -> dict[str, dict[str, Any]]:
     """Per free body of the grounded scene: centre of mass at its scanned pose (world, m), mass (kg) and the friction
     and solref of its first colliding geom."""
     model = mujoco.MjModel.from_xml_path(str(scene_xml))
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
-    out: dict[str, dict[str, object]] = {}
+    out: dict[str, dict[str, Any]] = {}
     for jnt in range(model.njnt):
         if model.jnt_type[jnt] != mujoco.mjtJoint.mjJNT_FREE:
             continue
@@ -87,16 +88,20 @@ def grounded_bodies(scene_xml: Path) -> dict[str, dict[str, object]]:
     return out
 
 
-def match_objects(truth_model: mujoco.MjModel, names: list[str], grounded: dict[str, dict[str, object]]) -> dict[str, str]:
+def match_objects(truth_model: mujoco.MjModel, names: list[str], grounded: dict[str, dict[str, Any]]) -> dict[str, str]:
     """True object name -> grounded body name, by centre of mass at the scanned pose (one to one)."""
     data = mujoco.MjData(truth_model)
     mujoco.mj_forward(truth_model, data)
     out: dict[str, str] = {}
     for name in names:
         com = data.body(name).xipos
-        dist = {g: float(np.linalg.norm(np.asarray(v["com_m"]) - com)) for g, v in grounded.items() if g not in out.values()}
+        dist = {
+            g: float(np.linalg.norm(np.asarray(v["com_m"]) - com)) for g, v in grounded.items() if g not in out.values()
+        }
         if not dist or min(dist.values()) > MATCH_TOLERANCE_M:
-            raise RuntimeError(f"{name}: no grounded object within {MATCH_TOLERANCE_M * 100:.0f} cm of it; not a clip to show")
+            raise RuntimeError(
+                f"{name}: no grounded object within {MATCH_TOLERANCE_M * 100:.0f} cm of it; not a clip to show"
+            )
         out[name] = min(dist, key=lambda g: dist[g])
     return out
 
@@ -104,10 +109,10 @@ def match_objects(truth_model: mujoco.MjModel, names: list[str], grounded: dict[
 # ------------------------------------------------------------------------------------------------------- the clip
 def clip_spec(
     family_truth: Path,
-    objects: list[dict[str, object]],
-    grounded: dict[str, dict[str, object]],
+    objects: list[dict[str, Any]],
+    grounded: dict[str, dict[str, Any]],
     matched: dict[str, str],
-    withheld: dict[str, object],
+    withheld: dict[str, Any],
     world_from_cam: np.ndarray,
     fovy_deg: float,
 ) -> mujoco.MjSpec:
@@ -123,13 +128,13 @@ def clip_spec(
         belief = grounded[matched[name]]
         spec.body(name).add_freejoint(name=f"{name}_free")
         geom = spec.geom(f"{name}_geom")
-        friction = list(belief["friction"])  # type: ignore[call-overload]
+        friction = list(belief["friction"])
         if name == withheld["truth_object"]:
-            friction[0] = float(withheld["clip_value"])  # type: ignore[arg-type]
+            friction[0] = float(withheld["clip_value"])
         geom.friction = friction
-        geom.solref = list(belief["solref"])  # type: ignore[call-overload]
+        geom.solref = list(belief["solref"])
         geom.priority = OBJECT_PRIORITY
-        geom.density = float(belief["mass_kg"]) / float(obj["volume_m3"])  # type: ignore[arg-type]
+        geom.density = float(belief["mass_kg"]) / float(obj["volume_m3"])
     camera = spec.camera("video")
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, (world_from_cam[:3, :3] @ np.diag([1.0, -1.0, -1.0])).flatten())
@@ -158,7 +163,9 @@ def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def draw_throw(rng: np.random.Generator, model: mujoco.MjModel, objects: list[dict[str, object]]) -> tuple[np.ndarray, np.ndarray]:
+def draw_throw(
+    rng: np.random.Generator, model: mujoco.MjModel, objects: list[dict[str, Any]]
+) -> tuple[np.ndarray, np.ndarray]:
     """(qpos, qvel) of one release: each object above its scanned place, tilted, thrown and spinning."""
     qpos, qvel = model.qpos0.copy(), np.zeros(model.nv)
     for obj in objects:
@@ -180,7 +187,7 @@ def simulate_throw(
     qpos0: np.ndarray,
     qvel0: np.ndarray,
     num_frames: int,
-    objects: list[dict[str, object]],
+    objects: list[dict[str, Any]],
     meshes: dict[str, trimesh.Trimesh],
     world_from_cam: np.ndarray,
     intrinsics: dict[str, float],
@@ -225,7 +232,7 @@ def simulate_throw(
     return np.array(times), np.array(qs), np.array(vs)
 
 
-def hidden_state(model: mujoco.MjModel, objects: list[dict[str, object]]) -> np.ndarray:
+def hidden_state(model: mujoco.MjModel, objects: list[dict[str, Any]]) -> np.ndarray:
     """qpos with every object far under the floor: out of view."""
     qpos = model.qpos0.copy()
     for i, obj in enumerate(objects):
@@ -234,13 +241,15 @@ def hidden_state(model: mujoco.MjModel, objects: list[dict[str, object]]) -> np.
     return qpos
 
 
-def make_clip(family_scene: Path, grounded_scene: Path, out: Path, seed: int, throws: int = THROWS) -> dict[str, object]:
+def make_clip(family_scene: Path, grounded_scene: Path, out: Path, seed: int, throws: int = THROWS) -> dict[str, Any]:
     """Writes the clip into `out` (which must not exist); returns `withheld.json`'s record."""
     rng = np.random.default_rng(seed)
     family_truth = family_scene / "truth"
     record = json.loads((family_truth / "family.json").read_text())
     if record["scale_by"] != "marker":
-        raise RuntimeError(f"{family_scene}: no ArUco marker on its table; image2sim track needs one to place the camera")
+        raise RuntimeError(
+            f"{family_scene}: no ArUco marker on its table; image2sim track needs one to place the camera"
+        )
     objects = json.loads((family_truth / "objects.json").read_text())["objects"]
     grounded = grounded_bodies(grounded_scene / "scene.xml")
     truth_model = mujoco.MjModel.from_xml_path(str(family_truth / "scene.xml"))
@@ -248,8 +257,8 @@ def make_clip(family_scene: Path, grounded_scene: Path, out: Path, seed: int, th
     candidates = [o for o in objects if o["class"] != "ball"] or objects
     chosen = candidates[int(rng.integers(len(candidates)))]
     factor = float(rng.uniform(0.55, 0.7) if rng.random() < 0.5 else rng.uniform(1.4, 1.7))
-    scene_value = float(grounded[matched[str(chosen["name"])]]["friction"][0])  # type: ignore[index]
-    withheld: dict[str, object] = {
+    scene_value = float(grounded[matched[str(chosen["name"])]]["friction"][0])
+    withheld: dict[str, Any] = {
         "effect": "sliding_friction",
         "truth_object": chosen["name"],
         "grounded_body": matched[str(chosen["name"])],
@@ -268,19 +277,24 @@ def make_clip(family_scene: Path, grounded_scene: Path, out: Path, seed: int, th
     spec.modelfiledir = str(truth)
     (truth / "scene.xml").write_text(spec.to_xml())
     model = mujoco.MjModel.from_xml_path(str(truth / "scene.xml"))
-    meshes = {str(o["name"]): trimesh.load(family_truth / str(o["mesh"]), process=False) for o in objects}
+    meshes = {str(o["name"]): trimesh.load_mesh(family_truth / str(o["mesh"]), process=False) for o in objects}
     frames_per_throw = round(THROW_S * FPS)
-    states, throws_dir = [], truth / "throws"
+    states: list[np.ndarray] = []
+    throws_dir = truth / "throws"
     throws_dir.mkdir(parents=True)
     frame = 0
     for k in range(throws):
-        for draw in range(MAX_DRAWS):
+        draws = 0
+        while True:
+            draws += 1
             qpos0, qvel0 = draw_throw(rng, model, objects)
             result = simulate_throw(model, qpos0, qvel0, frames_per_throw, objects, meshes, world_from_cam, intrinsics)
             if not isinstance(result, str):
                 break
-        else:
-            raise RuntimeError(f"throw {k}: no draw of {MAX_DRAWS} keeps the objects apart, in view and on the table ({result})")
+            if draws == MAX_DRAWS:
+                raise RuntimeError(
+                    f"throw {k}: no draw of {MAX_DRAWS} keeps the objects apart, in view and on the table ({result})"
+                )
         time_s, qpos, qvel = result
         start_s = frame / FPS
         save_trajectory(
@@ -290,7 +304,7 @@ def make_clip(family_scene: Path, grounded_scene: Path, out: Path, seed: int, th
         states.extend(qpos)
         states.extend([hidden_state(model, objects)] * GAP_FRAMES)
         frame += frames_per_throw + GAP_FRAMES
-        print(f"throw {k + 1}/{throws}: {draw + 1} draw(s)", flush=True)
+        print(f"throw {k + 1}/{throws}: {draws} draw(s)", flush=True)
     model_cam = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, "video")
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)

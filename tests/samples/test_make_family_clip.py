@@ -72,7 +72,7 @@ def _grounded_scene(root: Path) -> Path:
     scene = root / "grounded"
     (scene / "assets").mkdir(parents=True)
     bodies = []
-    for name, (half, pos, grounded, friction, solref, mass) in sorted(BOXES.items(), key=lambda kv: kv[1][2]):
+    for _name, (half, pos, grounded, friction, solref, mass) in sorted(BOXES.items(), key=lambda kv: kv[1][2]):
         trimesh.creation.box(extents=2 * np.array(half)).export(scene / "assets" / f"{grounded}.obj")
         bodies.append(
             f'<body name="{grounded}" pos="{pos[0]} {pos[1]} {pos[2]}"><freejoint name="{grounded}_free"/>'
