@@ -229,21 +229,39 @@ def not_table_mask(
 
 
 def _label_counts(
-    centres: np.ndarray, labels: Sequence[np.ndarray], views: Sequence[StereoView], k: np.ndarray
+    centres: np.ndarray,
+    labels: Sequence[np.ndarray],
+    views: Sequence[StereoView],
+    k: np.ndarray,
+    carve_fraction: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) frames that see table, and frames that see something else, at each of (N, 3) world points."""
+    """(N,) frames that see table, and frames that see something else, at each of (N, 3) world points.
+
+    With `carve_fraction` f, a point stops being looked at once it is carved whatever the frames left see: its table
+    count b already exceeds f (b + o + r), o its other count and r the frames left. Its counts are then partial, but
+    every decision `b > f * max(b + o, 1)` (carved) and its negation (kept) comes out as with every frame counted:
+    b only grows and b + o grows by at most r. Most cells of the grid are empty space that the first few frames
+    carve, so the grid is projected into the later frames only where something may stand.
+    """
     background = np.zeros(len(centres), np.int32)
     foreground = np.zeros(len(centres), np.int32)
-    for label, view in zip(labels, views, strict=True):
+    alive = np.arange(len(centres))
+    for index, (label, view) in enumerate(zip(labels, views, strict=True)):
+        if not len(alive):
+            break
         h, w = label.shape
-        uv, depth = _project(centres, view.world_from_cam, k)
+        uv, depth = _project(centres[alive], view.world_from_cam, k)
         with np.errstate(invalid="ignore"):
             col = np.round(uv[:, 0])
             row = np.round(uv[:, 1])
             inside = np.flatnonzero((depth > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h))
         seen = label[row[inside].astype(int), col[inside].astype(int)]
-        background[inside[seen == 1]] += 1
-        foreground[inside[seen == 2]] += 1
+        background[alive[inside[seen == 1]]] += 1
+        foreground[alive[inside[seen == 2]]] += 1
+        if carve_fraction is not None:
+            left = len(views) - index - 1
+            b, o = background[alive], foreground[alive]
+            alive = alive[b <= carve_fraction * (b + o + left)]
     return background, foreground
 
 
@@ -298,7 +316,7 @@ def visual_hull(
     origin = np.array([roi.min_world[0] + 0.5 * cell, roi.min_world[1] + 0.5 * cell, 0.5 * cell])
     ii, jj, kk = np.meshgrid(*(np.arange(n) for n in shape), indexing="ij")
     cells = np.stack([ii.ravel(), jj.ravel(), kk.ravel()], axis=1)
-    background, foreground = _label_counts(origin + cells * cell, labels, views, ks)
+    background, foreground = _label_counts(origin + cells * cell, labels, views, ks, options.max_background_fraction)
     kept = (foreground >= options.min_foreground_views) & (
         background <= options.max_background_fraction * np.maximum(background + foreground, 1)
     )
@@ -317,7 +335,7 @@ def visual_hull(
         below = np.array([(x, y, z) for (x, y), top in zip(columns, lowest, strict=True) for z in range(top)], int)
         grown = member
         if len(below):
-            bg, fg = _label_counts(origin + below * cell, labels, views, ks)
+            bg, fg = _label_counts(origin + below * cell, labels, views, ks, options.max_background_fraction)
             carved = bg > options.max_background_fraction * np.maximum(bg + fg, 1)
             # A column grows down from its lowest cell through uncarved cells only, not past a carved one.
             stop = np.full(shape[:2], -1)

@@ -198,3 +198,42 @@ def test_a_fused_fragment_of_a_plain_cup_gives_way_to_its_hull(
     whole = _box((x, y, half[2]), float(half.min()))  # the cup's width, fused (a cube as wide as the cup)
     kept = _with_silhouettes([whole], views, k, _roi(cup), VOXEL_M, SilhouetteOptions())
     assert [o.mesh_quality for o in kept] == ["full"]
+
+
+def test_early_carving_decides_every_cell_as_counting_every_frame() -> None:
+    """`_label_counts` with `carve_fraction` stops looking at a cell once it is carved whatever the frames left see;
+    kept and carved must come out as with all frames counted, on random labels from cameras around a grid."""
+    from image2sim_common.rotations import look_at_world_from_cam
+    from reconstruction._silhouette import _label_counts
+
+    rng = np.random.default_rng(3)
+    k = np.array([[200.0, 0, 80], [0, 200.0, 60], [0, 0, 1]])
+    views, labels = [], []
+    for angle in np.linspace(0, 2 * np.pi, 40, endpoint=False):
+        eye = np.array([0.5 * np.cos(angle), 0.5 * np.sin(angle), 0.4])
+        views.append(
+            StereoView(
+                image_bgr=np.zeros((120, 160, 3), np.uint8), world_from_cam=look_at_world_from_cam(eye, np.zeros(3))
+            )
+        )
+        # Mostly table (1), a patch of object (2) in the middle, a few unlabelled pixels (0), some noise.
+        label = np.ones((120, 160), np.uint8)
+        label[45:75, 60:100] = 2
+        label[rng.random(label.shape) < 0.05] = rng.integers(0, 3)
+        labels.append(label)
+    axis = np.linspace(-0.15, 0.15, 25)
+    centres = np.stack(np.meshgrid(axis, axis, np.linspace(0.0, 0.2, 12), indexing="ij"), axis=-1).reshape(-1, 3)
+    f, min_fg = 0.1, 6
+    bg, fg = _label_counts(centres, labels, views, k)
+    bg_early, fg_early = _label_counts(centres, labels, views, k, carve_fraction=f)
+
+    def kept(b: np.ndarray, o: np.ndarray) -> np.ndarray:
+        return (o >= min_fg) & (b <= f * np.maximum(b + o, 1))
+
+    def carved(b: np.ndarray, o: np.ndarray) -> np.ndarray:
+        return b > f * np.maximum(b + o, 1)
+
+    assert 0 < kept(bg, fg).sum() < len(centres) // 2  # both outcomes occur
+    assert (bg_early < bg).sum() > len(centres) // 2  # most cells were left early
+    np.testing.assert_array_equal(kept(bg_early, fg_early), kept(bg, fg))
+    np.testing.assert_array_equal(carved(bg_early, fg_early), carved(bg, fg))
