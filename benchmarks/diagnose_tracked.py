@@ -124,7 +124,7 @@ def one_scene(seed: int, work: Path) -> dict[str, Any] | None:
         return {
             "seed": seed,
             "objects": record["objects"],
-            "withheld": withheld,
+            "withheld": withheld_text(withheld),
             "error": str(exc),
             "named": False,
             "tracked_fraction": {k: v["tracked_fraction"] for k, v in track_doc.get("objects", {}).items()},
@@ -135,6 +135,14 @@ def one_scene(seed: int, work: Path) -> dict[str, Any] | None:
     result = score(seed, record, withheld, track_doc, json.loads((diag / "diagnosis.json").read_text()), seconds)
     result["control"] = control_scores
     return result
+
+
+def withheld_text(withheld: dict[str, Any]) -> str:
+    """``sliding_friction@object_1 (box_0) 0.525 -> 0.318``: the effect, where (grounded and true name), values."""
+    return (
+        f"{withheld['effect']}@{withheld['grounded_body']} ({withheld['truth_object']}) "
+        f"{float(withheld['scene_value']):.3f} -> {float(withheld['clip_value']):.3f}"
+    )
 
 
 def write_nominal(clip_scene: Path, withheld: dict[str, Any], out: Path) -> None:
@@ -174,8 +182,7 @@ def score(
     return {
         "seed": seed,
         "objects": record["objects"],
-        "withheld": f"{withheld['effect']}@{body} ({withheld['truth_object']}) "
-        f"{float(withheld['scene_value']):.3f} -> {clip_value:.3f}",
+        "withheld": withheld_text(withheld),
         "tracked_fraction": {k: v["tracked_fraction"] for k, v in track["objects"].items()},
         "segments": len(track.get("segments", [])),
         "selected": selected,
