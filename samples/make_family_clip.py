@@ -335,6 +335,11 @@ def main() -> None:
     args = parser.parse_args()
     if args.out.exists():
         parser.error(f"{args.out} exists; choose a new folder")
+    if args.throws < 1:
+        parser.error(f"--throws {args.throws}: give 1 or more")
+    for folder, wants in ((args.family_scene, "truth/family.json"), (args.scene, "scene.xml")):
+        if not (folder / wants).is_file():
+            parser.error(f"{folder} has no {wants}; pass the folder make_scene_family.py or image2sim ground wrote")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=args.out.parent) as tmp:
         built = Path(tmp) / args.out.name
