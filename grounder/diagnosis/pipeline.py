@@ -470,9 +470,17 @@ def diagnose_files(
     ``.npz``, or the folder `image2sim track` wrote: its segments, with the tracker's smoothing counted in the noise
     floor), diagnoses, and writes ``out_dir`` (the CLI's ``diagnose``)."""
     scene_xml, model = load_scene_model(scene_xml)
+    tracked = read_track_folder(traj_dir)
+    if tracked is not None and not tracked.segments:
+        shares = ", ".join(f"{k} {v:.0%}" for k, v in sorted(tracked.tracked_fraction.items(), key=lambda kv: kv[1]))
+        raise GrounderError(
+            f"{traj_dir}: image2sim track found no run of frames with every object tracked at once, so it wrote no "
+            f"trajectory (tracked: {shares}); the diagnosis simulates every body together: film again with every "
+            "object in view and textured where the camera sees it, or ground a scene without the objects it never "
+            "found"
+        )
     trajs = load_trajectories(traj_dir, model)
     options = options or DiagnoseOptions()
-    tracked = read_track_folder(traj_dir)
     if tracked is not None:
         short = [t.name for t in trajs if t.num_steps < MIN_SEGMENT_SAMPLES]
         if short:

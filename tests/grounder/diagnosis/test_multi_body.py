@@ -125,6 +125,25 @@ def test_cli_refuses_a_track_json_it_did_not_write(tmp_path: Path, cli: Callable
     assert not out.exists()
 
 
+def test_cli_says_which_object_was_never_tracked_when_track_wrote_no_trajectory(
+    tmp_path: Path, cli: Callable[..., CliRun]
+) -> None:
+    """`image2sim track` writes track.json but no trajectory when no frame has every object tracked (a phantom the
+    scan left, an object the tracker never finds): the refusal names the tracked shares, not a missing file."""
+    folder = _track_folder(tmp_path)
+    for npz in folder.glob("*.npz"):
+        npz.unlink()
+    doc = json.loads((folder / "track.json").read_text())
+    doc["segments"] = []
+    doc["objects"]["box_b"]["tracked_fraction"] = 0.0
+    (folder / "track.json").write_text(json.dumps(doc))
+    out = tmp_path / "out"
+    proc = cli("diagnose", str(tmp_path / "scene.xml"), str(folder), "-o", str(out))
+    assert_one_line_error(proc, "found no run of frames with every object tracked")
+    assert "box_b 0%" in proc.stderr and "box_a 90%" in proc.stderr
+    assert not out.exists()
+
+
 def test_derivative_noise_gain_matches_a_savitzky_golay_fit() -> None:
     """The slope of a 7-frame least-squares fit of white noise (sigma 1) has sigma 1 / (dt sqrt(28))."""
     from scipy.signal import savgol_filter
