@@ -17,7 +17,7 @@ low-texture (the tracker finds objects by their texture), else skipped):
    withheld value put back (no scan error): whether the clip makes the effect identifiable at all.
 Scored: the withheld effect and its object (or that object's only contact pair) named; the fitted value against the
 clip's; the held-out gap reduction above the noise floor; the share left unexplained per body; wall time per stage.
-Stages already done in `--work` are reused (delete a folder to redo it).
+Stages already done in `--work` are reused (delete a folder to redo it: the stages made from it are redone too).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -48,24 +49,19 @@ def _run(cmd: list[str], log: Path) -> float:
     return time.perf_counter() - start
 
 
+def _render_family(family: Path, seed: int) -> None:
+    """Renders family scene `seed` (`make_scene_family.py --small`) into `family`."""
+    family.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, str(REPO / "samples" / "make_scene_family.py"), str(family), "--seed", str(seed), "--small"]
+    _run(cmd, family / f"render_{seed}.log")
+
+
 def one_scene(seed: int, work: Path) -> dict[str, Any] | None:
     """Grounds, films, tracks and diagnoses scene `seed`; None when the scene does not qualify."""
     family = work / "family"
     scene_dir = family / f"scene_{seed:05d}"
     if not scene_dir.exists():
-        subprocess.run(
-            [
-                sys.executable,
-                str(REPO / "samples" / "make_scene_family.py"),
-                str(family),
-                "--seed",
-                str(seed),
-                "--small",
-            ],
-            check=True,
-            stdout=subprocess.DEVNULL,
-            env={**os.environ, "MUJOCO_GL": "osmesa"},
-        )
+        _render_family(family, seed)
     record = json.loads((scene_dir / "truth" / "family.json").read_text())
     low_texture = [o for o in record["objects"] if "low texture" in o]
     if record["scale_by"] != "marker" or len(record["objects"]) < 2 or low_texture:
@@ -75,66 +71,62 @@ def one_scene(seed: int, work: Path) -> dict[str, Any] | None:
     case = work / f"case_{seed:05d}"
     case.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
-    grounded = case / "scene"
-    if not (grounded / "scene.xml").is_file():
-        source = scene_dir / record["source"]
-        seconds["ground"] = _run(
-            [IMAGE2SIM, "ground", str(source), "-o", str(grounded), *record["ground_args"]], case / "ground.log"
-        )
-    clip = case / "clip"
-    if not (clip / "video.mp4").is_file():
-        seconds["clip"] = _run(
-            [
-                sys.executable,
-                str(REPO / "samples" / "make_family_clip.py"),
-                str(scene_dir),
-                "--scene",
-                str(grounded),
-                "-o",
-                str(clip),
-                "--seed",
-                str(seed),
-            ],
-            case / "clip.log",
-        )
+    grounded, clip, control = case / "scene", case / "clip", case / "control"
+    tracks, diag = case / "tracks", case / "diagnosis"
+    # Each stage's output is reused when present; a stage that runs again voids every stage made from it.
+    after = {
+        grounded: [clip, control, tracks, diag],
+        clip: [control, tracks, diag],
+        tracks: [diag],
+        control: [],
+        diag: [],
+    }
+
+    def stage(name: str, folder: Path, done: str, cmd: list[str]) -> None:
+        if (folder / done).is_file():
+            return
+        for stale in [folder, *after[folder]]:
+            shutil.rmtree(stale, ignore_errors=True)
+        seconds[name] = _run(cmd, case / f"{name}.log")
+
+    source = scene_dir / record["source"]
+    result: dict[str, Any] = {"seed": seed, "objects": record["objects"], "named": False, "seconds": seconds}
+    stage(
+        "ground", grounded, "scene.xml", [IMAGE2SIM, "ground", str(source), "-o", str(grounded), *record["ground_args"]]
+    )
+    clip_cmd = [sys.executable, str(REPO / "samples" / "make_family_clip.py"), str(scene_dir), "--scene", str(grounded)]
+    stage("clip", clip, "video.mp4", [*clip_cmd, "-o", str(clip), "--seed", str(seed)])
     withheld = json.loads((clip / "truth" / "withheld.json").read_text())
-    control = case / "control"
-    if not (control / "diagnosis.json").is_file():
+    result["withheld"] = withheld_text(withheld)
+    result["unmatched_grounded"] = withheld.get("unmatched_grounded", [])
+    try:  # the control: the clip's true throws against its true scene with the withheld value put back
         nominal = clip / "truth" / "nominal.xml"
         write_nominal(clip / "truth" / "scene.xml", withheld, nominal)
-        seconds["control"] = _run(
+        stage(
+            "control",
+            control,
+            "diagnosis.json",
             [IMAGE2SIM, "diagnose", str(nominal), str(clip / "truth" / "throws"), "-o", str(control)],
-            case / "control.log",
         )
-    truth_named = {**withheld, "grounded_body": withheld["truth_object"]}
-    control_doc = json.loads((control / "diagnosis.json").read_text())
-    control_result = score(seed, record, truth_named, {"objects": {}}, control_doc, {})
-    keys = ("selected", "named", "fitted", "fitted_error", "reduction_above_noise")
-    control_scores = {k: control_result[k] for k in keys}
-    tracks, diag = case / "tracks", case / "diagnosis"
+        truth_named = {**withheld, "grounded_body": withheld["truth_object"]}
+        control_doc = json.loads((control / "diagnosis.json").read_text())
+        control_result = score(seed, record, truth_named, {"objects": {}}, control_doc, {})
+        keys = ("selected", "named", "fitted", "fitted_error", "reduction_above_noise")
+        result["control"] = {k: control_result[k] for k in keys}
+        result["control"]["heldout_reduction"] = control_doc["heldout"]["reduction"]
+    except RuntimeError as exc:
+        result["control"] = {"error": str(exc), "named": False}
     try:
-        if not (tracks / "track.json").is_file():
-            cmd = [IMAGE2SIM, "track", str(clip / "video.mp4"), "--scene", str(grounded), "-o", str(tracks)]
-            seconds["track"] = _run([*cmd, "--scan-features"], case / "track.log")
-        if not (diag / "diagnosis.json").is_file():
-            cmd = [IMAGE2SIM, "diagnose", str(grounded), str(tracks), "-o", str(diag)]
-            seconds["diagnose"] = _run(cmd, case / "diagnose.log")
+        track_cmd = [IMAGE2SIM, "track", str(clip / "video.mp4"), "--scene", str(grounded), "-o", str(tracks)]
+        stage("track", tracks, "track.json", [*track_cmd, "--scan-features"])
+        stage("diagnose", diag, "diagnosis.json", [IMAGE2SIM, "diagnose", str(grounded), str(tracks), "-o", str(diag)])
     except RuntimeError as exc:  # a stage that fails is a result too: which one, and why
         track_doc = json.loads((tracks / "track.json").read_text()) if (tracks / "track.json").is_file() else {}
-        return {
-            "seed": seed,
-            "objects": record["objects"],
-            "withheld": withheld_text(withheld),
-            "error": str(exc),
-            "named": False,
-            "tracked_fraction": {k: v["tracked_fraction"] for k, v in track_doc.get("objects", {}).items()},
-            "seconds": seconds,
-            "control": control_scores,
-        }
+        fractions = {k: v["tracked_fraction"] for k, v in track_doc.get("objects", {}).items()}
+        return {**result, "error": str(exc), "tracked_fraction": fractions}
     track_doc = json.loads((tracks / "track.json").read_text())
-    result = score(seed, record, withheld, track_doc, json.loads((diag / "diagnosis.json").read_text()), seconds)
-    result["control"] = control_scores
-    return result
+    scored = score(seed, record, withheld, track_doc, json.loads((diag / "diagnosis.json").read_text()), seconds)
+    return {**result, **scored}
 
 
 def withheld_text(withheld: dict[str, Any]) -> str:

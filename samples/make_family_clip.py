@@ -11,7 +11,7 @@ friction is scaled by a factor drawn from 0.55-0.7 or 1.4-1.7. A diagnosis of th
 tracked clip should therefore name `sliding_friction` on that object (or on its only contact pair, with the table)
 near the clip's value; everything else the scan got wrong (shape, inertia) is model error it must not mistake for it.
 
-The clip: `THROWS` throws filmed at 30 fps by one static camera that sees the marker, with the scan's intrinsics
+The clip: `THROWS` throws filmed at 25 fps by one static camera that sees the marker, with the scan's intrinsics
 (one phone films both). In each throw every
 object is released together from 5-10 cm above its scanned place, tilted, with a horizontal speed of 0.3-0.9 m/s
 (balls a third of that) and a spin, and bounces and slides for `THROW_S`; objects never touch each other, stay in
@@ -21,7 +21,7 @@ view and end on the table (throws that break this are redrawn). Between throws t
 Writes `OUT/video.mp4` and `OUT/truth/`: `scene.xml` + `assets/` (the clip's true scene, free joints), `camera.json`
 (intrinsics, `world_from_cam`, OpenCV axes), `throws/throw_<k>.npz` (project trajectory format, true object names,
 time from the clip's first frame) and `withheld.json` (the effect, the true and the grounded object, the scene's and
-the clip's value, and the grounded object each true object was matched to).
+the clip's value, the grounded object each true object was matched to, and the grounded bodies none matched).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from grounder import Trajectory, save_trajectory
 from image2sim_common.rotations import look_at_world_from_cam
 from scene_export import ExportOptions
 
-FPS = 30.0
+FPS = 25.0  # 20 physics steps of 2 ms a frame: frame k shows the state at exactly k / FPS
 THROWS = 8
 THROW_S = 1.2
 GAP_FRAMES = 4
@@ -197,12 +197,14 @@ def simulate_throw(
     data.qpos[:], data.qvel[:] = qpos0, qvel0
     mujoco.mj_forward(model, data)
     bodies = {model.body(str(o["name"])).id for o in objects}
-    steps_per_frame = 1.0 / (FPS * model.opt.timestep)
+    steps_per_frame = round(1.0 / (FPS * model.opt.timestep))
+    if not np.isclose(steps_per_frame * FPS * model.opt.timestep, 1.0):
+        raise RuntimeError(f"timestep {model.opt.timestep} s does not divide a frame (1/{FPS:g} s)")
     cam_from_world = np.linalg.inv(world_from_cam)
     times, qs, vs = [], [], []
     step = 0
     for k in range(num_frames):
-        target = round(k * steps_per_frame)
+        target = k * steps_per_frame
         while step < target:
             mujoco.mj_step(model, data)
             step += 1
@@ -266,6 +268,8 @@ def make_clip(family_scene: Path, grounded_scene: Path, out: Path, seed: int, th
         "clip_value": scene_value * factor,
         "factor": factor,
         "matched": matched,
+        # Grounded bodies no true object matches (phantoms the scan left): not in the clip, so never tracked.
+        "unmatched_grounded": sorted(set(grounded) - set(matched.values())),
     }
     world_from_cam = camera_pose(rng)
     # The scan's camera films the clip too (one phone): same intrinsics and size, so `track` needs no --intrinsics.

@@ -474,8 +474,9 @@ def diagnose_files(
     if tracked is not None and not tracked.segments:
         shares = ", ".join(f"{k} {v:.0%}" for k, v in sorted(tracked.tracked_fraction.items(), key=lambda kv: kv[1]))
         raise GrounderError(
-            f"{traj_dir}: image2sim track found no run of frames with every object tracked at once, so it wrote no "
-            f"trajectory (tracked: {shares}); the diagnosis simulates every body together: film again with every "
+            f"{traj_dir}: image2sim track found no run of frames long enough with every object tracked at once, so it "
+            f"wrote no trajectory{f' (tracked: {shares})' if shares else ''}; the diagnosis simulates every body "
+            "together: film again with every "
             "object in view and textured where the camera sees it, or ground a scene without the objects it never "
             "found"
         )

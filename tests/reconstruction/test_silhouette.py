@@ -219,7 +219,8 @@ def test_early_carving_decides_every_cell_as_counting_every_frame() -> None:
         # Mostly table (1), a patch of object (2) in the middle, a few unlabelled pixels (0), some noise.
         label = np.ones((120, 160), np.uint8)
         label[45:75, 60:100] = 2
-        label[rng.random(label.shape) < 0.05] = rng.integers(0, 3)
+        noisy = rng.random(label.shape) < 0.05
+        label[noisy] = rng.integers(0, 3, size=int(noisy.sum()))
         labels.append(label)
     axis = np.linspace(-0.15, 0.15, 25)
     centres = np.stack(np.meshgrid(axis, axis, np.linspace(0.0, 0.2, 12), indexing="ij"), axis=-1).reshape(-1, 3)

@@ -139,7 +139,7 @@ def test_cli_says_which_object_was_never_tracked_when_track_wrote_no_trajectory(
     (folder / "track.json").write_text(json.dumps(doc))
     out = tmp_path / "out"
     proc = cli("diagnose", str(tmp_path / "scene.xml"), str(folder), "-o", str(out))
-    assert_one_line_error(proc, "found no run of frames with every object tracked")
+    assert_one_line_error(proc, "found no run of frames long enough with every object tracked")
     assert "box_b 0%" in proc.stderr and "box_a 90%" in proc.stderr
     assert not out.exists()
 
