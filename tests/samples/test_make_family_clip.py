@@ -119,6 +119,10 @@ def test_throws_resimulate_and_keep_the_objects_apart_and_on_the_table(clip: Pat
     for k in range(2):
         traj = load_trajectory(clip / "truth" / "throws" / f"throw_{k}.npz")
         assert len(traj.time_s) == frames_per_throw
+        # Video frame f shows the state at f / FPS, the time `track` gives it (gaps between throws included).
+        first_frame = k * (frames_per_throw + clip_maker.GAP_FRAMES)
+        expected = (first_frame + np.arange(frames_per_throw)) / clip_maker.FPS
+        np.testing.assert_allclose(traj.time_s, expected, atol=1e-9)
         data = mujoco.MjData(model)
         data.qpos[:], data.qvel[:] = traj.qpos[0], traj.qvel[0]
         steps = round((traj.time_s[-1] - traj.time_s[0]) / model.opt.timestep)
