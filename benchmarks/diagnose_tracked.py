@@ -101,7 +101,8 @@ def one_scene(seed: int, work: Path) -> dict[str, Any] | None:
     result["unmatched_grounded"] = withheld.get("unmatched_grounded", [])
     try:  # the control: the clip's true throws against its true scene with the withheld value put back
         nominal = clip / "truth" / "nominal.xml"
-        write_nominal(clip / "truth" / "scene.xml", withheld, nominal)
+        if not (control / "diagnosis.json").is_file():  # only for a control still to run
+            write_nominal(clip / "truth" / "scene.xml", withheld, nominal)
         stage(
             "control",
             control,

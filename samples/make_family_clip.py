@@ -44,6 +44,7 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repo root, for `grounder`
 import _sample_assets as sa
+import make_toss
 
 from grounder import Trajectory, save_trajectory
 from image2sim_common.rotations import look_at_world_from_cam
@@ -157,12 +158,6 @@ def _quat_axis_angle(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     return np.array([np.cos(angle_rad / 2), *(np.sin(angle_rad / 2) * axis)])
 
 
-def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    out = np.zeros(4)
-    mujoco.mju_mulQuat(out, a, b)
-    return out
-
-
 def draw_throw(
     rng: np.random.Generator, model: mujoco.MjModel, objects: list[dict[str, Any]]
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -174,7 +169,7 @@ def draw_throw(
         pos = np.asarray(obj["pos_m"], dtype=float) + np.array([*rng.uniform(-0.03, 0.03, 2), rng.uniform(0.05, 0.10)])
         tilt_axis = np.array([*rng.normal(size=2), 0.0])
         tilt = _quat_axis_angle(tilt_axis, np.deg2rad(rng.uniform(0.0, 15.0)))
-        quat = _quat_mul(tilt, np.asarray(obj["quat_wxyz"], dtype=float))
+        quat = make_toss.quat_mul_wxyz(tilt, np.asarray(obj["quat_wxyz"], dtype=float))
         speed = rng.uniform(0.3, 0.9) * (1 / 3 if obj["class"] == "ball" else 1.0)
         heading = rng.uniform(0, 2 * np.pi)
         qpos[qa : qa + 7] = [*pos, *(quat / np.linalg.norm(quat))]
