@@ -410,6 +410,14 @@ def add_floor_and_table(world: mujoco.MjsBody, *, top_material: str, marker: boo
         )
 
 
+def camera_quat_wxyz(world_from_cam: np.ndarray) -> np.ndarray:
+    """Quaternion of a MuJoCo camera (looks along its -z, y up) whose pose is `world_from_cam` (4x4 or 3x3, OpenCV
+    axes: the same axes with y and z flipped)."""
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, (world_from_cam[:3, :3] @ np.diag([1.0, -1.0, -1.0])).flatten())
+    return quat
+
+
 def look_at_quat_wxyz(eye_m: np.ndarray, target_m: np.ndarray) -> np.ndarray:
     """Quaternion of a MuJoCo camera (looks along its -z, y up) at eye_m looking at target_m, world z up."""
     opencv_axes = look_at_world_from_cam(eye_m, target_m)[:3, :3]  # x right, y down, z forward
@@ -463,11 +471,8 @@ def render_states(
     try:
         for k, row in enumerate(qpos):
             if world_from_cam is not None:
-                # MuJoCo cameras look along -z with y up: the OpenCV axes with y and z flipped.
-                quat = np.zeros(4)
-                mujoco.mju_mat2Quat(quat, (world_from_cam[k, :3, :3] @ np.diag([1.0, -1.0, -1.0])).flatten())
                 model.cam_pos[cam_id] = world_from_cam[k, :3, 3]
-                model.cam_quat[cam_id] = quat
+                model.cam_quat[cam_id] = camera_quat_wxyz(world_from_cam[k])
             data.qpos[:] = row
             mujoco.mj_forward(model, data)
             if world_from_cam is not None and not np.allclose(

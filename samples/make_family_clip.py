@@ -137,10 +137,8 @@ def clip_spec(
         geom.priority = OBJECT_PRIORITY
         geom.density = float(belief["mass_kg"]) / float(obj["volume_m3"])
     camera = spec.camera("video")
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, (world_from_cam[:3, :3] @ np.diag([1.0, -1.0, -1.0])).flatten())
     camera.pos = world_from_cam[:3, 3].tolist()
-    camera.quat = quat.tolist()
+    camera.quat = sa.camera_quat_wxyz(world_from_cam).tolist()
     camera.fovy = fovy_deg
     return spec
 
