@@ -56,6 +56,9 @@ class MeshOptions:
         outline_gap_voxels: gaps up to about twice this wide (fusion voxels) in the ring of an object's
             cross-section are closed before its inside counts as inside the outline that trims the layers next to
             the table (a torn bowl wall kept its floor at 3; tuning seed 42).
+        min_tip_angle_deg: an object standing on the table is meshed again with a foot under its seen surface
+            (`_foot_columns`) when its mesh tips over past its support's edge at a smaller tilt than this
+            (`tip_angle_deg`): the object was filmed at rest.
     """
 
     face_budget: int = 4000
@@ -72,6 +75,7 @@ class MeshOptions:
     support_min_views: int = 2
     support_tolerance_voxels: float = 1.5
     outline_gap_voxels: float = 3.0
+    min_tip_angle_deg: float = 5.0
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -79,6 +83,7 @@ class WatertightMesh:
     vertices_world: np.ndarray  # (V, 3)
     faces: np.ndarray  # (F, 3)
     closed_bottom: bool
+    warnings: tuple[str, ...] = ()
 
 
 def standing_sheet(points_world: np.ndarray, max_aspect: float, min_height_ratio: float = 2.0) -> bool:
@@ -187,6 +192,13 @@ def mesh_object(
     The fused surface has holes (occlusions, weak texture); the winding number (Jacobson et al. 2013) still
     tells inside from outside across them, where filling voxels or carving would leak.
 
+    An object filmed at rest on the table must rest there in the simulation too. Stereo rarely measures the low
+    side of a foot next to the table (a toy figure's base disc, 1 cm tall), and the inside test then stands the
+    object on the narrower part above it; when the mesh would tip over at less than ``min_tip_angle_deg`` of tilt,
+    every column under the object's seen surface is filled down to the table instead (carved where the depth maps
+    see through it, as before), and the steadier mesh is kept, with a warning. (Test seed 101's toy figure stood on
+    a 2 x 1 cm foot of its 5 cm base on one CPU and toppled in the settle test.)
+
     Args:
         dense: fused surface (world frame, table top z = 0).
         segment: the object's part of it.
@@ -196,11 +208,64 @@ def mesh_object(
     Raises:
         SegmentationError: nothing closed could be made of the object.
     """
+    options = options or MeshOptions()
+    mesh = _closed_surface(dense, segment, cam_centres, options, foot=False)
+    contact_m = 0.25 * dense.voxel_size
+    tilt = tip_angle_deg(mesh.vertices_world, mesh.faces, contact_m)
+    if tilt >= options.min_tip_angle_deg or np.min(mesh.vertices_world[:, 2]) > contact_m:
+        return mesh  # steady, or not standing on the table (resting on another object)
+    try:
+        footed = _closed_surface(dense, segment, cam_centres, options, foot=True)
+    except SegmentationError:
+        return mesh
+    footed_tilt = tip_angle_deg(footed.vertices_world, footed.faces, contact_m)
+    if footed_tilt <= tilt:
+        return mesh
+    note = (
+        f"its mesh stood on too narrow a foot to rest (tips over at {tilt:.1f} deg): the space under its seen surface "
+        f"was filled down to the table (tips over at {footed_tilt:.1f} deg)"
+    )
+    log.info("an object %s", note)
+    return WatertightMesh(
+        vertices_world=footed.vertices_world, faces=footed.faces, closed_bottom=footed.closed_bottom, warnings=(note,)
+    )
+
+
+def tip_angle_deg(vertices_world: np.ndarray, faces: np.ndarray, contact_m: float) -> float:
+    """How far a closed mesh standing on the table (z = 0) can tilt before it tips over: the angle, seen from its
+    centre of mass (uniform density), between straight down and the nearest edge of its support (the convex hull of
+    its vertices within `contact_m` of the table). Negative when the centre of mass lies outside the support; -90
+    with no support to stand on.
+
+    Args:
+        vertices_world: (V, 3) float, metres, world frame (table top z = 0).
+        faces: (F, 3) int, a closed surface.
+        contact_m: vertices this close to the table touch it.
+    """
+    import trimesh
+    from scipy.spatial import ConvexHull, QhullError
+
+    support = vertices_world[vertices_world[:, 2] <= contact_m, :2]
+    if len(support) < 3:
+        return -90.0
+    try:
+        hull = ConvexHull(support)
+    except QhullError:  # a line or a point: no area to stand on
+        return -90.0
+    centre = trimesh.Trimesh(vertices_world, faces, process=False).center_mass
+    inside_m = float(np.min(-(hull.equations[:, :2] @ centre[:2] + hull.equations[:, 2])))
+    return float(np.degrees(np.arctan2(inside_m, max(float(centre[2]), 1e-9))))
+
+
+def _closed_surface(
+    dense: DenseResult, segment: ObjectSegment, cam_centres: np.ndarray, options: MeshOptions, foot: bool
+) -> WatertightMesh:
+    """`mesh_object`'s surface; `foot`: every column under the object's seen surface is filled down to the table
+    (`_foot_columns`), not only those under its inside-test solid, and none is tapered."""
     import igl
     import trimesh
     from skimage.measure import marching_cubes
 
-    options = options or MeshOptions()
     # The inside test runs on a grid finer than the fusion voxels: voxel centres that sit on the surface count as
     # inside, which biases the surface outwards by up to half a grid cell.
     voxel = dense.voxel_size / options.grid_refinement
@@ -244,9 +309,14 @@ def mesh_object(
     # down to a slope from where the object stands to the lowest wall seen (`_tapered_bottom`). An assumption.
     footprint = np.asarray(solid.any(axis=2))
     first = np.where(footprint, solid.argmax(axis=2), 0)
+    if foot:
+        low_m = options.cap_height_voxels * dense.voxel_size
+        columns, lowest = _foot_columns(points, lo, voxel, footprint.shape, low_m)
+        first = np.where(footprint, np.minimum(first, lowest), lowest)
+        footprint = footprint | columns
     layers = np.arange(shape[2])[None, None, :]
     bottom = np.full(footprint.shape, z0)
-    if options.underside == "taper":
+    if options.underside == "taper" and not foot:
         margin_layers = int(np.ceil(options.carve_margin_voxels * dense.voxel_size / voxel))
         reach_m = options.seen_wall_voxels * dense.voxel_size
         seen = _seen_lowest(points, lo, voxel, first, footprint, reach_m)
@@ -310,6 +380,29 @@ def mesh_object(
     return WatertightMesh(
         vertices_world=np.asarray(mesh.vertices), faces=np.asarray(mesh.faces), closed_bottom=closed_bottom
     )
+
+
+def _foot_columns(
+    points_world: np.ndarray, lo: np.ndarray, voxel: float, shape: tuple[int, int], min_height_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(X, Y) grid columns under the object's seen surface, and the layer of the lowest point seen in each (a large
+    value elsewhere): the points `min_height_m` or more above the table (lower ones mix with the table's), their
+    columns closed across the gaps between fused points (two cells) and their enclosed holes filled."""
+    high = points_world[points_world[:, 2] >= min_height_m]
+    lowest = np.full(shape, np.iinfo(np.int32).max // 2, np.int32)
+    if len(high) == 0:
+        return np.zeros(shape, bool), lowest
+    cell = np.round((high - lo) / voxel).astype(int)
+    keep = (cell[:, 0] >= 0) & (cell[:, 0] < shape[0]) & (cell[:, 1] >= 0) & (cell[:, 1] < shape[1])
+    cell = cell[keep]
+    np.minimum.at(lowest, (cell[:, 0], cell[:, 1]), cell[:, 2].astype(np.int32))
+    seen = lowest < np.iinfo(np.int32).max // 2
+    columns = ndimage.binary_fill_holes(ndimage.binary_closing(seen, iterations=2, border_value=0))
+    # A column between seen ones takes the lowest layer seen within two cells of it.
+    spread = ndimage.minimum_filter(lowest, size=5, mode="constant", cval=np.iinfo(np.int32).max // 2)
+    filled = np.where(seen, lowest, spread)
+    columns &= filled < np.iinfo(np.int32).max // 2
+    return np.asarray(columns), filled
 
 
 def _seen_lowest(

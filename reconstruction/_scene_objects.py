@@ -244,6 +244,7 @@ def _instance_of(
         closed_bottom=mesh.closed_bottom,
         warnings=(
             *segment.warnings,
+            *mesh.warnings,
             *(() if reason is None else (f"meshed as the convex hull of its points ({reason})",)),
         ),
         mesh_quality=quality,

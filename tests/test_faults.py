@@ -18,6 +18,7 @@ import mujoco
 import numpy as np
 import pytest
 
+import grounder  # noqa: F401  (registers every command's output records, as running any command does)
 from image2sim_common.outdir import (
     check_output_dir,
     claim_output,
