@@ -548,7 +548,9 @@ def test_a_sheet_of_smeared_points_is_no_fallback_object() -> None:
 
 def test_find_objects_drops_a_smear_sheet_and_keeps_a_hull_that_fails_to_mesh(monkeypatch: pytest.MonkeyPatch) -> None:
     """The rule above where it acts: both clusters fail `mesh_object` (as the can and the sheet did); the can becomes
-    a fallback hull, the sheet is dropped, not made into a phantom wall."""
+    a fallback hull, the sheet is dropped, not made into a phantom wall. So is a slab too thick for that rule whose
+    hull could not stand where it was filmed (held-out 1067: 1.2 x 3.6 cm, 16.5 cm tall, beside a bottle; it tips
+    over at 3.8 deg and fell 14 cm in the settle test)."""
     from types import SimpleNamespace
 
     from reconstruction import _dense, _objects, _scene_objects
@@ -561,9 +563,10 @@ def test_find_objects_drops_a_smear_sheet_and_keeps_a_hull_that_fails_to_mesh(mo
     can = np.c_[0.1 + 0.033 * np.cos(angle), 0.033 * np.sin(angle), rng.uniform(0.0, 0.11, 3000)]
     along = rng.uniform(-0.12, 0.12, 3000)
     sheet = np.c_[-0.1 + rng.normal(0.0, 0.003, 3000), along, rng.uniform(0.0, 0.12, 3000)]
+    slab = np.c_[0.0 + rng.uniform(-0.006, 0.006, 3000), rng.uniform(0.1, 0.136, 3000), rng.uniform(0.0, 0.165, 3000)]
     segments = [
         ObjectSegment(points_world=p, normals_world=p, face_ids=np.arange(0), num_views=9, warnings=())
-        for p in (sheet, can)
+        for p in (sheet, can, slab)
     ]
     roi = _dense.RegionOfInterest(min_world=np.array([-0.3, -0.3, -0.01]), max_world=np.array([0.3, 0.3, 0.2]))
     dense = SimpleNamespace(voxel_size=0.003, num_pairs=8)
