@@ -30,20 +30,24 @@ def family_scenes(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-# Targets not met yet on these two scenes (measured 2026-12-02, `pytest tests/samples/test_make_scene_family.py`; seed
-# 101 is at rest since 2026-12-07, its figure no longer toppling); each mark goes once the figure passes (strict: a pass
-# then fails the run, so the list cannot go stale). The held-out figures are in docs/results/scene_family.md.
+# Targets not met yet on these two scenes (seed 101's figures as measured 2026-12-08 on an AVX-512 machine, where its
+# meshes differ from those of the machines before: the same code, other rounding; its toy figure, toppling there, is
+# at rest since the foot rule of `_objects.mesh_object`); each mark goes once the figure passes (strict: a pass then
+# fails the run, so the list cannot go stale). The held-out figures are in docs/results/scene_family.md.
 NOT_YET: dict[tuple[int, str], str] = {
     (100, "found"): "a single low-texture cup on a half orbit with --known-extent: no sparse point stands on it; "
     "since 2026-12-07 the scene grounds (a provisional scale, then the known extent on the cup's mesh), but the "
     "cup's fused mesh reaches 62% of its height, so the scene is scaled x 1.61 and the cup counts as an extra body",
     (100, "objects"): "nothing found to measure (the cup, above)",
-    (101, "chamfer"): "bowl_0: 5.73 mm, its rim torn and ragged (issue 60 item 6)",
-    (101, "normals"): "bowl_0: 0.680, the torn rim",
-    (101, "topology"): "bowl_0: Euler number -8 (holes through the wall), truth 2",
-    (101, "extents"): "irregular_1, a toy figure 5 cm wide and 8.7 cm tall: 52.6%",
+    (101, "chamfer"): "bowl_0: 5.4 mm, its rim torn and ragged (issue 60 item 6); irregular_1, a toy figure: 6.0 mm",
+    (101, "normals"): "bowl_0: 0.69, the torn rim; irregular_1: 0.64; plate_2: 0.88",
+    (101, "topology"): "bowl_0: Euler number -16 (holes through the wall), plate_2 -6, irregular_1 0; truth 2",
+    (101, "extents"): "irregular_1, a toy figure 5 cm wide and 8.7 cm tall: 38% (its 5 cm base disc meshed 3.8 cm)",
 }
-BORDERLINE = {(101, "centres"): "irregular_1: 5.2 mm against 5 mm (its extents are off)"}
+# Not met on any machine tried, but near enough that another CPU's rounding could meet it: not strict.
+BORDERLINE = {
+    (101, "centres"): "irregular_1: 8.8 mm (5.2 mm on the machines before) against 5 mm (its base disc meshed narrow)"
+}
 
 
 PER_OBJECT = ("centres", "chamfer", "extents", "normals", "topology", "cavity")  # checks of each found object
