@@ -373,6 +373,11 @@ def test_known_extent_keeps_the_sparse_scale_when_the_longest_mesh_cannot_be_mea
     # ... and one lying down, cut short along its length, is no measure, nor lets a shorter object take the length
     factor, name, why = step(_box("lying bottle", (0.16, 0.06, 0.06), at_edge=True), can, known=0.22)
     assert (factor, name) == (1.0, "can") and why == "lying bottle (cut by the region's side) may be longer than can"
+    # a visual hull counts by its height, but its footprint may be the longer object's (held-out 1081: two bowls
+    # only their silhouettes found let an 8.9 cm L-block take their 17.6 cm, x 1.97): declined
+    l_block, bowl_hull = _box("l_block", (0.089, 0.03, 0.05)), _box("bowl", (0.175, 0.17, 0.05), "silhouette")
+    factor, name, why = step(l_block, bowl_hull, known=0.1756)
+    assert (factor, name) == (1.0, "l_block") and why == "bowl (a visual hull) may be longer than l_block"
     # a hull of smeared points (1033): declined
     factor, name, why = step(can, _box("sheet", (0.015, 0.23, 0.12), "fallback"), known=0.08)
     assert (factor, name) == (1.0, "sheet") and "convex hull of its points" in why
